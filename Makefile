@@ -1,0 +1,44 @@
+# pgnn-feedforward: every target works on a fresh clone (it installs what it needs first).
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+ROOT := $(abspath .)
+MLFLOW_DB ?= sqlite:///$(ROOT)/mlruns/mlflow.db
+export OMP_NUM_THREADS ?= 1
+
+.PHONY: help install test test-full lint reproduce ui bench clean
+
+help:  ## list the targets
+	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-10s %s\n", $$1, $$2}'
+
+install: $(VENV)/.installed  ## create .venv: CPU torch first, then the project with [dev]
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $@
+
+test: install  ## fast test suite (< 10 min on 2 cores)
+	$(PY) -m pytest -q
+
+test-full: install  ## every test, including the slow ones (sweeps, whole experiments)
+	$(PY) -m pytest -q -m ''
+
+lint: install  ## ruff
+	$(VENV)/bin/ruff check pipeline stages tests benchmarks
+
+reproduce: install  ## run every paper experiment, then write results/REPORT.md, summary.csv, figures
+	$(PY) -m pipeline.reproduce
+
+ui: install  ## MLflow UI on http://127.0.0.1:5000 over the same store as the runs
+	$(VENV)/bin/mlflow server --backend-store-uri "$${MLFLOW_TRACKING_URI:-$(MLFLOW_DB)}" \
+	  --artifacts-destination "$(ROOT)/mlruns/artifacts" --host 127.0.0.1 --port 5000
+
+bench: install  ## print wall times (stages per plant, ILC trials, solvers)
+	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+clean:  ## remove caches and stores (keeps results/)
+	rm -rf .cache outputs multirun mlruns .pytest_cache

@@ -1,0 +1,26 @@
+"""Hydra entry point: ``python -m pipeline [experiment=NAME] [key=value ...] [-m]``."""
+from __future__ import annotations
+
+import sys
+
+import hydra
+from omegaconf import DictConfig
+
+from pipeline.runner import ConfigError, run_job
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+def _main(cfg: DictConfig) -> None:
+    try:
+        run_job(cfg)
+    except ConfigError as exc:  # bad input: one clear line, no traceback, exit code 2
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
+def main() -> None:
+    _main()
+
+
+if __name__ == "__main__":
+    main()

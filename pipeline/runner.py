@@ -1,0 +1,274 @@
+"""Chains the stages of one job and caches their outputs by config hash (DESIGN, Stages).
+
+A stage is a module ``stages.<name>`` with
+
+- ``UPSTREAM``: the stages whose outputs it reads (``ctx.inputs[name]``);
+- ``DEPENDS``: the dotted config keys its result depends on;
+- ``VERSION``: bump it when the stage's code changes its results;
+- ``run(ctx) -> dict``: the result (picklable: arrays, DataFrames, modules, numbers);
+- optionally ``validate(cfg, system)``: raise before any work is done on bad input;
+- optionally ``CACHE = False`` (the report reads the tracking store and always runs).
+
+The cache key of a stage is the SHA-256 of its name, VERSION, the DEPENDS sub-configs and its
+upstream keys, so changing ``invert.*`` reruns invert and evaluate but not generate or train.
+A stage writes into a temporary directory that is renamed into place only when complete, so
+an interrupted run leaves nothing a rerun would trust.
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib
+import json
+import os
+import pickle
+import shutil
+import sys
+import time
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline import tracking
+
+#: the order stages run in; ``cfg.stages`` selects a subset
+ORDER = ("generate", "baseline", "train", "invert", "evaluate", "report")
+ROOT = tracking.ROOT
+#: config groups whose chosen option is a run tag (DESIGN, Tracking)
+TAG_GROUPS = ("system", "data", "model", "identify", "regularizer", "invert")
+
+
+class ConfigError(ValueError):
+    """A bad config key or value, raised before any work is done."""
+
+
+def cache_dir(cfg: DictConfig) -> Path:
+    p = cfg.get("paths", {}).get("cache") or os.environ.get("PIPELINE_CACHE") or ROOT / ".cache"
+    return Path(p)
+
+
+def make_system(cfg: DictConfig):
+    """Instantiate ``cfg.system`` (its ``name`` key is metadata, not a constructor argument)."""
+    from hydra.utils import instantiate
+    sys_cfg = OmegaConf.to_container(cfg.system, resolve=True)
+    name = sys_cfg.pop("name", None)
+    try:
+        system = instantiate(sys_cfg)
+    except Exception as exc:  # hydra wraps constructor errors; surface the message
+        cause = exc.__cause__ or exc
+        raise ConfigError(f"system '{name}': {cause}") from exc
+    return system
+
+
+def choice(cfg: DictConfig, group: str) -> str:
+    node = cfg.get(group)
+    if isinstance(node, DictConfig):
+        return str(node.get("name") or node.get("kind") or "")
+    return "" if node is None else str(node)
+
+
+def implementation(stage: str, kind: str):
+    """The module ``stages.<stage>.<kind>`` (method-specific stage implementation)."""
+    pkg = importlib.import_module(f"stages.{stage}")
+    folder = Path(pkg.__file__).parent
+    options = sorted(p.stem for p in folder.glob("*.py") if not p.stem.startswith("_"))
+    if kind not in options:
+        raise ConfigError(f"no '{stage}' implementation for kind '{kind}'; choose one of {options}")
+    return importlib.import_module(f"stages.{stage}.{kind}")
+
+
+@dataclass
+class StageContext:
+    """What a stage sees: config, upstream results, seeded randomness, and recorders."""
+
+    cfg: DictConfig
+    name: str
+    inputs: dict[str, dict]
+    workdir: Path
+    system: Any = None
+    metrics: list = field(default_factory=list)
+    tags: dict = field(default_factory=dict)
+    figures: list = field(default_factory=list)
+    datasets: list = field(default_factory=list)
+
+    def rng(self, purpose: str) -> np.random.Generator:
+        """A generator seeded by (cfg.seed, purpose): same config, same draws (SPEC §0)."""
+        return np.random.default_rng([int(self.cfg.seed), zlib.crc32(purpose.encode())])
+
+    def metric(self, key: str, value: float, step: int | None = None) -> None:
+        self.metrics.append((f"{self.name}/{key}", float(value), step))
+
+    def tag(self, key: str, value: Any) -> None:
+        self.tags[key] = str(value)
+
+    def figure(self, fig, filename: str) -> Path:
+        import matplotlib.pyplot as plt
+        path = self.workdir / "figures" / filename
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=110, bbox_inches="tight")
+        plt.close(fig)
+        self.figures.append(filename)
+        return path
+
+    def path(self, filename: str) -> Path:
+        """A file inside the stage's (atomic) output directory."""
+        p = self.workdir / filename
+        p.parent.mkdir(parents=True, exist_ok=True)
+        return p
+
+    def dataset(self, ds, name: str, context: str = "training") -> Path:
+        """Save a :class:`pipeline.data.Dataset` (Parquet + sidecar) and log it as an input."""
+        from pipeline import data
+        path = data.save(ds, self.workdir / "data" / name)
+        self.datasets.append([f"data/{path.name}", name, context])
+        return path
+
+    def progress(self, iterable: Iterable, desc: str = "", total: int | None = None):
+        from tqdm.auto import tqdm
+        return tqdm(iterable, desc=f"{self.name}: {desc}", total=total, leave=False,
+                    disable=not sys.stderr.isatty() and not os.environ.get("PIPELINE_PROGRESS"))
+
+
+def _select(cfg: DictConfig, key: str):
+    node = OmegaConf.select(cfg, key, default=None)
+    return OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) or \
+        OmegaConf.is_list(node) else node
+
+
+def stage_key(cfg: DictConfig, name: str, mod, upstream_keys: dict[str, str]) -> str:
+    payload = {"stage": name, "version": getattr(mod, "VERSION", 1),
+               "config": {k: _select(cfg, k) for k in mod.DEPENDS},
+               "upstream": {u: upstream_keys[u] for u in mod.UPSTREAM}}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def selected_stages(cfg: DictConfig) -> list[str]:
+    raw = cfg.stages
+    names = [raw] if isinstance(raw, str) else list(raw)
+    names = [n.strip() for part in names for n in str(part).split(",") if n.strip()]
+    unknown = [n for n in names if n not in ORDER]
+    if unknown:
+        raise ConfigError(f"unknown stage(s) {unknown} in 'stages'; choose from {list(ORDER)}, "
+                          "e.g. stages=[generate,baseline]")
+    return [n for n in ORDER if n in names]
+
+
+def validate(cfg: DictConfig) -> tuple[list[str], Any, dict]:
+    """Everything that can be checked before work starts (DESIGN: validate configs early)."""
+    names = selected_stages(cfg)
+    system = make_system(cfg) if "system" in cfg and cfg.system is not None else None
+    modules = {}
+    needed = list(names)
+    for n in names:  # upstream stages whose results are loaded from the cache
+        needed += list(importlib.import_module(f"stages.{n}").UPSTREAM)
+    for n in ORDER:
+        if n in needed:
+            modules[n] = importlib.import_module(f"stages.{n}")
+    for n in names:
+        if hasattr(modules[n], "validate"):
+            modules[n].validate(cfg, system)
+    return names, system, modules
+
+
+def _load(stage_dir: Path) -> tuple[dict, dict]:
+    with open(stage_dir / "result.pkl", "rb") as f:
+        result = pickle.load(f)
+    record = json.loads((stage_dir / "record.json").read_text())
+    return result, record
+
+
+def _record(ctx: StageContext, seconds: float) -> dict:
+    return {"metrics": ctx.metrics, "tags": ctx.tags, "figures": ctx.figures,
+            "datasets": ctx.datasets, "seconds": seconds}
+
+
+def _store(tmp: Path, final: Path, result: dict, ctx: StageContext, seconds: float) -> None:
+    with open(tmp / "result.pkl", "wb") as f:
+        pickle.dump(result, f, protocol=pickle.HIGHEST_PROTOCOL)
+    (tmp / "record.json").write_text(json.dumps(_record(ctx, seconds), indent=1))
+    try:
+        os.rename(tmp, final)  # atomic: the directory appears complete or not at all
+    except OSError:  # another process finished the same key first: keep theirs
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, dict]:
+    """Run the selected stages of one job; returns every stage's result by name."""
+    names, system, modules = validate(cfg)
+    store = cache_dir(cfg)
+    own_run = run is None
+    if own_run:
+        tags = {"experiment": cfg.experiment_name, "stages": ",".join(names),
+                **{g: choice(cfg, g) for g in TAG_GROUPS if g in cfg}}
+        run = tracking.JobRun(str(cfg.experiment_name), str(cfg.run_name), tags,
+                              OmegaConf.to_container(cfg, resolve=True))
+        cfg_file = store / "configs" / f"{run.run_id}.yaml"
+        cfg_file.parent.mkdir(parents=True, exist_ok=True)
+        cfg_file.write_text(OmegaConf.to_yaml(cfg, resolve=True))
+        run.log_artifact(cfg_file)  # the resolved config (DESIGN, Tracking)
+    results: dict[str, dict] = {}
+    keys: dict[str, str] = {}
+    status = "FAILED"
+    try:
+        for name, mod in modules.items():
+            key = stage_key(cfg, name, mod, keys)
+            keys[name] = key
+            final = store / name / key[:20]
+            cacheable = getattr(mod, "CACHE", True)
+            if cacheable and (final / "record.json").exists():
+                results[name], record = _load(final)
+                hit = True
+            elif name not in names:
+                raise ConfigError(f"stage '{name}' is needed by {names} but has no cached result "
+                                  f"for this config; add it to 'stages' (e.g. stages=[{name},{names[0]}])")
+            else:
+                tmp = store / name / f".tmp-{key[:20]}-{os.getpid()}-{time.time_ns()}"
+                tmp.mkdir(parents=True)
+                ctx = StageContext(cfg, name, {u: results[u] for u in mod.UPSTREAM}, tmp, system)
+                _seed_everything(int(cfg.seed), name)
+                t0 = time.perf_counter()
+                try:
+                    result = mod.run(ctx) or {}
+                except BaseException:
+                    shutil.rmtree(tmp, ignore_errors=True)
+                    raise
+                seconds = time.perf_counter() - t0
+                if cacheable:
+                    _store(tmp, final, result, ctx, seconds)
+                else:
+                    final = tmp
+                    (tmp / "record.json").write_text(json.dumps(_record(ctx, seconds)))
+                results[name] = result
+                record = json.loads((final / "record.json").read_text())
+                hit = False
+            _log_stage(run, name, record, final, hit)
+            if not cacheable:
+                shutil.rmtree(final, ignore_errors=True)
+        status = "FINISHED"
+    finally:
+        if own_run:
+            run.end(status)
+    return results
+
+
+def _seed_everything(seed: int, stage: str) -> None:
+    import torch
+    s = (seed * 1_000_003 + zlib.crc32(stage.encode())) % 2**31
+    np.random.seed(s)
+    torch.manual_seed(s)
+
+
+def _log_stage(run, name: str, record: dict, stage_dir: Path, hit: bool) -> None:
+    metrics = [tuple(m) for m in record["metrics"]]
+    metrics.append((f"time/{name}_s", record["seconds"], None))
+    run.log_metrics(metrics)
+    run.set_tags({**record["tags"], f"cache.{name}": "hit" if hit else "miss"})
+    for fig in record["figures"]:
+        run.log_artifact(stage_dir / "figures" / fig, "figures")
+    for rel, ds_name, context in record.get("datasets", []):
+        import pandas as pd
+        path = stage_dir / rel
+        run.log_dataset(pd.read_parquet(path), ds_name, str(path), context)

@@ -1,0 +1,157 @@
+"""MLflow glue: the one module that knows about MLflow (DESIGN, Tracking).
+
+- Store: ``MLFLOW_TRACKING_URI`` if set, else ``sqlite:///<repo>/mlruns/mlflow.db`` with
+  artifacts under ``<repo>/mlruns/artifacts`` (absolute paths, so every working directory
+  shares one store).
+- One Hydra job = one run; a multirun gets a parent run (:class:`MultirunCallback`) whose id
+  reaches the jobs through the environment variable ``PIPELINE_PARENT_RUN_ID``.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import mlflow
+from mlflow.entities import Metric, Param, RunTag
+from mlflow.tracking import MlflowClient
+
+ROOT = Path(__file__).resolve().parent.parent
+PARENT_ENV = "PIPELINE_PARENT_RUN_ID"
+#: MLflow 3 opens experiments on the GenAI page unless they carry this tag (DESIGN).
+EXPERIMENT_KIND = {"mlflow.experimentKind": "custom_model_development"}
+
+
+def default_uri() -> str:
+    return f"sqlite:///{ROOT / 'mlruns' / 'mlflow.db'}"
+
+
+def tracking_uri() -> str:
+    """The tracking URI of this process: ``MLFLOW_TRACKING_URI`` or the embedded SQLite store."""
+    uri = os.environ.get("MLFLOW_TRACKING_URI") or default_uri()
+    if uri.startswith("sqlite:///"):
+        Path(uri[len("sqlite:///"):]).parent.mkdir(parents=True, exist_ok=True)
+    return uri
+
+
+def client() -> MlflowClient:
+    uri = tracking_uri()
+    mlflow.set_tracking_uri(uri)
+    return MlflowClient(uri)
+
+
+def experiment_id(name: str) -> str:
+    """Get or create the experiment ``name`` (artifacts beside the SQLite store)."""
+    c = client()
+    exp = c.get_experiment_by_name(name)
+    if exp is not None:
+        return exp.experiment_id
+    location = None
+    if tracking_uri() == default_uri():
+        location = (ROOT / "mlruns" / "artifacts" / name).as_uri()
+    try:
+        return c.create_experiment(name, artifact_location=location, tags=EXPERIMENT_KIND)
+    except mlflow.exceptions.MlflowException:  # created meanwhile by another process
+        return c.get_experiment_by_name(name).experiment_id
+
+
+def git_sha() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True,
+                             text=True, timeout=10)
+        sha = out.stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+        return (sha or "unknown") + ("-dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def _flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
+    out: dict[str, str] = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping):
+            out.update(_flatten(v, key + "."))
+        else:
+            out[key] = str(v)[:6000]
+    return out
+
+
+class JobRun:
+    """One MLflow run for one pipeline job; batches what the stages record."""
+
+    def __init__(self, experiment: str, run_name: str, tags: Mapping[str, str],
+                 params: Mapping[str, Any]):
+        self.client = client()
+        exp_id = experiment_id(experiment)
+        all_tags = {"git_sha": git_sha(), **{k: str(v) for k, v in tags.items()}}
+        parent = os.environ.get(PARENT_ENV)
+        if parent:
+            all_tags["mlflow.parentRunId"] = parent
+        run = self.client.create_run(exp_id, run_name=run_name, tags=all_tags)
+        self.run_id = run.info.run_id
+        flat = _flatten(params)
+        items = [Param(k[:250], v) for k, v in sorted(flat.items())]
+        for i in range(0, len(items), 100):
+            self.client.log_batch(self.run_id, params=items[i:i + 100])
+
+    def log_metrics(self, metrics: list[tuple[str, float, int | None]]) -> None:
+        now = int(time.time() * 1000)
+        items = [Metric(k, float(v), now, int(s or 0)) for k, v, s in metrics]
+        for i in range(0, len(items), 500):
+            self.client.log_batch(self.run_id, metrics=items[i:i + 500])
+
+    def set_tags(self, tags: Mapping[str, Any]) -> None:
+        items = [RunTag(k, str(v)) for k, v in tags.items()]
+        if items:
+            self.client.log_batch(self.run_id, tags=items)
+
+    def log_artifact(self, path: Path, subdir: str | None = None) -> None:
+        self.client.log_artifact(self.run_id, str(path), subdir)
+
+    def log_dataset(self, df, name: str, source: str, context: str = "training") -> None:
+        """Log a pandas dataset as an MLflow dataset input (DESIGN: ``log_input``)."""
+        import mlflow.data
+        from mlflow.entities import DatasetInput, InputTag
+        ds = mlflow.data.from_pandas(df, source=source, name=name)
+        inp = DatasetInput(ds._to_mlflow_entity(), tags=[InputTag("mlflow.data.context", context)])
+        self.client.log_inputs(self.run_id, datasets=[inp])
+
+    def end(self, status: str = "FINISHED") -> None:
+        self.client.set_terminated(self.run_id, status)
+
+
+def search_runs(experiment: str):
+    """All finished runs of ``experiment`` as a pandas DataFrame (empty if none)."""
+    import pandas as pd
+    c = client()
+    exp = c.get_experiment_by_name(experiment)
+    if exp is None:
+        return pd.DataFrame()
+    return mlflow.search_runs([exp.experiment_id], filter_string="attributes.status = 'FINISHED'",
+                              order_by=["attributes.start_time DESC"])
+
+
+try:  # the Hydra callback lives here so that tracking stays in one module
+    from hydra.experimental.callback import Callback
+
+    class MultirunCallback(Callback):
+        """Parent MLflow run around a Hydra multirun; jobs attach to it (DESIGN)."""
+
+        def on_multirun_start(self, config, **kwargs) -> None:
+            c = client()
+            exp_id = experiment_id(str(config.experiment_name))
+            run = c.create_run(exp_id, run_name=f"{config.experiment_name}-sweep",
+                               tags={"git_sha": git_sha(), "experiment": str(config.experiment_name),
+                                     "sweep": "parent"})
+            os.environ[PARENT_ENV] = run.info.run_id
+
+        def on_multirun_end(self, config, **kwargs) -> None:
+            run_id = os.environ.pop(PARENT_ENV, None)
+            if run_id:
+                client().set_terminated(run_id, "FINISHED")
+except ImportError:  # pragma: no cover
+    pass

@@ -1,0 +1,42 @@
+"""evaluate: run the true plant with each feedforward and score the tracking (SPEC §7).
+
+``evaluate.noise``: false = noise-free evaluation runs (B1b); true = the plant's noise model,
+seeded by the config.  Metrics ``evaluate/<reference>/<metric>`` (mae, max_abs, norm2,
+sq_norm2, rms, ff_error where the optimal input is known); a figure of the tracking errors.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline import plots
+from pipeline.metrics import tracking_metrics
+from pipeline.systems.base import System
+
+UPSTREAM = ("invert",)
+DEPENDS = ("system", "evaluate", "seed")
+VERSION = 1
+
+
+def run(ctx) -> dict:
+    inv = ctx.inputs["invert"]
+    system = ctx.system
+    knows_inverse = type(system).exact_inverse is not System.exact_inverse
+    out, errors = {}, {}
+    for name, r in inv["r"].items():
+        u_ff = inv["u_ff"][name]
+        v = system.noise(r.size, ctx.rng(f"evaluate/{name}")) if ctx.cfg.evaluate.noise else None
+        sim = system.simulate(r, u_ff=u_ff, v=v)
+        f_opt = system.exact_inverse(r) if knows_inverse else None
+        m = tracking_metrics(r, sim.y_clean, f_opt, u_ff if f_opt is not None else None)
+        for k, val in m.items():
+            ctx.metric(f"{name}/{k}", val)
+        t = np.arange(r.size) * system.Ts
+        errors[name] = (t, r - sim.y_clean)
+        out[name] = {"y": sim.y_clean, "u": sim.u, "u_ff": u_ff, "e": r - sim.y_clean, **m}
+    ctx.figure(plots.tracking_errors(errors, f"{system.name}: {ctx.cfg.invert.name} feedforward"),
+               "tracking_error.png")
+    first = next(iter(inv["r"]))
+    t = np.arange(inv["r"][first].size) * system.Ts
+    ctx.figure(plots.signals(t, {"u_ff": inv["u_ff"][first], "u": out[first]["u"]}, "input [N]",
+                             f"{first}: feedforward and total input"), "feedforward.png")
+    return {"per_reference": out}

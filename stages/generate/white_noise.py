@@ -1,0 +1,26 @@
+"""data.kind=white_noise: open-loop identification experiment with white input (SPEC §2.4).
+
+u ~ N(0, ``data.u_std``²) for ``data.n_samples`` samples, r = 0; the plant's noise model adds v.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.data import Dataset
+from pipeline.runner import ConfigError
+
+
+def check(cfg, system) -> None:
+    n = int(cfg.data.n_samples)
+    if n < 10:
+        raise ConfigError(f"data.n_samples={n} is too short for identification; use >= 10")
+
+
+def make(cfg, system, ctx) -> Dataset:
+    n = int(cfg.data.n_samples)
+    rng = ctx.rng("data/white_noise")
+    u = float(cfg.data.u_std) * rng.standard_normal(n)
+    v = system.noise(n, rng)
+    sim = system.simulate(np.zeros(n), u_ff=np.zeros(n), du=u, v=v).as_dict()
+    sim["t"] = np.arange(n) * system.Ts
+    return Dataset.from_segments([sim], {"Ts": system.Ts})

@@ -1,0 +1,1 @@
+"""pgnn-feedforward: data-driven feedforward control with physics-guided neural networks."""

@@ -114,10 +114,15 @@ class JobRun:
 
     def log_dataset(self, df, name: str, source: str, context: str = "training") -> None:
         """Log a pandas dataset as an MLflow dataset input (DESIGN: ``log_input``)."""
+        import warnings
+
         import mlflow.data
         from mlflow.entities import DatasetInput, InputTag
-        ds = mlflow.data.from_pandas(df, source=source, name=name)
-        inp = DatasetInput(ds._to_mlflow_entity(), tags=[InputTag("mlflow.data.context", context)])
+        with warnings.catch_warnings():  # schema hints about int columns, ambiguous local sources
+            warnings.simplefilter("ignore", UserWarning)
+            ds = mlflow.data.from_pandas(df, source=source, name=name)
+            inp = DatasetInput(ds._to_mlflow_entity(),
+                               tags=[InputTag("mlflow.data.context", context)])
         self.client.log_inputs(self.run_id, datasets=[inp])
 
     def end(self, status: str = "FINISHED") -> None:

@@ -1,0 +1,37 @@
+"""Shared fixtures: an isolated cache + MLflow store per test, and Hydra's compose API."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = ROOT / "conf"
+
+#: a short two-mass training set: one [K] out-and-back move (~0.9 s)
+SHORT_TWO_MASS = [
+    "experiment=physics_two_mass",
+    "data.references=[{name:short,kind:out_and_back,distance:0.02,v_max:0.05,a_max:5,j_max:200}]",
+    "evaluate.references=[{name:held,kind:out_and_back,distance:0.03,v_max:0.05,a_max:5,j_max:200}]",
+]
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    """Point the stage cache and the MLflow store at a temporary folder."""
+    monkeypatch.setenv("PIPELINE_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    return tmp_path
+
+
+@pytest.fixture
+def cfg_of():
+    """``cfg_of(*overrides)`` composes the real config tree like the CLI does."""
+    def make(*overrides):
+        GlobalHydra.instance().clear()
+        with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+            return compose(config_name="config", overrides=list(overrides))
+    yield make
+    GlobalHydra.instance().clear()

@@ -1,0 +1,148 @@
+"""Runner: caching by config hash, atomic stage outputs, validation before work, tracking."""
+from __future__ import annotations
+
+import json
+
+import mlflow
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from pipeline import runner, tracking
+from tests.conftest import SHORT_TWO_MASS
+
+
+def _cache_state(store):
+    """{stage: set of completed key directories} in the cache."""
+    root = store / "cache"
+    return {p.name: {d.name for d in p.iterdir() if not d.name.startswith(".")}
+            for p in root.iterdir() if p.is_dir() and p.name != "configs"}
+
+
+def _run_tags(run_id):
+    return tracking.client().get_run(run_id).data.tags
+
+
+def test_rerun_hits_cache_and_invert_change_reruns_only_downstream(store, cfg_of, monkeypatch):
+    cfg = cfg_of(*SHORT_TWO_MASS)
+    first = runner.run_job(cfg)
+    state1 = _cache_state(store)
+    assert set(state1) == {"generate", "baseline", "train", "invert", "evaluate"}
+
+    calls = []
+    for name in runner.ORDER[:-1]:
+        mod = __import__(f"stages.{name}", fromlist=["run"])
+        orig = mod.run
+        monkeypatch.setattr(mod, "run", lambda ctx, _o=orig, _n=name: calls.append(_n) or _o(ctx))
+    again = runner.run_job(cfg)
+    assert calls == []                                   # nothing recomputed
+    assert _cache_state(store) == state1
+    np.testing.assert_array_equal(again["evaluate"]["per_reference"]["held"]["e"],
+                                  first["evaluate"]["per_reference"]["held"]["e"])
+
+    runner.run_job(cfg_of(*SHORT_TWO_MASS, "invert=none"))
+    assert calls == ["invert", "evaluate"]               # generate, baseline, train from cache
+    runs = tracking.search_runs("physics_baseline")
+    assert len(runs) == 3
+    latest = runs.iloc[0]
+    assert latest["tags.cache.generate"] == "hit" and latest["tags.cache.invert"] == "miss"
+    assert latest["tags.invert"] == "none"
+
+
+def test_same_seed_bit_identical_and_seed_changes_noise(store, cfg_of, tmp_path, monkeypatch):
+    over = [*SHORT_TWO_MASS, "system.noise.std=1e-6"]
+    a = runner.run_job(cfg_of(*over))["generate"]["dataset"].frame
+    monkeypatch.setenv("PIPELINE_CACHE", str(tmp_path / "cache2"))   # recompute from scratch
+    b = runner.run_job(cfg_of(*over))["generate"]["dataset"].frame
+    assert a.equals(b)
+    c = runner.run_job(cfg_of(*over, "seed=1"))["generate"]["dataset"].frame
+    assert not np.array_equal(a["v"].to_numpy(), c["v"].to_numpy())
+
+
+def test_interrupted_stage_leaves_nothing_trusted(store, cfg_of, monkeypatch):
+    import stages.evaluate as ev
+    cfg = cfg_of(*SHORT_TWO_MASS)
+    original = ev.run
+
+    def dies(ctx):
+        ctx.path("partial.bin").write_bytes(b"half")      # a half-written artifact
+        raise KeyboardInterrupt                           # Ctrl-C mid-stage
+    monkeypatch.setattr(ev, "run", dies)
+    with pytest.raises(KeyboardInterrupt):
+        runner.run_job(cfg)
+    assert not (store / "cache" / "evaluate").exists() or not any((store / "cache" / "evaluate").iterdir())
+    # a hard kill (SIGKILL) would leave the temporary directory: it must not be trusted either
+    leftover = store / "cache" / "evaluate" / ".tmp-deadbeef-1-1"
+    leftover.mkdir(parents=True)
+    (leftover / "record.json").write_text(json.dumps({"metrics": [], "tags": {}, "figures": [],
+                                                       "seconds": 0}))
+    monkeypatch.setattr(ev, "run", original)
+    out = runner.run_job(cfg)
+    assert "held" in out["evaluate"]["per_reference"]
+    runs = tracking.search_runs("physics_baseline")
+    assert runs.iloc[0]["tags.cache.evaluate"] == "miss"
+    failed = mlflow.search_runs(experiment_names=["physics_baseline"],
+                                filter_string="attributes.status = 'FAILED'")
+    assert len(failed) == 1                               # the interrupted job is marked FAILED
+
+
+def test_run_logs_params_tags_metrics_figures_config_dataset(store, cfg_of):
+    cfg = cfg_of(*SHORT_TWO_MASS)
+    runner.run_job(cfg)
+    run = tracking.search_runs("physics_baseline").iloc[0]
+    c = tracking.client()
+    r = c.get_run(run["run_id"])
+    assert r.data.params["system.m2"] == "2.0" and r.data.params["seed"] == "0"
+    for tag in ("experiment", "system", "data", "model", "identify", "regularizer", "invert",
+                "git_sha"):
+        assert r.data.tags[tag]
+    assert r.info.run_name == "two_mass_stribeck-physics-s0"
+    assert "evaluate/held/mae" in r.data.metrics and "baseline/m1" in r.data.metrics
+    arts = {a.path for a in c.list_artifacts(r.info.run_id)}
+    figs = {a.path for a in c.list_artifacts(r.info.run_id, "figures")}
+    assert any(p.endswith(".yaml") for p in arts)         # resolved config
+    assert "figures/tracking_error.png" in figs
+    assert len(r.inputs.dataset_inputs) == 1
+    exp = c.get_experiment(r.info.experiment_id)
+    assert exp.tags["mlflow.experimentKind"] == "custom_model_development"
+
+
+@pytest.mark.parametrize("override, message", [
+    ("system.m_typo=3", "m_typo"),                          # unknown key (Hydra struct mode)
+    ("system=warp_drive", "warp_drive"),                    # unknown group option
+    ("invert.kind=teleport", "no 'invert' implementation for kind 'teleport'"),
+    ("stages=[generate,fly]", "unknown stage"),
+    ("system.m1=-1", "m1"),                                 # bad value caught by the plant
+])
+def test_bad_config_fails_before_work(store, cfg_of, override, message):
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+    with pytest.raises((runner.ConfigError, HydraException, OmegaConfBaseException, ValueError),
+                       match=message):
+        runner.run_job(cfg_of(*SHORT_TWO_MASS, override))
+    assert not (store / "cache" / "generate").exists()       # no work was done
+
+
+def test_reference_outside_limits_fails_before_work(store, cfg_of):
+    far = "evaluate.references=[{name:far,kind:out_and_back,distance:0.5,v_max:0.05,a_max:4,j_max:1000}]"
+    with pytest.raises(runner.ConfigError, match="far.*outside the limits.*stroke"):
+        runner.run_job(cfg_of("experiment=physics_linear_motor", far))
+    assert not (store / "cache").exists() or not any((store / "cache").glob("generate/*"))
+
+
+def test_measured_data_missing_file_and_nan(store, cfg_of, tmp_path):
+    with pytest.raises(runner.ConfigError, match="does not exist"):
+        runner.run_job(cfg_of(*SHORT_TWO_MASS, "data=measured", f"data.path={tmp_path}/none.parquet"))
+    import pandas as pd
+    df = pd.DataFrame({"t": np.arange(5) * 1e-3, "r": np.zeros(5), "u": np.zeros(5),
+                       "y": [0, 0, np.inf, 0, 0]})
+    df.to_parquet(tmp_path / "bad.parquet")
+    with pytest.raises(runner.ConfigError, match="column 'y'.*NaN/inf"):
+        runner.run_job(cfg_of(*SHORT_TWO_MASS, "data=measured", f"data.path={tmp_path}/bad.parquet"))
+
+
+def test_stage_subset_needs_cached_upstream(store, cfg_of):
+    with pytest.raises(runner.ConfigError, match="no cached result"):
+        runner.run_job(cfg_of(*SHORT_TWO_MASS, "stages=[evaluate]"))
+    runner.run_job(cfg_of(*SHORT_TWO_MASS, "stages=[generate,baseline]"))
+    assert set(_cache_state(store)) == {"generate", "baseline"}

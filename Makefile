@@ -30,8 +30,14 @@ test-full: install  ## every test, including the slow ones (sweeps, whole experi
 lint: install  ## ruff
 	$(VENV)/bin/ruff check pipeline stages tests benchmarks
 
+# every experiment of `make reproduce`, in order (conf/experiment/<name>.yaml; sweeps are set in
+# the file with hydra.mode=MULTIRUN)
+EXPERIMENTS ?= physics_arx physics_linear_motor physics_rot_trans physics_two_mass ilc_rot_trans
+
 reproduce: install  ## run every paper experiment, then write results/REPORT.md, summary.csv, figures
-	$(PY) -m pipeline.reproduce
+	@set -e; for e in $(EXPERIMENTS); do echo "== experiment=$$e"; \
+	  $(PY) -m pipeline experiment=$$e; done
+	$(PY) -m pipeline stages=[report] experiment_name=report
 
 ui: install  ## MLflow UI on http://127.0.0.1:5000 over the same store as the runs
 	$(VENV)/bin/mlflow server --backend-store-uri "$${MLFLOW_TRACKING_URI:-$(MLFLOW_DB)}" \

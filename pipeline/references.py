@@ -244,6 +244,8 @@ class Reference:
         n = int(n)
         if n < 1:
             raise ValueError(f"repeat count must be >= 1, got {n}")
+        if n == 1:
+            return self
         if self.r[0] != self.r[-1] or self.v[-1] != 0.0 or self.a[-1] != 0.0:
             raise ValueError("only a reference that ends at rest at its start position can be "
                              f"repeated seamlessly (r[0]={self.r[0]}, r[-1]={self.r[-1]}, "
@@ -276,7 +278,7 @@ def sequence(steps: Sequence[Rest | MoveTo], Ts: float, start: float = 0.0,
     """
     Ts = _positive("Ts", Ts)
     pos = _finite("start", start)
-    plan = []                  # (t_start, duration, kind, start_pos, target, MoveTimes | None)
+    plan = []                  # (t_start, duration, start_pos, target, MoveTimes | None)
     t = 0.0
     t_last_move_end = 0.0
     for i, s in enumerate(steps):

@@ -159,11 +159,18 @@ def selected_stages(cfg: DictConfig) -> list[str]:
 def validate(cfg: DictConfig) -> tuple[list[str], Any, dict]:
     """Everything that can be checked before work starts (DESIGN: validate configs early)."""
     names = selected_stages(cfg)
+    try:  # every interpolation resolves (a typo in ${...} fails here, not after hours of work)
+        OmegaConf.to_container(cfg, resolve=True)
+    except Exception as exc:  # noqa: BLE001 — OmegaConf raises several error types
+        raise ConfigError(f"config does not resolve: {exc}") from exc
     system = make_system(cfg) if "system" in cfg and cfg.system is not None else None
     modules = {}
-    needed = list(names)
-    for n in names:  # upstream stages whose results are loaded from the cache
-        needed += list(importlib.import_module(f"stages.{n}").UPSTREAM)
+    needed, todo = set(), list(names)
+    while todo:  # every transitive upstream stage: its key is needed, its result loaded from cache
+        n = todo.pop()
+        if n not in needed:
+            needed.add(n)
+            todo += list(importlib.import_module(f"stages.{n}").UPSTREAM)
     for n in ORDER:
         if n in needed:
             modules[n] = importlib.import_module(f"stages.{n}")

@@ -89,6 +89,7 @@ class JobRun:
         exp_id = experiment_id(experiment)
         all_tags = {"git_sha": git_sha(), **{k: str(v) for k, v in tags.items()}}
         parent = os.environ.get(PARENT_ENV)
+        all_tags["sweep"] = "child" if parent else "single"
         if parent:
             all_tags["mlflow.parentRunId"] = parent
         run = self.client.create_run(exp_id, run_name=run_name, tags=all_tags)

@@ -18,6 +18,8 @@ def solve_scaled(Phi: np.ndarray, z: np.ndarray, rcond_warn: float = 1e-12) -> n
     z = np.asarray(z, dtype=np.float64)
     if Phi.ndim != 2 or z.shape != (Phi.shape[0],):
         raise ValueError(f"least squares needs Φ [N, p] and z [N], got {Phi.shape} and {z.shape}")
+    if not (np.all(np.isfinite(Phi)) and np.all(np.isfinite(z))):
+        raise ValueError("least squares: Φ or z contains NaN/inf; clean the data first")
     if Phi.shape[0] < Phi.shape[1]:
         raise ValueError(f"{Phi.shape[0]} equations for {Phi.shape[1]} parameters; give more data")
     scale = np.linalg.norm(Phi, axis=0)

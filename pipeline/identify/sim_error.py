@@ -1,10 +1,12 @@
 """Closed-loop simulation of the [B2] PGNN and closed-loop simulation-error identification.
 
-The model is the PGNN (30) of [B2]: a linear ARX physics model plus one tanh hidden layer,
+The model is the PGNN (30) of [B2]: a linear ARX physics model plus one tanh hidden layer
+(the forward :class:`pipeline.models.pgnn.PGNN` of [B1] with ``LinearFeatures``, exported to
+arrays by :class:`ArxPGNN`),
 
-    ŷ(k) = θ_phyᵀ φ(k) + s_out (W2 tanh(W1 φn(k) + b1) + b2),          [B2] (9), (30)
+    ŷ(k) = θ_phyᵀ φ(k) + s_out (W2 tanh(W1 x(k) + b1) + b2),          [B2] (9), (30)
     φ(k) = [ŷ(k-1), …, ŷ(k-n_a), û(k-n_k-1), …, û(k-n_k-n_b)],
-    φn(k) = (φ(k) - φ_mean) / φ_std                                  (SPEC §3 NN defaults),
+    x(k) = P φ(k) + c        (fixed NN input map: δ-basis and normalisation, SPEC §3),
 
 simulated in closed loop with the known discrete controller, no computational delay
 (SPEC §0), [B2] (8):
@@ -17,9 +19,9 @@ feedforward U_ff for FHOFC) run in numba kernels: a per-sample torch loop is two
 magnitude slower.  The kernels are checked against finite differences, against a torch
 autograd reference (:func:`simulate_closed_loop_torch`) and against python-control.
 
-Parameter vector (order of :meth:`ArxPGNN.theta`): ``[θ_phy (n_φ), W1 (n1×n_φ, row-major),
-b1 (n1), W2 (n1), b2]`` with n_φ = n_a + n_b; θ_phy is the physics part of [B2] (16)'s
-Λ = [I, 0].
+Parameter vector (order of :meth:`ArxPGNN.theta`, equal to the PGNN module's):
+``[θ_phy (n_a + n_b), W1 (n1×n_x, row-major), b1 (n1), W2 (n1), b2]``; θ_phy is the physics
+part of [B2] (16)'s Λ = [I, 0].
 """
 from __future__ import annotations
 
@@ -40,6 +42,10 @@ import numpy as np
 class ArxPGNN:
     """The PGNN (30) of [B2] as plain float64 arrays (fast closed-loop simulation).
 
+    Mirrors a forward :class:`pipeline.models.pgnn.PGNN` with ARX physics
+    (``LinearFeatures``) and at most one tanh hidden layer: :meth:`from_pgnn` exports one,
+    :meth:`load_into` writes parameters back; the parameter vector has the module's order.
+
     Parameters
     ----------
     n_a, n_b, n_k : int
@@ -47,16 +53,16 @@ class ArxPGNN:
     theta_phy : ndarray, shape (n_a + n_b,)
         Linear physics model ŷ = θ_phyᵀ φ: coefficients of ŷ(k-1..k-n_a) [-] then of
         û(k-n_k-1..k-n_k-n_b) [m/N].
-    W1 : ndarray, shape (n1, n_a + n_b)
-        Hidden-layer weights acting on the normalised regressor φn [-].
+    W1 : ndarray, shape (n1, n_x)
+        Hidden-layer weights acting on the NN input x = P φ + c [-].
     b1 : ndarray, shape (n1,)
         Hidden-layer biases [-].
     W2 : ndarray, shape (n1,)
         Output weights [-] (the NN output is multiplied by ``out_scale``).
     b2 : float
         Output bias [-].
-    phi_mean, phi_std : ndarray, shape (n_a + n_b,)
-        Input normalisation of the NN (from training data; part of the model).
+    nn_P, nn_c : ndarray, shapes (n_x, n_a + n_b), (n_x,)
+        Fixed affine NN input map (selection, δ-basis, normalisation from training data).
     out_scale : float
         Fixed output scale of the NN [m]; makes W2, b2 O(1) numbers for the solver.
     y_range : tuple of float or None
@@ -72,8 +78,8 @@ class ArxPGNN:
     b1: np.ndarray = None
     W2: np.ndarray = None
     b2: float = 0.0
-    phi_mean: np.ndarray = None
-    phi_std: np.ndarray = None
+    nn_P: np.ndarray = None
+    nn_c: np.ndarray = None
     out_scale: float = 1.0
     y_range: tuple[float, float] | None = None
 
@@ -82,25 +88,60 @@ class ArxPGNN:
             raise ValueError(f"orders must satisfy n_a >= 0, n_b >= 1, n_k >= 0; got n_a={self.n_a}, "
                              f"n_b={self.n_b}, n_k={self.n_k}")
         nphi = self.n_a + self.n_b
-        self.theta_phy = np.asarray(self.theta_phy, dtype=np.float64).reshape(-1)
+        self.theta_phy = np.ascontiguousarray(self.theta_phy, dtype=np.float64).reshape(-1)
         if self.theta_phy.shape != (nphi,):
             raise ValueError(f"theta_phy must have n_a + n_b = {nphi} entries, got {self.theta_phy.shape}")
+        self.nn_P = np.eye(nphi) if self.nn_P is None else np.ascontiguousarray(self.nn_P, dtype=np.float64)
+        if self.nn_P.ndim != 2 or self.nn_P.shape[1] != nphi:
+            raise ValueError(f"nn_P must be (n_x, {nphi}), got {self.nn_P.shape}")
+        nx = self.nn_P.shape[0]
+        self.nn_c = np.zeros(nx) if self.nn_c is None else np.ascontiguousarray(self.nn_c, dtype=np.float64)
+        if self.nn_c.shape != (nx,):
+            raise ValueError(f"nn_c must have n_x = {nx} entries, got {self.nn_c.shape}")
         if self.W1 is None:
-            self.W1 = np.zeros((0, nphi))
-        self.W1 = np.ascontiguousarray(np.asarray(self.W1, dtype=np.float64).reshape(-1, nphi))
+            self.W1 = np.zeros((0, nx))
+        self.W1 = np.ascontiguousarray(np.asarray(self.W1, dtype=np.float64).reshape(-1, nx))
         n1 = self.W1.shape[0]
-        self.b1 = np.zeros(n1) if self.b1 is None else np.asarray(self.b1, dtype=np.float64).reshape(-1)
-        self.W2 = np.zeros(n1) if self.W2 is None else np.asarray(self.W2, dtype=np.float64).reshape(-1)
+        self.b1 = np.zeros(n1) if self.b1 is None else np.ascontiguousarray(self.b1, np.float64).reshape(-1)
+        self.W2 = np.zeros(n1) if self.W2 is None else np.ascontiguousarray(self.W2, np.float64).reshape(-1)
         if self.b1.shape != (n1,) or self.W2.shape != (n1,):
             raise ValueError(f"b1 and W2 must have n1 = {n1} entries (rows of W1), got {self.b1.shape}, "
                              f"{self.W2.shape}")
         self.b2 = float(self.b2)
-        self.phi_mean = np.zeros(nphi) if self.phi_mean is None else np.asarray(self.phi_mean, np.float64)
-        self.phi_std = np.ones(nphi) if self.phi_std is None else np.asarray(self.phi_std, np.float64)
-        if self.phi_mean.shape != (nphi,) or self.phi_std.shape != (nphi,) or np.any(self.phi_std <= 0):
-            raise ValueError("phi_mean/phi_std must have n_a + n_b entries and phi_std > 0; got "
-                             f"{self.phi_mean}, {self.phi_std}")
         self.out_scale = float(self.out_scale)
+
+    # -- conversion from/to the [B1] PGNN module --------------------------------------
+    @classmethod
+    def from_pgnn(cls, model, y_range: tuple[float, float] | None = None) -> "ArxPGNN":
+        """Export a forward ``pipeline.models.pgnn.PGNN`` with ``LinearFeatures`` physics and
+        zero or one tanh hidden layer (the PGNN (30) of [B2])."""
+        from pipeline.models.pgnn import LinearFeatures
+        if model.structure not in ("forward", "invertible"):
+            raise ValueError(f"closed-loop simulation needs a forward PGNN, got structure={model.structure!r}")
+        if not (model.use_physics and isinstance(model.physics, LinearFeatures)
+                and model.physics.n_phi == model.n_phi):
+            raise ValueError("the [B2] PGNN (30) needs ARX physics: physics=LinearFeatures(n_a + n_b)")
+        if model.use_nn and not (len(model.hidden) == 1 and model.activation == "tanh"):
+            raise ValueError(f"the [B2] PGNN (30) has one tanh hidden layer, got hidden={model.hidden}, "
+                             f"activation={model.activation!r}")
+        with torch_no_grad():
+            th = model.theta_phy.detach().numpy().copy()
+            if model.use_nn:
+                l1, l2 = model.layers
+                kw = dict(W1=l1.weight.detach().numpy().copy(), b1=l1.bias.detach().numpy().copy(),
+                          W2=l2.weight.detach().numpy()[0].copy(), b2=float(l2.bias[0]),
+                          nn_P=model.nn_P.numpy().copy(), nn_c=model.nn_c.numpy().copy(),
+                          out_scale=float(model.out_scale))
+            else:
+                kw = {}
+        return cls(model.n_a, model.n_b, model.n_k, th, y_range=y_range, **kw)
+
+    def load_into(self, model) -> None:
+        """Write this model's parameters into a PGNN module of the same layout."""
+        import torch
+        if model.n_params != self.n_params:
+            raise ValueError(f"the PGNN has {model.n_params} parameters, this model {self.n_params}")
+        model.load_parameter_vector(torch.from_numpy(self.theta()))
 
     # -- sizes and parameter vector -------------------------------------------------
     @property
@@ -112,8 +153,12 @@ class ArxPGNN:
         return self.W1.shape[0]
 
     @property
+    def n_x(self) -> int:
+        return self.nn_P.shape[0]
+
+    @property
     def n_params(self) -> int:
-        return self.n_phi + self.n1 * (self.n_phi + 2) + 1
+        return self.n_phi + (self.n1 * (self.n_x + 2) + 1 if self.n1 else 0)
 
     @property
     def delay(self) -> int:
@@ -121,17 +166,21 @@ class ArxPGNN:
         return self.n_k + 1
 
     def theta(self) -> np.ndarray:
-        """All parameters as one vector (order in the module docstring)."""
+        """All parameters as one vector (the PGNN module's order; no NN entries if n1 = 0)."""
+        if not self.n1:
+            return self.theta_phy.copy()
         return np.concatenate([self.theta_phy, self.W1.reshape(-1), self.b1, self.W2, [self.b2]])
 
     def with_theta(self, theta: np.ndarray) -> "ArxPGNN":
-        """A copy with parameters ``theta`` (same orders, normalisation, scale)."""
+        """A copy with parameters ``theta`` (same orders, input map, scale)."""
         theta = np.asarray(theta, dtype=np.float64).reshape(-1)
         if theta.shape != (self.n_params,):
             raise ValueError(f"theta must have {self.n_params} entries, got {theta.shape}")
-        p, n1 = self.n_phi, self.n1
+        p, n1, nx = self.n_phi, self.n1, self.n_x
+        if not n1:
+            return replace(self, theta_phy=theta.copy())
         i = p
-        W1 = theta[i:i + n1 * p].reshape(n1, p); i += n1 * p
+        W1 = theta[i:i + n1 * nx].reshape(n1, nx); i += n1 * nx
         b1 = theta[i:i + n1]; i += n1
         W2 = theta[i:i + n1]; i += n1
         return replace(self, theta_phy=theta[:p].copy(), W1=W1.copy(), b1=b1.copy(), W2=W2.copy(),
@@ -139,7 +188,7 @@ class ArxPGNN:
 
     def linear_part(self) -> "ArxPGNN":
         """The physics model alone (n1 = 0)."""
-        return replace(self, W1=np.zeros((0, self.n_phi)), b1=np.zeros(0), W2=np.zeros(0), b2=0.0)
+        return replace(self, W1=np.zeros((0, self.n_x)), b1=np.zeros(0), W2=np.zeros(0), b2=0.0)
 
     # -- evaluation -----------------------------------------------------------------
     def one_step(self, phi: np.ndarray) -> np.ndarray:
@@ -147,22 +196,19 @@ class ArxPGNN:
         phi = np.asarray(phi, dtype=np.float64)
         y = phi @ self.theta_phy
         if self.n1:
-            h = np.tanh(((phi - self.phi_mean) / self.phi_std) @ self.W1.T + self.b1)
+            h = np.tanh((phi @ self.nn_P.T + self.nn_c) @ self.W1.T + self.b1)
             y = y + self.out_scale * (h @ self.W2 + self.b2)
         return y
 
-    def regressor(self, y: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """φ(k) [N, n_a + n_b] from measured y, u (past values before k = 0 are zero)."""
-        y = np.asarray(y, dtype=np.float64)
-        u = np.asarray(u, dtype=np.float64)
-        n = y.shape[0]
-        phi = np.zeros((n, self.n_phi))
-        for i in range(1, self.n_a + 1):
-            phi[i:, i - 1] = y[:n - i]
-        for i in range(1, self.n_b + 1):
-            lag = self.n_k + i
-            phi[lag:, self.n_a + i - 1] = u[:n - lag]
-        return phi
+
+def torch_no_grad():
+    import torch
+    return torch.no_grad()
+
+
+def as_arx(model) -> ArxPGNN:
+    """``model`` as :class:`ArxPGNN` (exports a PGNN module, passes an ArxPGNN through)."""
+    return model if isinstance(model, ArxPGNN) else ArxPGNN.from_pgnn(model)
 
 
 def arx_from_tf(G) -> np.ndarray:
@@ -263,9 +309,12 @@ class LoopState:
 # --------------------------------------------------------------------------------------
 
 @numba.njit(cache=True)
-def _model_eval(yh, uh, n_a, n_b, n_k, th, W1, b1, W2, b2, mu, sd, so, phi, phin, hbuf, g):
-    """One step of [B2] (30): returns ŷ; fills phi, phin, hbuf (tanh), g = ∂ŷ/∂φ."""
+def _model_eval(yh, uh, n_a, n_b, n_k, th, W1, b1, W2, b2, P, c, so, phi, x, hbuf, g, need_g):
+    """One step of [B2] (30): returns ŷ; fills phi, x = Pφ + c (NN input), hbuf = tanh and,
+    if ``need_g``, g = ∂ŷ/∂φ."""
     nphi = n_a + n_b
+    nx = P.shape[0]
+    n1 = W1.shape[0]
     for i in range(n_a):
         phi[i] = yh[i]
     for i in range(n_b):
@@ -273,25 +322,38 @@ def _model_eval(yh, uh, n_a, n_b, n_k, th, W1, b1, W2, b2, mu, sd, so, phi, phin
     y = 0.0
     for j in range(nphi):
         y += th[j] * phi[j]
-        phin[j] = (phi[j] - mu[j]) / sd[j]
-        g[j] = th[j]
-    n1 = W1.shape[0]
+    if need_g:
+        for j in range(nphi):
+            g[j] = th[j]
+    if n1 == 0:
+        return y
+    for i in range(nx):
+        s = c[i]
+        for j in range(nphi):
+            s += P[i, j] * phi[j]
+        x[i] = s
     for i in range(n1):
         z = b1[i]
-        for j in range(nphi):
-            z += W1[i, j] * phin[j]
+        for j in range(nx):
+            z += W1[i, j] * x[j]
         h = math.tanh(z)
         hbuf[i] = h
         y += so * W2[i] * h
-        c = so * W2[i] * (1.0 - h * h)  # sech² = 1 - tanh², no overflow (SPEC §0)
-        for j in range(nphi):
-            g[j] += c * W1[i, j] / sd[j]
     y += so * b2
+    if need_g:
+        # ∂ŷ/∂φ = θ_phy + Pᵀ W1ᵀ (s_out W2 ⊙ sech²(z)); sech² = 1 - tanh², no overflow (SPEC §0)
+        for m in range(nx):
+            v = 0.0
+            for i in range(n1):
+                h = hbuf[i]
+                v += so * W2[i] * (1.0 - h * h) * W1[i, m]
+            for j in range(nphi):
+                g[j] += v * P[m, j]
     return y
 
 
 @numba.njit(cache=True)
-def _cl_simulate(r, uff, yh, uh, xc, n_a, n_b, n_k, th, W1, b1, W2, b2, mu, sd, so, Ac, Bc, Cc, Dc):
+def _cl_simulate(r, uff, yh, uh, xc, n_a, n_b, n_k, th, W1, b1, W2, b2, P, c, so, Ac, Bc, Cc, Dc):
     """Closed-loop model simulation [B2] (8)+(30); yh, uh, xc are updated in place."""
     N = r.shape[0]
     nphi = n_a + n_b
@@ -300,12 +362,12 @@ def _cl_simulate(r, uff, yh, uh, xc, n_a, n_b, n_k, th, W1, b1, W2, b2, mu, sd, 
     yhat = np.empty(N)
     uhat = np.empty(N)
     phi = np.empty(nphi)
-    phin = np.empty(nphi)
+    x = np.empty(P.shape[0])
     hbuf = np.empty(W1.shape[0])
     g = np.empty(nphi)
     xn = np.empty(nc)
     for k in range(N):
-        y = _model_eval(yh, uh, n_a, n_b, n_k, th, W1, b1, W2, b2, mu, sd, so, phi, phin, hbuf, g)
+        y = _model_eval(yh, uh, n_a, n_b, n_k, th, W1, b1, W2, b2, P, c, so, phi, x, hbuf, g, False)
         e = r[k] - y
         u = Dc * e + uff[k]
         for i in range(nc):
@@ -330,7 +392,7 @@ def _cl_simulate(r, uff, yh, uh, xc, n_a, n_b, n_k, th, W1, b1, W2, b2, mu, sd, 
 
 
 @numba.njit(cache=True)
-def _cl_jac_uff(r, uff, yh, uh, xc, n_a, n_b, n_k, th, W1, b1, W2, b2, mu, sd, so, Ac, Bc, Cc, Dc):
+def _cl_jac_uff(r, uff, yh, uh, xc, n_a, n_b, n_k, th, W1, b1, W2, b2, P, c, so, Ac, Bc, Cc, Dc):
     """Simulation plus J[k, j] = ∂ŷ(k)/∂u_ff(j) (lower triangular, forward sensitivities)
     and Ju[k, j] = ∂û(k)/∂u_ff(j)."""
     N = r.shape[0]
@@ -344,12 +406,12 @@ def _cl_jac_uff(r, uff, yh, uh, xc, n_a, n_b, n_k, th, W1, b1, W2, b2, mu, sd, s
     Sx = np.zeros((nc, N))
     Sxn = np.zeros(nc)
     phi = np.empty(nphi)
-    phin = np.empty(nphi)
+    x = np.empty(P.shape[0])
     hbuf = np.empty(W1.shape[0])
     g = np.empty(nphi)
     xn = np.empty(nc)
     for k in range(N):
-        y = _model_eval(yh, uh, n_a, n_b, n_k, th, W1, b1, W2, b2, mu, sd, so, phi, phin, hbuf, g)
+        y = _model_eval(yh, uh, n_a, n_b, n_k, th, W1, b1, W2, b2, P, c, so, phi, x, hbuf, g, True)
         # ∂ŷ(k)/∂u_ff(j), j < k: chain through past ŷ and û
         for i in range(1, n_a + 1):
             if k - i >= 0:
@@ -402,71 +464,74 @@ def _cl_jac_uff(r, uff, yh, uh, xc, n_a, n_b, n_k, th, W1, b1, W2, b2, mu, sd, s
 
 
 @numba.njit(cache=True)
-def _cl_jac_theta(r, uff, yh, uh, xc, n_a, n_b, n_k, th, W1, b1, W2, b2, mu, sd, so, Ac, Bc, Cc, Dc):
+def _cl_jac_theta(r, uff, yh, uh, xc, n_a, n_b, n_k, th, W1, b1, W2, b2, P, c, so, Ac, Bc, Cc, Dc):
     """Simulation plus J[k, p] = ∂ŷ(k)/∂θ_p (forward sensitivities of the recurrent loop)."""
     N = r.shape[0]
     nphi = n_a + n_b
     n1 = W1.shape[0]
-    P = nphi + n1 * (nphi + 2) + 1
+    nx = P.shape[0]
+    NP = nphi + n1 * (nx + 2) + 1 if n1 > 0 else nphi
     nh = uh.shape[0]
     nc = xc.shape[0]
     yhat = np.empty(N)
     uhat = np.empty(N)
-    J = np.zeros((N, P))
-    Ju = np.zeros((N, P))
-    Sx = np.zeros((nc, P))
-    Sxn = np.zeros(nc)
+    J = np.zeros((N, NP))      # ∂ŷ(k)/∂θ
+    Ju = np.zeros((N, NP))     # ∂û(k)/∂θ
+    Sx = np.zeros((nc, NP))    # ∂x_c(k)/∂θ
+    Sxn = np.zeros((nc, NP))
+    acc = np.zeros(NP)
     phi = np.empty(nphi)
-    phin = np.empty(nphi)
+    x = np.empty(nx)
     hbuf = np.empty(max(n1, 1))
     g = np.empty(nphi)
     xn = np.empty(nc)
     oW1 = nphi
-    ob1 = oW1 + n1 * nphi
+    ob1 = oW1 + n1 * nx
     oW2 = ob1 + n1
     ob2 = oW2 + n1
     for k in range(N):
-        y = _model_eval(yh, uh, n_a, n_b, n_k, th, W1, b1, W2, b2, mu, sd, so, phi, phin, hbuf, g)
-        Jk = J[k]
+        y = _model_eval(yh, uh, n_a, n_b, n_k, th, W1, b1, W2, b2, P, c, so, phi, x, hbuf, g, True)
         # explicit ∂f/∂θ at fixed φ
         for j in range(nphi):
-            Jk[j] = phi[j]
+            acc[j] = phi[j]
         for i in range(n1):
             h = hbuf[i]
-            c = so * W2[i] * (1.0 - h * h)
-            for j in range(nphi):
-                Jk[oW1 + i * nphi + j] = c * phin[j]
-            Jk[ob1 + i] = c
-            Jk[oW2 + i] = so * h
-        Jk[ob2] = so
-        # chain through the recurrent regressor
+            ci = so * W2[i] * (1.0 - h * h)
+            for j in range(nx):
+                acc[oW1 + i * nx + j] = ci * x[j]
+            acc[ob1 + i] = ci
+            acc[oW2 + i] = so * h
+        if n1 > 0:
+            acc[ob2] = so
+        # chain through the recurrent regressor φ(k) = [ŷ(k-1..), û(k-n_k-1..)]
         for i in range(1, n_a + 1):
             if k - i >= 0:
                 gi = g[i - 1]
-                Jp = J[k - i]
-                for p in range(P):
-                    Jk[p] += gi * Jp[p]
+                for p in range(NP):
+                    acc[p] += gi * J[k - i, p]
         for i in range(1, n_b + 1):
             lag = n_k + i
             if k - lag >= 0:
                 gi = g[n_a + i - 1]
-                Jp = Ju[k - lag]
-                for p in range(P):
-                    Jk[p] += gi * Jp[p]
-        Juk = Ju[k]
-        for p in range(P):
-            s = -Dc * Jk[p]
-            for i in range(nc):
-                s += Cc[i] * Sx[i, p]
-            Juk[p] = s
-        for p in range(P):
-            for i in range(nc):
-                s = -Bc[i] * Jk[p]
-                for m in range(nc):
-                    s += Ac[i, m] * Sx[m, p]
-                Sxn[i] = s
-            for i in range(nc):
-                Sx[i, p] = Sxn[i]
+                for p in range(NP):
+                    acc[p] += gi * Ju[k - lag, p]
+        # û(k) = C x_c(k) + D (r(k) - ŷ(k)) + u_ff(k);  x_c(k+1) = A x_c(k) + B e(k)
+        for p in range(NP):
+            J[k, p] = acc[p]
+            Ju[k, p] = -Dc * acc[p]
+        for i in range(nc):
+            ci = Cc[i]
+            bi = Bc[i]
+            for p in range(NP):
+                Ju[k, p] += ci * Sx[i, p]
+                Sxn[i, p] = -bi * acc[p]
+            for m in range(nc):
+                am = Ac[i, m]
+                for p in range(NP):
+                    Sxn[i, p] += am * Sx[m, p]
+        for i in range(nc):
+            for p in range(NP):
+                Sx[i, p] = Sxn[i, p]
         e = r[k] - y
         u = Dc * e + uff[k]
         for i in range(nc):
@@ -494,7 +559,8 @@ def _cl_jac_theta(r, uff, yh, uh, xc, n_a, n_b, n_k, th, W1, b1, W2, b2, mu, sd,
 # public simulation API
 # --------------------------------------------------------------------------------------
 
-def _prep(model: ArxPGNN, ctrl: DiscreteController, r, u_ff, state: LoopState | None):
+def _prep(model, ctrl: DiscreteController, r, u_ff, state: LoopState | None):
+    model = as_arx(model)
     r = np.ascontiguousarray(r, dtype=np.float64).reshape(-1)
     u_ff = np.ascontiguousarray(u_ff, dtype=np.float64).reshape(-1)
     if u_ff.shape != r.shape:
@@ -506,7 +572,7 @@ def _prep(model: ArxPGNN, ctrl: DiscreteController, r, u_ff, state: LoopState | 
                          f"{model.n_k + model.n_b}), xc {st.xc.shape} (want {ctrl.n_c})")
     Ac, Bc, Cc, Dc = ctrl.arrays()
     args = (model.n_a, model.n_b, model.n_k, model.theta_phy, model.W1, model.b1, model.W2, model.b2,
-            model.phi_mean, model.phi_std, model.out_scale, Ac, Bc, Cc, Dc)
+            model.nn_P, model.nn_c, model.out_scale, Ac, Bc, Cc, Dc)
     return r, u_ff, st, args
 
 
@@ -571,17 +637,18 @@ def simulate_closed_loop_torch(theta, model: ArxPGNN, ctrl: DiscreteController, 
     numba kernels by autograd.
     """
     import torch
-    p, n1 = model.n_phi, model.n1
+    model = as_arx(model)
+    p, n1, nx = model.n_phi, model.n1, model.n_x
     theta = torch.as_tensor(theta, dtype=torch.float64)
     u_ff = torch.as_tensor(u_ff, dtype=torch.float64)
     r = torch.as_tensor(np.asarray(r, dtype=np.float64))
     th = theta[:p]
-    W1 = theta[p:p + n1 * p].reshape(n1, p)
-    b1 = theta[p + n1 * p:p + n1 * p + n1]
-    W2 = theta[p + n1 * p + n1:p + n1 * p + 2 * n1]
+    W1 = theta[p:p + n1 * nx].reshape(n1, nx)
+    b1 = theta[p + n1 * nx:p + n1 * nx + n1]
+    W2 = theta[p + n1 * nx + n1:p + n1 * nx + 2 * n1]
     b2 = theta[-1]
-    mu = torch.as_tensor(model.phi_mean)
-    sd = torch.as_tensor(model.phi_std)
+    Pm = torch.as_tensor(model.nn_P)
+    cv = torch.as_tensor(model.nn_c)
     Ac, Bc, Cc, Dc = (torch.as_tensor(a) for a in ctrl.arrays())
     yh = [torch.zeros((), dtype=torch.float64)] * model.n_a
     uh = [torch.zeros((), dtype=torch.float64)] * (model.n_k + model.n_b)
@@ -591,7 +658,7 @@ def simulate_closed_loop_torch(theta, model: ArxPGNN, ctrl: DiscreteController, 
         phi = torch.stack(yh + uh[model.n_k:model.n_k + model.n_b]) if p else torch.zeros(0)
         y = th @ phi
         if n1:
-            y = y + model.out_scale * (W2 @ torch.tanh(W1 @ ((phi - mu) / sd) + b1) + b2)
+            y = y + model.out_scale * (W2 @ torch.tanh(W1 @ (Pm @ phi + cv) + b1) + b2)
         e = r[k] - y
         u = Dc * e + u_ff[k] + (Cc @ xc if ctrl.n_c else 0.0)
         xc = Ac @ xc + Bc * e if ctrl.n_c else xc
@@ -606,184 +673,249 @@ def simulate_closed_loop_torch(theta, model: ArxPGNN, ctrl: DiscreteController, 
 # closed-loop simulation-error identification, [B2] (16)
 # --------------------------------------------------------------------------------------
 
-def init_pgnn(theta_phy: np.ndarray, orders: tuple[int, int, int], n1: int, y: np.ndarray, u: np.ndarray,
-              rng: np.random.Generator, out_scale: float | None = None, w2_scale: float = 1e-2) -> ArxPGNN:
-    """PGNN (30) initialised at the physics model: Glorot W1, zero b1, small W2 (SPEC §3).
+
+@dataclass
+class SimErrorFit:
+    """Result of :func:`identify_sim_error`.
+
+    Attributes
+    ----------
+    model : PGNN
+        The identified module (best restart loaded).
+    arx : ArxPGNN
+        The same model as arrays (with its validity range), for FHOFC.
+    theta_phy_star : ndarray
+        θ*_phy, the regulariser centre (linear model identified first).
+    sigma : float
+        std of Y^d on the training samples [m] (residual normalisation).
+    identification_error : float
+        ‖Y^d - Ŷ^d‖/sqrt(N_d) over the whole record [m] ([B2] (15) term).
+    y_hat : ndarray
+        Ŷ^d = Φ̂(θ̂, x0, R^d, U_ff^d) [m].
+    restarts : list of RestartResult
+        One LM run per initialisation (``pipeline.identify.narx.RestartResult``).
+    best : int
+        Index of the kept restart (lowest training cost).
+    n_train, n_val : int
+        Samples in the training residual and in the validation block.
+    """
+
+    model: object
+    arx: ArxPGNN
+    theta_phy_star: np.ndarray
+    sigma: float
+    identification_error: float
+    y_hat: np.ndarray
+    restarts: list = field(default_factory=list)
+    best: int = 0
+    n_train: int = 0
+    n_val: int = 0
+
+    @property
+    def cost(self) -> float:
+        return self.restarts[self.best].cost
+
+
+def sim_error_criterion(arx0: ArxPGNN, ctrl: DiscreteController, r, u_ex, y, theta_star_phy, lam=1.0,
+                        train_slice: slice | None = None, sigma: float | None = None):
+    """Residual and exact Jacobian of the normalised closed-loop simulation error [B2] (16).
+
+    ``res(θ) = [(Y^d - Ŷ^d(θ))/(σ sqrt(N_t)) ; R d(θ)]``, d = (θ_phy - θ*_phy)/|θ*_phy|
+    (SPEC §5 normalisation), RᵀR = ``lam`` (as in [B1]: [B2]'s ‖Λd‖² with Λ = [I, 0] is lam = 1).
+    Ŷ^d is simulated over the whole record from rest; only ``train_slice`` enters the residual.
 
     Parameters
     ----------
-    theta_phy : ndarray
-        Physics parameters θ*_phy (the linear model identified first).
-    orders : (n_a, n_b, n_k)
-    n1 : int
-        Hidden neurons (0 = linear model only).
-    y, u : ndarray
-        Identification data [m], [N]: sets the NN input normalisation (mean/std of φ), the
-        default output scale and the model's validity range.
-    rng : numpy.random.Generator
-    out_scale : float, optional
-        NN output scale [m]; default: rms of the one-step residual of the physics model on
-        the data (the size of what the physics misses per sample).
-    w2_scale : float
-        W2 is Glorot-uniform times this factor (initial PGNN ≈ physics model).
-    """
-    n_a, n_b, n_k = orders
-    lin = ArxPGNN(n_a, n_b, n_k, theta_phy)
-    phi = lin.regressor(y, u)
-    mu = phi.mean(axis=0)
-    sd = phi.std(axis=0)
-    sd = np.where(sd > 0, sd, 1.0)
-    if out_scale is None:
-        res = y - phi @ np.asarray(theta_phy, float)
-        out_scale = float(np.sqrt(np.mean(res[max(n_a, n_k + n_b):] ** 2)))
-        out_scale = out_scale if out_scale > 0 else 1.0
-    nphi = n_a + n_b
-    lim1 = math.sqrt(6.0 / (nphi + n1)) if n1 else 0.0
-    lim2 = math.sqrt(6.0 / (n1 + 1)) if n1 else 0.0
-    W1 = rng.uniform(-lim1, lim1, size=(n1, nphi))
-    W2 = w2_scale * rng.uniform(-lim2, lim2, size=n1)
-    return ArxPGNN(n_a, n_b, n_k, theta_phy, W1, np.zeros(n1), W2, 0.0, mu, sd, out_scale,
-                   (float(np.min(y)), float(np.max(y))))
-
-
-@dataclass
-class SimErrorResult:
-    """Result of :func:`identify_sim_error`.
-
-    model : identified PGNN; cost : final normalised cost (16); identification_error :
-    ‖Y^d - Ŷ^d‖/sqrt(N_d) [m] over the whole record; history : cost per LM iteration;
-    val_history : validation cost per iteration (if a validation block was used); n_iter,
-    converged, message : from the solver; restart_costs : final cost of every restart;
-    time_s : wall time [s].
-    """
-
-    model: ArxPGNN
-    cost: float
-    identification_error: float
-    y_hat: np.ndarray
-    history: list = field(default_factory=list)
-    val_history: list = field(default_factory=list)
-    n_iter: int = 0
-    converged: bool = False
-    message: str = ""
-    restart_costs: list = field(default_factory=list)
-    time_s: float = 0.0
-
-
-def _phys_scale(theta_star: np.ndarray) -> np.ndarray:
-    """|θ*| elementwise, floored so an (exactly) zero entry does not divide by zero."""
-    a = np.abs(np.asarray(theta_star, float))
-    floor = 1e-12 * max(float(a.max(initial=0.0)), 1e-300)
-    return np.maximum(a, floor)
-
-
-def sim_error_problem(model0: ArxPGNN, ctrl: DiscreteController, r, u_ff, y, theta_star_phy, lam: float = 1.0,
-                      train_slice: slice | None = None):
-    """Residual and exact Jacobian of the normalised closed-loop simulation error (16).
-
-    ``res(θ) = [(Y^d - Ŷ^d(θ))/(σ_y sqrt(N_t)) ; λ (θ_phy - θ*_phy)/|θ*_phy|]`` (SPEC §5: residuals
-    over the std of y, relative physics deviation, Λ = λ[I, 0]); ‖res‖² is the cost.
-    Ŷ^d is simulated over the whole record; only ``train_slice`` samples enter the residual.
+    arx0 : ArxPGNN
+        Layout (orders, input map, output scale); its parameters are not used.
+    ctrl : DiscreteController
+    r, u_ex, y : ndarray
+        R^d [m], exogenous input U_ff^d (feedforward plus excitation) [N], Y^d [m].
+    theta_star_phy : ndarray
+    lam : float, ndarray
+        Λ of the quadratic form dᵀΛd (scalar, diagonal or matrix).
+    train_slice : slice, optional
+    sigma : float, optional
+        Residual normalisation (default: std of y on the training slice).
 
     Returns
     -------
-    residual : callable θ (ndarray) -> ndarray
-    jacobian : callable θ -> ndarray
+    residual, jacobian : callables θ (ndarray) -> ndarray
     """
-    r = np.asarray(r, float)
-    u_ff = np.asarray(u_ff, float)
+    from pipeline.identify.narx import regularizer_sqrt
+    r = np.ascontiguousarray(r, float)
+    u_ex = np.ascontiguousarray(u_ex, float)
     y = np.asarray(y, float)
     sl = train_slice or slice(None)
     yt = y[sl]
-    scale = 1.0 / (float(np.std(y)) * math.sqrt(yt.shape[0]))
-    nphi = model0.n_phi
-    pscale = lam / _phys_scale(theta_star_phy)
+    if sigma is None:
+        sigma = float(np.std(yt))
+    if not sigma > 0:
+        raise ValueError("the measured output is constant on the training samples; nothing to identify")
+    c = 1.0 / (sigma * math.sqrt(yt.shape[0]))
+    nphi = arx0.n_phi
     ts = np.asarray(theta_star_phy, float)
-    P = model0.n_params
+    scale = np.abs(ts)
+    scale = np.where(scale > 1e-12 * scale.max(), scale, 1.0)
+    Rs = regularizer_sqrt(lam, nphi) / scale[None, :]
+    reg = bool(np.any(Rs != 0))
+    P = arx0.n_params
+    nt = yt.shape[0]
 
     def residual(theta):
-        m = model0.with_theta(theta)
-        yh, _ = simulate_closed_loop(m, ctrl, r, u_ff)
-        return np.concatenate([(yt - yh[sl]) * scale, pscale * (theta[:nphi] - ts)])
+        yh, _ = simulate_closed_loop(arx0.with_theta(theta), ctrl, r, u_ex)
+        e = (yt - yh[sl]) * c
+        return np.concatenate([e, Rs @ (theta[:nphi] - ts)]) if reg else e
 
     def jacobian(theta):
-        m = model0.with_theta(theta)
-        _, _, J = jacobian_theta(m, ctrl, r, u_ff)
-        out = np.zeros((yt.shape[0] + nphi, P))
-        out[:yt.shape[0]] = -scale * J[sl]
-        out[yt.shape[0] + np.arange(nphi), np.arange(nphi)] = pscale
-        return out
+        _, _, J = jacobian_theta(arx0.with_theta(theta), ctrl, r, u_ex)
+        J = J[sl]
+        J *= -c
+        if not reg:
+            return J
+        Jr = np.zeros((nphi, P))
+        Jr[:, :nphi] = Rs
+        return np.concatenate([J, Jr])
 
     return residual, jacobian
 
 
-def identify_sim_error(model0: ArxPGNN | list, ctrl: DiscreteController, r, u_ff, y, theta_star_phy,
-                       lam: float = 1.0, max_iter: int = 200, ftol: float = 1e-10, gtol: float = 1e-12,
-                       val_fraction: float = 0.0, patience: int = 10,
-                       callback: Callable | None = None) -> SimErrorResult:
-    """Closed-loop simulation-error identification [B2] (16) by Levenberg–Marquardt.
+def closed_loop_exogenous(u, u_fb) -> np.ndarray:
+    """Exogenous input of the loop, u - u_fb = u_ff + excitation [N] (data columns)."""
+    return np.asarray(u, float) - np.asarray(u_fb, float)
+
+
+def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, lam=1.0, theta_star="arx",
+                       n_restarts: int = 1, seed: int = 0, val_fraction: float = 0.0, max_iter: int = 100,
+                       ftol: float = 1e-10, gtol: float = 1e-10, mu0: float = 1e-3, patience: int = 5,
+                       linear_max_iter: int = 50, progress: Callable | None = None,
+                       on_iteration: Callable | None = None) -> SimErrorFit:
+    """Closed-loop simulation-error identification of a PGNN, [B2] (16), by Levenberg–Marquardt.
+
+    Steps: θ*_phy (the linear model identified first), NN input normalisation and output
+    scale from the measured regressors, then LM on the normalised criterion
+    (:func:`sim_error_criterion`) with the exact Jacobian of the recurrent closed-loop
+    simulation (numba forward sensitivities), from ``n_restarts`` NN initialisations
+    (θ_phy starts at θ*_phy), keeping the lowest training cost.
 
     Parameters
     ----------
-    model0 : ArxPGNN or list of ArxPGNN
-        Initial model(s) (e.g. from :func:`init_pgnn` with different seeds); with several,
-        the one with the lowest final training cost wins (SPEC §5 restarts).
+    model : pipeline.models.pgnn.PGNN
+        Forward PGNN with ``LinearFeatures`` physics and one tanh hidden layer (or none: the
+        linear model). Modified in place (θ*_phy, normalisation, best parameters).
     ctrl : DiscreteController
-        The known feedback controller C(q).
-    r, u_ff, y : ndarray, shape (N_d,)
-        Reference R^d [m], feedforward/excitation U_ff^d [N], measured output Y^d [m].
-    theta_star_phy : ndarray
-        θ*_phy, the linear model identified first (regulariser centre).
-    lam : float
-        Λ = lam·[I, 0] on the relative physics deviation ([B2] Λ = [I, 0] → lam = 1).
-    max_iter, ftol, gtol : solver settings (see ``pipeline.identify.lm``).
+        The known feedback controller C(q) (no computational delay).
+    r, u_ex, y : ndarray, shape (N_d,)
+        R^d [m], exogenous input U_ff^d (feedforward plus excitation, e.g.
+        :func:`closed_loop_exogenous`) [N], measured output Y^d [m].
+    u : ndarray
+        Measured plant input [N] (u = u_fb + u_ff + excitation): the ARX regressors of
+        θ*_phy and of the NN input normalisation use the measured y and u.
+    lam : float or ndarray
+        Λ of the relative physics deviation (quadratic form dᵀΛd; [B2] Λ = [I, 0] → 1).
+    theta_star : {'arx', 'sim_error'} or ndarray
+        θ*_phy: ``'arx'`` = one-step least squares of the physics model on the measured
+        data ([B1] (7)); ``'sim_error'`` = that, refined by closed-loop simulation-error LM of
+        the linear model alone (output-error consistent under measurement noise); or given.
+    n_restarts, seed : int
+        NN initialisations; restart i uses ``SeedSequence([seed, i])`` (as [B1]'s NARX).
     val_fraction : float
-        Contiguous tail of the record used for early stopping (0 = none).
-    patience : int
-        Non-improving validation iterations before stopping.
+        Contiguous tail of the record for early stopping (0 = none); the simulation still
+        runs through it.
+    max_iter, ftol, gtol, mu0, patience
+        Passed to :func:`pipeline.identify.lm.levenberg_marquardt`.
+    linear_max_iter : int
+        LM iterations of the ``'sim_error'`` θ*_phy refinement.
+    progress : callable, optional
+        Wraps the restart iterable.
+    on_iteration : callable, optional
+        ``on_iteration(restart, it, cost)`` after every accepted LM step.
 
     Returns
     -------
-    SimErrorResult
+    SimErrorFit
     """
     import torch
 
     from pipeline.identify.lm import levenberg_marquardt
+    from pipeline.identify.narx import RestartResult, forward_regressor, physics_least_squares
 
-    t0 = time.perf_counter()
     y = np.asarray(y, float)
-    starts = model0 if isinstance(model0, (list, tuple)) else [model0]
+    r = np.asarray(r, float)
+    u_ex = np.asarray(u_ex, float)
+    N = y.shape[0]
+    if r.shape != (N,) or u_ex.shape != (N,):
+        raise ValueError(f"r, u_ex and y must be 1-D of one length, got {r.shape}, {u_ex.shape}, {y.shape}")
+    if n_restarts < 1:
+        raise ValueError(f"n_restarts must be >= 1, got {n_restarts}")
     if not 0.0 <= val_fraction < 0.5:
         raise ValueError(f"val_fraction must be in [0, 0.5), got {val_fraction}")
-    N = y.shape[0]
     n_val = int(round(val_fraction * N))
     train = slice(0, N - n_val)
-    best = None
-    costs = []
-    for m0 in starts:
-        res_np, jac_np = sim_error_problem(m0, ctrl, r, u_ff, y, theta_star_phy, lam, train)
-        val_cost = None
-        if n_val:
-            res_val, _ = sim_error_problem(m0, ctrl, r, u_ff, y, theta_star_phy, lam, slice(N - n_val, N))
+    if u is None:
+        raise ValueError("give the measured plant input u: θ*_phy and the NN normalisation use the "
+                         "measured regressors")
+    reg = forward_regressor(y[train], np.asarray(u, float)[train], model.n_a, model.n_b, model.n_k)
+    if model.n_params > N - n_val:
+        raise ValueError(f"{N - n_val} training samples cannot identify {model.n_params} parameters; "
+                         "use more data or fewer neurons")
+    y_range = (float(y.min()), float(y.max()))
+    sigma = float(np.std(y[train]))
 
-            def val_cost(th, _f=res_val, _n=m0.n_phi):
-                v = _f(th.detach().numpy())[:-_n]
-                return float(v @ v)
+    # θ*_phy: the linear model identified first
+    if isinstance(theta_star, str):
+        if theta_star not in ("arx", "sim_error"):
+            raise ValueError(f"theta_star must be 'arx', 'sim_error' or an array, got {theta_star!r}")
+        ts = physics_least_squares(model, reg.phi, reg.target)  # [B1] (7)
+        if theta_star == "sim_error":
+            lin = ArxPGNN(model.n_a, model.n_b, model.n_k, ts)
+            res_l, jac_l = sim_error_criterion(lin, ctrl, r, u_ex, y, ts, 0.0, train, sigma)
+            out = levenberg_marquardt(lambda th: torch.from_numpy(res_l(th.numpy())), torch.from_numpy(ts),
+                                      jacobian=lambda th: torch.from_numpy(jac_l(th.numpy())),
+                                      max_iter=linear_max_iter, ftol=ftol, gtol=gtol, mu0=mu0)
+            ts = out.theta.numpy().copy()
+    else:
+        ts = np.asarray(theta_star, float).reshape(-1)
+        if ts.shape != (model.n_phi,):
+            raise ValueError(f"theta_star must have n_a + n_b = {model.n_phi} entries, got {ts.shape}")
+    model.set_physics_estimate(ts)
+    if model.use_nn:
+        phi_t = torch.as_tensor(reg.phi)
+        model.fit_normalisation(phi_t)
+        s = float(np.std(reg.target - reg.phi @ ts))
+        model.out_scale.fill_(s if s > 0 else sigma)
 
-        def residual(th, _f=res_np):
-            return torch.from_numpy(_f(th.detach().numpy()))
+    arx0 = ArxPGNN.from_pgnn(model, y_range)
+    residual, jacobian = sim_error_criterion(arx0, ctrl, r, u_ex, y, ts, lam, train, sigma)
+    val_fn = None
+    if n_val:
+        yv = y[N - n_val:]
+        cv = 1.0 / (sigma * math.sqrt(n_val))
 
-        def jacobian(th, _f=jac_np):
-            return torch.from_numpy(_f(th.detach().numpy()))
+        def val_fn(theta):
+            yh, _ = simulate_closed_loop(arx0.with_theta(theta.numpy()), ctrl, r, u_ex)
+            e = (yv - yh[N - n_val:]) * cv
+            return float(e @ e) if np.all(np.isfinite(e)) else math.inf
 
-        out = levenberg_marquardt(residual, torch.from_numpy(m0.theta()), jacobian=jacobian, max_iter=max_iter,
-                                  ftol=ftol, gtol=gtol, val_cost=val_cost, patience=patience, callback=callback)
-        costs.append(float(out.cost))
-        if best is None or out.cost < best[0].cost:
-            best = (out, m0)
-    out, m0 = best
-    model = m0.with_theta(out.theta.detach().numpy())
-    yh, _ = simulate_closed_loop(model, ctrl, r, u_ff)
-    ident = float(np.linalg.norm(y - yh) / math.sqrt(N))
-    return SimErrorResult(model, float(out.cost), ident, yh, list(out.history), [], out.n_iter, bool(out.converged),
-                          str(out.message), costs, time.perf_counter() - t0)
+    res_t = lambda th: torch.from_numpy(residual(th.numpy()))     # noqa: E731
+    jac_t = lambda th: torch.from_numpy(jacobian(th.numpy()))     # noqa: E731
+    restarts_out = []
+    iters = range(n_restarts if model.use_nn else 1)
+    if progress is not None:
+        iters = progress(iters)
+    for i in iters:
+        s_i = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
+        model.reset_parameters(s_i)
+        t0 = time.perf_counter()
+        cb = None if on_iteration is None else (lambda it, th, c, i=i: on_iteration(i, it, c))
+        out = levenberg_marquardt(res_t, model.parameter_vector(), jacobian=jac_t, max_iter=max_iter,
+                                  ftol=ftol, gtol=gtol, mu0=mu0, val_cost=val_fn, patience=patience,
+                                  callback=cb)
+        restarts_out.append(RestartResult(s_i, out.cost, out.val_cost, out.history, out.val_history,
+                                          out.n_iter, out.message, time.perf_counter() - t0, out.theta))
+    best = int(np.argmin([rr.cost for rr in restarts_out]))
+    model.load_parameter_vector(restarts_out[best].theta)
+    arx = ArxPGNN.from_pgnn(model, y_range)
+    y_hat, _ = simulate_closed_loop(arx, ctrl, r, u_ex)
+    ident = float(np.linalg.norm(y - y_hat) / math.sqrt(N))
+    return SimErrorFit(model, arx, ts, sigma, ident, y_hat, restarts_out, best, N - n_val, n_val)

@@ -27,6 +27,7 @@ from math import comb
 from typing import Sequence
 
 import numpy as np
+import scipy.linalg
 import scipy.signal
 import torch
 from torch import nn
@@ -206,7 +207,8 @@ def filter_segments(x: np.ndarray, num, den, segments: Segments, reverse: bool =
     """Apply num(q)/den(q) along the first axis of x, restarting at rest in every segment.
 
     ``reverse=True`` applies the adjoint (time-reversed filter): for the lower-triangular
-    Toeplitz matrix W of one segment, Wᵀ y = flip(W flip(y)).
+    Toeplitz matrix W of one segment, Wᵀ y = flip(W flip(y)).  A 2-D result is the
+    transpose of a C-contiguous [m, N] array (columns contiguous in time).
     """
     x = np.asarray(x, dtype=np.float64)
     segments.check(x)
@@ -215,15 +217,15 @@ def filter_segments(x: np.ndarray, num, den, segments: Segments, reverse: bool =
     if den[0] == 0:
         raise ValueError(f"filter denominator has a zero leading coefficient ({den}); "
                          "B(q) must have a nonzero q^0 coefficient to be causal")
-    xt = np.ascontiguousarray(x.T)              # filter along the last (contiguous) axis
-    y = np.empty_like(xt)
+    xt = np.ascontiguousarray(x.T)      # filter along the last, contiguous axis (no copy when
+    y = np.empty_like(xt)               # x is the transpose of a C-contiguous [m, N] array)
     for a, b in segments.bounds:
         seg = xt[..., a:b]
         if reverse:
             y[..., a:b] = scipy.signal.lfilter(num, den, seg[..., ::-1], axis=-1)[..., ::-1]
         else:
             y[..., a:b] = scipy.signal.lfilter(num, den, seg, axis=-1)
-    return np.ascontiguousarray(y.T)
+    return y.T                          # same shape as x (a transposed view for 2-D x)
 
 
 class RecursiveFilter(torch.autograd.Function):

@@ -105,6 +105,12 @@ class System(ABC):
         raise NotImplementedError(
             f"system '{self.name}' has no exact inverse; use data.source=ilc to learn the optimal input")
 
+    def learning_model(self):
+        """Discrete LTI model of the linear part seen by the feedforward (u_ff -> y): the process
+        sensitivity P S in closed loop, the plant itself in open loop (the ILC model, SPEC §4)."""
+        raise NotImplementedError(
+            f"system '{self.name}' has no linear learning model; ILC needs one")
+
     def check_reference(self, r: np.ndarray) -> None:
         """Raise ValueError naming the violated limit if r is outside the plant's validity range."""
 

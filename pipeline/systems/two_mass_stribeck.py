@@ -377,6 +377,11 @@ class TwoMassStribeck(System):
     def physics(self) -> TwoMassRationalModel:
         return self._physics
 
+    def learning_model(self) -> control.StateSpace:
+        """The ILC model: the open-loop linear part with damping c1 (SPEC §2.1: one linearised at
+        c2 converges far slower)."""
+        return self.linear_model(self.c1)
+
     def d_nl(self, v):
         """The Stribeck damper force d_NL(v) [N] of this plant, [K] (32)."""
         return stribeck_damper(v, self.c1, self.c2, self.alpha)

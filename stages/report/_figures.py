@@ -1,23 +1,30 @@
-"""Copy a run's figure artifact from MLflow into results/figures/."""
+"""Copy a run's figure artifacts from MLflow into results/figures/."""
 from __future__ import annotations
 
+import os
 import shutil
 import tempfile
 from pathlib import Path
 
-import mlflow
+os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
 
-from pipeline import tracking
+import mlflow  # noqa: E402
+
+from pipeline import tracking  # noqa: E402
 
 
-def copy_figure(run_id: str, artifact: str, figdir: Path, filename: str) -> str | None:
-    """Return ``figures/<filename>`` (relative to REPORT.md) or None if the run has no such figure."""
-    tracking.client()
+def copy_figures(run_id: str, figdir: Path, prefix: str) -> list[str]:
+    """Copy every ``figures/*.png`` of the run to ``figdir/<prefix>-<name>``; return the paths
+    relative to REPORT.md (``figures/...``)."""
+    c = tracking.client()
+    out = []
     with tempfile.TemporaryDirectory() as tmp:
-        try:
-            local = mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=artifact,
+        for art in c.list_artifacts(run_id, "figures"):
+            if not art.path.endswith(".png"):
+                continue
+            local = mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=art.path,
                                                         dst_path=tmp)
-        except Exception:  # noqa: BLE001 — a missing artifact only drops the figure
-            return None
-        shutil.copyfile(local, figdir / filename)
-    return f"figures/{filename}"
+            name = f"{prefix}-{Path(art.path).name}"
+            shutil.copyfile(local, figdir / name)
+            out.append(f"figures/{name}")
+    return out

@@ -1,33 +1,57 @@
-"""Generic report section: one table row per run with its evaluation and baseline metrics."""
+"""Generic report section: per run, the identified physical parameters, the tracking metrics per
+evaluation reference, ILC results, and the run's figures."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import pandas as pd
 
-from stages.report._figures import copy_figure
+from stages.report._figures import copy_figures
 
 EXPERIMENTS = ("physics_baseline",)
+EVAL_METRICS = ("mae", "max_abs", "rms", "sq_norm2", "ff_error_rel")
+
+
+def _row(experiment, variant, metric, value):
+    return {"experiment": experiment, "claim": "", "variant": variant, "metric": metric,
+            "value": float(value), "paper_value": None, "claim_holds": None}
 
 
 def section(experiment: str, runs: pd.DataFrame, figdir: Path):
-    rows, lines = [], [f"## {experiment}", ""]
-    metric_cols = [c for c in runs.columns if c.startswith("metrics.") and
-                   (c.startswith("metrics.evaluate/") or c.startswith("metrics.baseline/"))
-                   and not c.endswith("seconds_per_sample")]
-    for _, run in runs.iterrows():
+    rows, lines = [], [f"## {experiment}", "",
+                       "Physics baselines of every plant (SPEC §2–§4): closed-form least squares of "
+                       "the nominal physics model, its feedforward scored on the true plant "
+                       "(noise-free evaluation runs), and ILC where configured.", ""]
+    for _, run in runs.sort_values("tags.mlflow.runName").iterrows():
         variant = run["tags.mlflow.runName"]
-        lines += [f"### {variant}", "", "| metric | value |", "| --- | --- |"]
-        for c in sorted(metric_cols):
-            if pd.notna(run[c]):
-                metric = c[len("metrics."):]
-                rows.append({"experiment": experiment, "claim": "", "variant": variant,
-                             "metric": metric, "value": float(run[c]), "paper_value": None,
-                             "claim_holds": None})
-                lines.append(f"| {metric} | {run[c]:.6g} |")
+        m = {c[len("metrics."):]: run[c] for c in runs.columns
+             if c.startswith("metrics.") and pd.notna(run[c])}
+        lines += [f"### {variant}", ""]
+        params = {k.split("/", 1)[1]: v for k, v in sorted(m.items())
+                  if k.startswith("baseline/") and not k.startswith("baseline/rel_error")}
+        if params:
+            lines += ["| parameter | " + " | ".join(params) + " |",
+                      "| --- |" + " --- |" * len(params),
+                      "| estimate | " + " | ".join(f"{v:.5g}" for v in params.values()) + " |", ""]
+            rows += [_row(experiment, variant, f"baseline/{k}", v) for k, v in params.items()]
+        refs = sorted({k.split("/")[1] for k in m if k.startswith("evaluate/")})
+        if refs:
+            present = [x for x in EVAL_METRICS if any(f"evaluate/{r}/{x}" in m for r in refs)]
+            lines += ["| reference | " + " | ".join(present) + " |",
+                      "| --- |" + " --- |" * len(present)]
+            for r in refs:
+                vals = [m.get(f"evaluate/{r}/{x}") for x in present]
+                lines.append(f"| {r} | " + " | ".join("" if v is None else f"{v:.4g}" for v in vals) + " |")
+                rows += [_row(experiment, f"{variant}/{r}", x, v) for x, v in zip(present, vals)
+                         if v is not None]
+            lines.append("")
+        ilc = {k.split("/")[2]: v for k, v in m.items()
+               if k.startswith("generate/ilc/") and k.endswith("/final_rms")}
+        for ref, v in ilc.items():
+            lines.append(f"ILC on `{ref}`: final rms error {v:.3g} m "
+                         f"(per-trial curve: metric `generate/ilc/{ref}/rms`).")
+            rows.append(_row(experiment, f"{variant}/{ref}", "ilc_final_rms", v))
+        for fig in copy_figures(run["run_id"], figdir, f"{experiment}-{variant}"):
+            lines += ["", f"![{Path(fig).stem}]({fig})"]
         lines.append("")
-        fig = copy_figure(run["run_id"], "figures/tracking_error.png", figdir,
-                          f"{experiment}-{variant}-tracking_error.png")
-        if fig:
-            lines += [f"![tracking error]({fig})", ""]
     return rows, "\n".join(lines)

@@ -1,0 +1,394 @@
+"""NARX (forward) and direct-inverse identification of PGNNs, [B1] §II-B and §V-B.
+
+Criteria (SPEC §5, squared 2-norms, normalised units):
+
+- [B1] (7): physics-only MSE, solved in closed form (column-scaled linear least squares);
+- [B1] (12): forward PGNN, one-step-ahead output residuals plus the regulariser
+  (θ_phy - θ*_phy)ᵀ Λ (θ_phy - θ*_phy) toward the physics-only estimate θ*_phy;
+- [B1] (14): direct-inverse PGNN, the same on the input residuals;
+- [B1] (29): invertible PGNN, the regulariser without the input gains ψ.
+
+Normalisation (SPEC §5): residuals are divided by the standard deviation σ of the predicted
+signal over the training rows (y for forward models, u for inverse ones) and by sqrt(M), and
+θ_phy enters the regulariser as the relative deviation (θ_phy - θ*_phy)/|θ*_phy|, so the cost
+
+    V(θ) = (1/M) Σ ((target - ŷ)/σ)² + dᵀ Λ d,      d = (θ_phy - θ*_phy) / |θ*_phy|
+
+makes Λ = 0.01 I mean "a 10% change of a physical parameter costs 1e-4 of normalised MSE".
+It is minimised by Levenberg–Marquardt (:mod:`pipeline.identify.lm`) with the exact closed-form
+Jacobian, from ``n_restarts`` random NN initialisations (θ_phy starts at θ*_phy), keeping the
+lowest training cost; early stopping watches a contiguous validation block at the end of the
+record (never a random split of time samples).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from pipeline.identify.lm import LMResult, levenberg_marquardt
+from pipeline.models.pgnn import PGNN, Prepared
+
+__all__ = ["Regression", "forward_regressor", "inverse_regressor", "build_regression",
+           "physics_least_squares", "regularizer_sqrt", "RestartResult", "NarxFit",
+           "identify_pgnn", "criterion"]
+
+
+# --------------------------------------------------------------------------------------------
+# regressors
+# --------------------------------------------------------------------------------------------
+@dataclass
+class Regression:
+    """Rows of a NARX regression: regressors ``phi`` [M, n_a + n_b], ``target`` [M] and the
+    time index ``t`` [M] of each row (the sample of the target y(t) or u(t))."""
+
+    phi: np.ndarray
+    target: np.ndarray
+    t: np.ndarray
+
+    def __len__(self):
+        return self.target.shape[0]
+
+
+def _check_orders(n_a, n_b, n_k):
+    if int(n_a) != n_a or int(n_b) != n_b or int(n_k) != n_k or n_a < 0 or n_b < 1 or n_k < 0:
+        raise ValueError(f"NARX orders need integers n_a >= 0, n_b >= 1, n_k >= 0; got "
+                         f"n_a={n_a}, n_b={n_b}, n_k={n_k}")
+
+
+def _check_pair(y, u):
+    y = np.asarray(y, dtype=np.float64)
+    u = np.asarray(u, dtype=np.float64)
+    if y.ndim != 1 or u.ndim != 1 or y.shape != u.shape:
+        raise ValueError(f"y and u must be 1-D signals of one length, got shapes {y.shape} and "
+                         f"{u.shape}")
+    if not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
+        raise ValueError("y or u contains NaN/inf; clean or drop those samples first")
+    return y, u
+
+
+def forward_regressor(y, u, n_a: int, n_b: int, n_k: int = 0) -> Regression:
+    """Forward NARX rows ([B1] (1)): φ(t) = [y(t-1..t-n_a), u(t-n_k-1..t-n_k-n_b)], target y(t).
+
+    Only complete rows are kept: t = max(n_a, n_k + n_b), …, N-1 (no padding).
+
+    Raises
+    ------
+    ValueError
+        If the orders leave no complete row in the data.
+    """
+    _check_orders(n_a, n_b, n_k)
+    y, u = _check_pair(y, u)
+    N = y.shape[0]
+    t0 = max(n_a, n_k + n_b)
+    if N - t0 < 1:
+        raise ValueError(f"regressor orders n_a={n_a}, n_b={n_b}, n_k={n_k} need more than "
+                         f"{t0} samples per record, the data have N={N}; use longer records "
+                         "or lower orders")
+    t = np.arange(t0, N)
+    cols = [y[t - i] for i in range(1, n_a + 1)] + [u[t - n_k - i] for i in range(1, n_b + 1)]
+    return Regression(np.stack(cols, axis=1), y[t].copy(), t)
+
+
+def inverse_regressor(y, u, n_a: int, n_b: int, n_k: int = 0) -> Regression:
+    """Direct-inverse rows ([B1] (13)): φ'(t) = [y(t+n_k+1..t+n_k-n_a+1), u(t-1..t-n_b+1)],
+    target u(t).
+
+    Complete rows only: t = max(n_a - n_k - 1, n_b - 1, 0), …, N - n_k - 2.
+
+    Raises
+    ------
+    ValueError
+        If the orders leave no complete row in the data.
+    """
+    _check_orders(n_a, n_b, n_k)
+    y, u = _check_pair(y, u)
+    N = y.shape[0]
+    t0 = max(n_a - n_k - 1, n_b - 1, 0)
+    t1 = N - n_k - 2
+    if t1 < t0:
+        raise ValueError(f"inverse regressor orders n_a={n_a}, n_b={n_b}, n_k={n_k} need at "
+                         f"least {t0 + n_k + 2} samples per record, the data have N={N}; use "
+                         "longer records or lower orders")
+    t = np.arange(t0, t1 + 1)
+    cols = [y[t + n_k + 1 - i] for i in range(0, n_a + 1)] + [u[t - i] for i in range(1, n_b)]
+    return Regression(np.stack(cols, axis=1), u[t].copy(), t)
+
+
+def build_regression(model: PGNN, y, u) -> Regression:
+    """Rows for ``model``'s structure; ``y``/``u`` may be lists of records (concatenated)."""
+    if isinstance(y, (list, tuple)):
+        if not isinstance(u, (list, tuple)) or len(u) != len(y) or len(y) == 0:
+            raise ValueError("give y and u as two lists of records of one length")
+        parts = [build_regression(model, a, b) for a, b in zip(y, u)]
+        return Regression(np.concatenate([p.phi for p in parts]),
+                          np.concatenate([p.target for p in parts]),
+                          np.concatenate([p.t for p in parts]))
+    make = inverse_regressor if model.structure == "inverse" else forward_regressor
+    return make(y, u, model.n_a, model.n_b, model.n_k)
+
+
+# --------------------------------------------------------------------------------------------
+# criteria
+# --------------------------------------------------------------------------------------------
+def physics_least_squares(model: PGNN, phi, target) -> np.ndarray:
+    """θ*_phy of [B1] (7): closed-form least squares of the physics part alone,
+    ``target - T₀(φ) ≈ T(φ) θ``, with column scaling (SVD-based ``numpy.linalg.lstsq``).
+
+    Raises
+    ------
+    ValueError
+        If the model has no physics part or the features are rank deficient on the data.
+    """
+    if not model.use_physics:
+        raise ValueError("physics_least_squares needs a model with a physics part")
+    phi = torch.as_tensor(np.asarray(phi, dtype=float))
+    with torch.no_grad():
+        off, T = model.physics.features(phi)
+    T = T.numpy()
+    z = np.asarray(target, dtype=float) - off.numpy()
+    scale = np.linalg.norm(T, axis=0)
+    if np.any(scale == 0):
+        bad = [model.physics.param_names[i] for i in np.flatnonzero(scale == 0)]
+        raise ValueError(f"physics features {bad} are zero on all data: the data do not excite "
+                         "them; use richer data or remove those parameters")
+    theta_s, _, rank, sv = np.linalg.lstsq(T / scale, z, rcond=None)
+    if rank < T.shape[1]:
+        raise ValueError(f"physics features are rank deficient on the data (rank {rank} < "
+                         f"{T.shape[1]}, singular values {sv}); the data do not excite every "
+                         "physical parameter")
+    return theta_s / scale
+
+
+def regularizer_sqrt(lam, p: int, keep: np.ndarray | None = None) -> np.ndarray:
+    """R with RᵀR = Λ (symmetric square root), Λ given as a scalar (λ I), a vector (diagonal)
+    or a p×p matrix; rows/columns where ``keep`` is False are zeroed ([B1] (29) omits ψ)."""
+    L = np.asarray(lam, dtype=float)
+    if L.ndim == 0:
+        L = float(L) * np.eye(p)
+    elif L.ndim == 1:
+        if L.shape[0] != p:
+            raise ValueError(f"Λ diagonal has {L.shape[0]} entries, θ_phy has {p}")
+        L = np.diag(L)
+    if L.shape != (p, p):
+        raise ValueError(f"Λ must be a scalar, a length-{p} diagonal or a {p}×{p} matrix, got "
+                         f"shape {L.shape}")
+    if not np.allclose(L, L.T):
+        raise ValueError("Λ must be symmetric")
+    if keep is not None:
+        L = L * keep[:, None] * keep[None, :]
+    w, V = np.linalg.eigh(L)
+    if w.min() < -1e-12 * max(1.0, abs(w).max()):
+        raise ValueError(f"Λ must be positive semidefinite, smallest eigenvalue {w.min():.3g}")
+    return (V * np.sqrt(np.clip(w, 0, None))) @ V.T
+
+
+def criterion(model: PGNN, prep: Prepared, target: torch.Tensor, sigma: float,
+              theta_star: torch.Tensor | None, R: torch.Tensor | None
+              ) -> tuple[Callable, Callable]:
+    """Residual and exact Jacobian of the normalised criterion ([B1] (12), (14), (29)).
+
+    ``residual(θ) = [(target - ŷ(θ))/(σ sqrt M); R d(θ)]`` with d the relative deviation of
+    θ_phy from θ*_phy; ``||residual||²`` is V(θ) of the module docstring.
+    """
+    M = target.shape[0]
+    c = 1.0 / (sigma * np.sqrt(M))
+    reg = R is not None and theta_star is not None and model.use_physics and bool(torch.any(R != 0))
+    sl = model.phy_slice
+    if reg:
+        scale = theta_star.abs()
+        scale = torch.where(scale > 1e-12 * scale.max(), scale, torch.ones_like(scale))
+        Rs = R / scale[None, :]  # ∂(R d)/∂θ_phy
+
+    def residual(theta):
+        e = (target - model.predict(theta, prep)) * c
+        if reg:
+            e = torch.cat([e, Rs @ (theta[sl] - theta_star)])
+        return e
+
+    def jacobian(theta):
+        J = model.jacobian(theta, prep) * (-c)
+        if reg:
+            Jr = torch.zeros(Rs.shape[0], theta.numel(), dtype=torch.float64)
+            Jr[:, sl] = Rs
+            J = torch.cat([J, Jr])
+        return J
+
+    return residual, jacobian
+
+
+# --------------------------------------------------------------------------------------------
+# identification
+# --------------------------------------------------------------------------------------------
+@dataclass
+class RestartResult:
+    """One LM run from one random initialisation."""
+
+    seed: int
+    cost: float                 # training criterion V(θ) at the returned θ
+    val_cost: float | None      # validation normalised MSE at θ (None without validation)
+    history: list[float]        # training V per accepted LM step (the loss curve)
+    val_history: list[float]
+    n_iter: int
+    message: str
+    seconds: float
+    theta: torch.Tensor
+
+
+@dataclass
+class NarxFit:
+    """Result of :func:`identify_pgnn`: ``model`` holds the best restart's parameters."""
+
+    model: PGNN
+    theta_phy_star: np.ndarray | None     # [B1] (7) estimate (None for a black box)
+    sigma: float                          # std of the predicted signal on the training rows
+    n_train: int
+    n_val: int
+    restarts: list[RestartResult] = field(default_factory=list)
+    best: int = 0
+
+    @property
+    def cost(self) -> float:
+        return self.restarts[self.best].cost
+
+    @property
+    def histories(self) -> list[list[float]]:
+        return [r.history for r in self.restarts]
+
+
+def _split_tail(y, u, val_fraction):
+    """Split records into training and a contiguous validation block at the end."""
+    ys = list(y) if isinstance(y, (list, tuple)) else [y]
+    us = list(u) if isinstance(u, (list, tuple)) else [u]
+    ys = [np.asarray(a, dtype=float) for a in ys]
+    us = [np.asarray(a, dtype=float) for a in us]
+    if len(ys) != len(us):
+        raise ValueError("give y and u as two lists of records of one length")
+    if not 0.0 <= val_fraction < 1.0:
+        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
+    if val_fraction == 0.0:
+        return ys, us, [], []
+    n_tot = sum(a.shape[0] for a in ys)
+    n_val = int(round(val_fraction * n_tot))
+    ty, tu, vy, vu = [], [], [], []
+    remaining = n_tot - n_val  # samples left for training, taken from the start
+    for a, b in zip(ys, us):
+        k = min(max(remaining, 0), a.shape[0])
+        if k > 0:
+            ty.append(a[:k]); tu.append(b[:k])
+        if k < a.shape[0]:
+            vy.append(a[k:]); vu.append(b[k:])
+        remaining -= a.shape[0]
+    return ty, tu, vy, vu
+
+
+def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: int = 0,
+                  val_fraction: float = 0.2, max_iter: int = 100, ftol: float = 1e-10,
+                  gtol: float = 1e-10, mu0: float = 1e-3, patience: int = 5,
+                  progress: Callable | None = None,
+                  on_iteration: Callable[[int, int, float], None] | None = None) -> NarxFit:
+    """Identify ``model`` from data with the criterion its structure implies.
+
+    ``structure='forward'`` → [B1] (12); ``'inverse'`` → [B1] (14); ``'invertible'`` → [B1]
+    (29) (ψ free).  A physics-only model (``use_nn=False``) is the closed form [B1] (7).
+
+    Parameters
+    ----------
+    model : PGNN
+        Modified in place (normalisation, θ*_phy, best parameters) and returned in the fit.
+    y, u : array or list of arrays
+        Measured output [m] and input [N] (one record or a list of records).
+    lam : float, array
+        Λ in normalised units (scalar → λ I, vector → diagonal, or a matrix).
+    n_restarts : int
+        Random NN initialisations; the lowest training cost wins ([B1] §VI: 10).
+    seed : int
+        Seed of the initialisations (restart i uses ``SeedSequence([seed, i])``).
+    val_fraction : float
+        Length of the validation block at the end of the record(s) (0 disables early
+        stopping).
+    max_iter, ftol, gtol, mu0, patience
+        Passed to :func:`pipeline.identify.lm.levenberg_marquardt`.
+    progress : callable, optional
+        Wraps the restart iterable (e.g. ``ctx.progress``).
+    on_iteration : callable, optional
+        ``on_iteration(restart, it, cost)`` after every accepted LM step.
+
+    Returns
+    -------
+    NarxFit
+    """
+    if n_restarts < 1:
+        raise ValueError(f"n_restarts must be >= 1, got {n_restarts}")
+    ty, tu, vy, vu = _split_tail(y, u, val_fraction)
+    train = build_regression(model, ty, tu)
+    val = build_regression(model, vy, vu) if vy else None
+    M = len(train)
+    if M < model.n_params:
+        raise ValueError(f"{M} training rows cannot identify {model.n_params} parameters; "
+                         "use more data or a smaller network")
+    phi = torch.as_tensor(train.phi)
+    target = torch.as_tensor(train.target)
+    sigma = float(target.std())
+    if not sigma > 0:
+        raise ValueError("the predicted signal is constant on the training rows; nothing to fit")
+
+    theta_star = None
+    if model.use_physics:
+        theta_star = physics_least_squares(model, train.phi, train.target)  # [B1] (7)
+        model.set_physics_estimate(theta_star)
+    if model.use_nn:
+        model.fit_normalisation(phi)
+        with torch.no_grad():
+            base = model.physics_part(phi) if model.use_physics else torch.zeros_like(target)
+            s = float((target - base).std())
+            model.out_scale.fill_(s if s > 0 else sigma)
+
+    prep = model.prepare(phi)
+    R = None
+    if model.use_physics:
+        keep = ~model.psi_mask().numpy() if model.structure == "invertible" else None
+        R = torch.as_tensor(regularizer_sqrt(lam, model.physics.n_params, keep))
+    th_star_t = None if theta_star is None else torch.as_tensor(theta_star)
+    residual, jacobian = criterion(model, prep, target, sigma, th_star_t, R)
+
+    val_fn = None
+    if val is not None:
+        vprep = model.prepare(torch.as_tensor(val.phi))
+        vtarget = torch.as_tensor(val.target)
+
+        def val_fn(theta):
+            with torch.no_grad():
+                e = (vtarget - model.predict(theta, vprep)) / sigma
+            return float(e @ e) / e.numel()
+
+    fit = NarxFit(model=model, theta_phy_star=theta_star, sigma=sigma, n_train=M,
+                  n_val=0 if val is None else len(val))
+    if not model.use_nn:  # [B1] (7): closed form, nothing to iterate
+        th = model.parameter_vector()
+        r = residual(th)
+        c = float(r @ r)
+        fit.restarts.append(RestartResult(seed, c, None if val_fn is None else val_fn(th), [c], [],
+                                          0, "closed_form", 0.0, th))
+        return fit
+
+    restarts = range(n_restarts)
+    if progress is not None:
+        restarts = progress(restarts)
+    for i in restarts:
+        s_i = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
+        model.reset_parameters(s_i)
+        t0 = time.perf_counter()
+        cb = None if on_iteration is None else (lambda it, th, c, i=i: on_iteration(i, it, c))
+        res: LMResult = levenberg_marquardt(residual, model.parameter_vector(), jacobian=jacobian,
+                                            max_iter=max_iter, ftol=ftol, gtol=gtol, mu0=mu0,
+                                            val_cost=val_fn, patience=patience, callback=cb)
+        fit.restarts.append(RestartResult(s_i, res.cost, res.val_cost, res.history,
+                                          res.val_history, res.n_iter, res.message,
+                                          time.perf_counter() - t0, res.theta))
+    fit.best = int(np.argmin([r.cost for r in fit.restarts]))
+    model.load_parameter_vector(fit.restarts[fit.best].theta)
+    return fit

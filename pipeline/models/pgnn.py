@@ -1,0 +1,759 @@
+"""Physics-guided neural networks of [B1] (SPEC §3, models 1, 3, 4, 5).
+
+A PGNN predicts one sample of a NARX model from a regressor vector φ ([B1] (10), (13), (26)):
+
+    ŷ(θ, φ) = f_phy(θ_phy, φ) + f_NN(θ_NN, φ),      f_phy(θ_phy, φ) = T₀(φ) + T(φ) θ_phy
+
+The physics part is linear in its parameters (SPEC §3 item 1): a :class:`PhysicsFeatures`
+map returns the parameter-free offset T₀(φ) and the feature rows T(φ); any plant plugs in
+its own map.  The NN part is an MLP ([B1] (11)) on a fixed affine map of φ (selection,
+optional δ-basis of the output window, normalisation by training statistics, all stored as
+buffers), times a fixed output scale.
+
+Regressor layouts (``structure``):
+
+- ``'forward'`` ([B1] (1), (10)): φ(t) = [y(t-1), …, y(t-n_a), u(t-n_k-1), …, u(t-n_k-n_b)],
+  target y(t).  The most recent input u(t-n_k-1) sits at ``phi[:, n_a]``.
+- ``'invertible'`` ([B1] (26)): as ``'forward'`` but the NN does not see u(t-n_k-1).
+- ``'inverse'`` ([B1] (13)): φ'(t) = [y(t+n_k+1), …, y(t+n_k-n_a+1), u(t-1), …, u(t-n_b+1)],
+  target u(t).
+
+Physics-only (``use_nn=False``) and black-box (``use_physics=False``, [B1] Remark 2.2) models
+are the same class with one part switched off.  In simulation (NOE) mode a caller builds φ
+from the model's own past outputs and calls :meth:`PGNN.forward` (batched, one step).
+
+:func:`fast_pgnn` exports a one-hidden-layer tanh PGNN with a built-in physics map to flat
+numpy arrays evaluated by numba kernels (``fast_predict``, …) for the per-sample inversions
+of ``pipeline.invert``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import torch
+from torch import nn
+
+__all__ = ["PhysicsFeatures", "LinearFeatures", "RigidBodyForward", "RigidBodyInverse", "PGNN",
+           "Prepared", "FastPGNN", "fast_pgnn", "fast_predict", "fast_physics_value", "fast_physics_affine",
+           "fast_nn_affine", "fast_state", "fast_push_reference", "fast_build_phi",
+           "fast_push_input", "padded_reference"]
+
+_ACTIVATIONS = {
+    "tanh": torch.tanh,
+    "sigmoid": torch.sigmoid,
+    "relu": torch.relu,
+    "softplus": nn.functional.softplus,
+    "elu": nn.functional.elu,
+    "gelu": nn.functional.gelu,
+    "identity": lambda x: x,
+}
+_STRUCTURES = ("forward", "inverse", "invertible")
+# numba kernel ids of the built-in physics maps (see _fast_physics)
+_KIND_LINEAR, _KIND_RIGID_FWD, _KIND_RIGID_INV = 0, 1, 2
+
+
+# --------------------------------------------------------------------------------------------
+# physics feature maps: f_phy(θ, φ) = T₀(φ) + T(φ) θ
+# --------------------------------------------------------------------------------------------
+class PhysicsFeatures(nn.Module):
+    """Linear-in-parameters physics model on a regressor φ: ``f_phy = T₀(φ) + T(φ) θ``.
+
+    Subclasses set :attr:`param_names` and implement :meth:`features`.  A map used by a
+    forward or invertible PGNN must be affine in the most recent input u(t-n_k-1) (the
+    analytic inverse [B1] (8), (27) and the Newton start need it); set
+    :attr:`affine_in_latest_input` to False otherwise.
+    """
+
+    #: names of θ_phy, in order
+    param_names: tuple[str, ...] = ()
+    #: f_phy is affine in φ[:, n_a] (u(t-n_k-1)) for the forward layout
+    affine_in_latest_input: bool = True
+    #: id of the numba kernel implementing this map (-1: no fast path)
+    fast_kind: int = -1
+
+    @property
+    def n_params(self) -> int:
+        return len(self.param_names)
+
+    def features(self, phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Return (T₀(φ) [B], T(φ) [B, p]) for a batch φ [B, n_phi]."""
+        raise NotImplementedError
+
+    def forward(self, phi: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+        """f_phy(θ, φ) [B]."""
+        off, T = self.features(phi)
+        return off + T @ theta
+
+    def physical(self, theta) -> dict[str, float]:
+        """Physical parameters from θ_phy (identity naming by default)."""
+        return {n: float(v) for n, v in zip(self.param_names, np.asarray(theta, dtype=float))}
+
+    def fast_config(self) -> np.ndarray:
+        """Float configuration of the numba kernel (see :func:`_fast_physics`)."""
+        raise NotImplementedError(f"{type(self).__name__} has no numba fast path")
+
+
+class LinearFeatures(PhysicsFeatures):
+    """ARX physics: ``f_phy = θᵀ φ`` (T = identity, T₀ = 0), e.g. SPEC §2.4 or [B1] (16).
+
+    Parameters
+    ----------
+    n_phi : int
+        Length of the regressor φ.
+    names : sequence of str, optional
+        Names of θ (default ``theta_0, theta_1, …``).
+    """
+
+    fast_kind = _KIND_LINEAR
+
+    def __init__(self, n_phi: int, names=None):
+        super().__init__()
+        if n_phi < 1:
+            raise ValueError(f"n_phi must be >= 1, got {n_phi}")
+        names = tuple(names) if names is not None else tuple(f"theta_{i}" for i in range(n_phi))
+        if len(names) != n_phi:
+            raise ValueError(f"got {len(names)} names for {n_phi} regressor entries")
+        self.param_names = names
+        self.n_phi = n_phi
+
+    def features(self, phi):
+        return torch.zeros(phi.shape[0], dtype=phi.dtype), phi[:, :self.n_phi]
+
+    def fast_config(self):
+        return np.array([float(self.n_phi)])
+
+
+class RigidBodyForward(PhysicsFeatures):
+    """Forward rigid body with viscous and Coulomb friction, [B1] (32) written for y(t).
+
+    With δ the backward difference, n_k = 0 and φ = [y(t-1), y(t-2), …, u(t-1), …]:
+
+        y(t) = 2y(t-1) - y(t-2) + Ts² (u(t-1) - f_v δy(t-1) - f_c sign(δy(t-1))) / m
+
+    linear in θ = [1/m, f_v/m, f_c/m] (SPEC §2.2, ``equation`` noise).  Extra lags in φ
+    (n_a > 2, n_b > 1) are ignored by the physics and seen by the NN only.
+
+    Parameters
+    ----------
+    Ts : float
+        Sample time [s].
+    n_a : int
+        Number of output lags in φ (>= 2); u(t-1) is at ``phi[:, n_a]``.
+    """
+
+    param_names = ("inv_m", "f_v_over_m", "f_c_over_m")
+    fast_kind = _KIND_RIGID_FWD
+
+    def __init__(self, Ts: float, n_a: int = 2):
+        super().__init__()
+        if not Ts > 0:
+            raise ValueError(f"sample time Ts must be > 0 s, got {Ts}")
+        if n_a < 2:
+            raise ValueError(f"RigidBodyForward needs n_a >= 2 output lags (δ²y), got {n_a}")
+        self.Ts, self.n_a = float(Ts), int(n_a)
+
+    def features(self, phi):
+        Ts = self.Ts
+        y1, y2, u1 = phi[:, 0], phi[:, 1], phi[:, self.n_a]
+        v = (y1 - y2) / Ts  # δy(t-1) [m/s]
+        T = Ts ** 2 * torch.stack([u1, -v, -torch.sign(v)], dim=1)
+        return 2.0 * y1 - y2, T
+
+    def physical(self, theta):
+        th = np.asarray(theta, dtype=float)
+        return {"m": 1.0 / th[0], "f_v": th[1] / th[0], "f_c": th[2] / th[0]}
+
+    def fast_config(self):
+        return np.array([self.Ts, float(self.n_a)])
+
+
+class RigidBodyInverse(PhysicsFeatures):
+    """Inverse rigid body with viscous and Coulomb friction, [B1] (32) solved for u, n_k = 0.
+
+    With φ'(t) = [y(t+1), y(t), y(t-1), …, u(t-1), …]:
+
+        u(t) = m δ²y(t+1) + f_v δy(t) + f_c sign(δy(t)),   θ = [m, f_v, f_c]
+
+    Parameters
+    ----------
+    Ts : float
+        Sample time [s].
+    """
+
+    param_names = ("m", "f_v", "f_c")
+    fast_kind = _KIND_RIGID_INV
+
+    def __init__(self, Ts: float):
+        super().__init__()
+        if not Ts > 0:
+            raise ValueError(f"sample time Ts must be > 0 s, got {Ts}")
+        self.Ts = float(Ts)
+
+    def features(self, phi):
+        Ts = self.Ts
+        y0, y1, y2 = phi[:, 0], phi[:, 1], phi[:, 2]
+        acc = (y0 - 2.0 * y1 + y2) / Ts ** 2  # δ²y(t+1) [m/s²]
+        v = (y1 - y2) / Ts  # δy(t) [m/s]
+        return torch.zeros_like(y0), torch.stack([acc, v, torch.sign(v)], dim=1)
+
+    def fast_config(self):
+        return np.array([self.Ts])
+
+
+# --------------------------------------------------------------------------------------------
+# the PGNN
+# --------------------------------------------------------------------------------------------
+@dataclass
+class Prepared:
+    """θ-independent quantities of a data set, computed once for identification.
+
+    offset [M], T [M, p]: physics features (None without physics); x [M, n_in]: normalised
+    NN inputs (None without NN).
+    """
+
+    offset: torch.Tensor | None
+    T: torch.Tensor | None
+    x: torch.Tensor | None
+
+    def __len__(self):
+        for a in (self.offset, self.x):
+            if a is not None:
+                return a.shape[0]
+        return 0
+
+    def rows(self, sl: slice) -> "Prepared":
+        return Prepared(*(None if a is None else a[sl] for a in (self.offset, self.T, self.x)))
+
+
+def _difference_rows(n: int) -> np.ndarray:
+    """Rows k = 0..n-1: the k-th backward difference of a window w[0], w[1], … (w[0] newest)."""
+    D = np.zeros((n, n))
+    for k in range(n):
+        for j in range(k + 1):
+            D[k, j] = (-1) ** j * math.comb(k, j)
+    return D
+
+
+class PGNN(nn.Module):
+    """Physics-guided neural network on a NARX regressor ([B1] (10), (13), (26)).
+
+    Parameters
+    ----------
+    n_a, n_b, n_k : int
+        NARX orders ([B1] (1)): output lags, input lags, pure input delay [samples].
+    structure : {'forward', 'inverse', 'invertible'}
+        Regressor layout and NN inputs (module docstring).
+    physics : PhysicsFeatures or None
+        Linear-in-parameters physics map on φ; None for a black-box NN.
+    hidden : sequence of int
+        Hidden-layer widths (``()`` with ``use_nn=True`` is a linear NN).
+    activation : str
+        Hidden activation: tanh, sigmoid, relu, softplus, elu, gelu, identity.
+    use_physics, use_nn : bool
+        Switch a part off (physics-only model: ``use_nn=False``; black box:
+        ``use_physics=False``).
+    input_transform : {'delta', 'raw'}
+        NN input basis: ``'delta'`` replaces the output window by its backward differences
+        (y, Δy, Δ²y, …; an invertible linear map, so the model class is unchanged, but the
+        NN sees velocity-like inputs instead of nearly identical positions); ``'raw'`` is φ.
+    out_init_scale : float
+        Output-layer weights at initialisation = Glorot draw × this (small: the initial PGNN
+        equals the physics model up to this factor, SPEC §3).
+    seed : int
+        Seed of the initial NN weights (torch generator).
+    """
+
+    def __init__(self, n_a: int, n_b: int, n_k: int = 0, *, structure: str = "forward",
+                 physics: PhysicsFeatures | None = None, hidden=(16,), activation: str = "tanh",
+                 use_physics: bool = True, use_nn: bool = True, input_transform: str = "delta",
+                 out_init_scale: float = 1e-3, seed: int = 0):
+        super().__init__()
+        if structure not in _STRUCTURES:
+            raise ValueError(f"structure must be one of {_STRUCTURES}, got {structure!r}")
+        if n_a < 0 or n_b < 1 or n_k < 0:
+            raise ValueError(f"NARX orders need n_a >= 0, n_b >= 1, n_k >= 0; got n_a={n_a}, "
+                             f"n_b={n_b}, n_k={n_k}")
+        if activation not in _ACTIVATIONS:
+            raise ValueError(f"activation must be one of {sorted(_ACTIVATIONS)}, got {activation!r}")
+        if input_transform not in ("delta", "raw"):
+            raise ValueError(f"input_transform must be 'delta' or 'raw', got {input_transform!r}")
+        if use_physics and physics is None:
+            raise ValueError("use_physics=True needs a PhysicsFeatures map (physics=...); "
+                             "pass use_physics=False for a black-box NN")
+        if not (use_physics or use_nn):
+            raise ValueError("a PGNN needs at least one part: use_physics or use_nn must be True")
+        self.n_a, self.n_b, self.n_k = int(n_a), int(n_b), int(n_k)
+        self.structure = structure
+        self.use_physics, self.use_nn = bool(use_physics), bool(use_nn)
+        self.activation = activation
+        self.hidden = tuple(int(h) for h in hidden)
+        self.input_transform = input_transform
+        self.out_init_scale = float(out_init_scale)
+        self.physics = physics if use_physics else None
+        n_phi = self.n_phi
+
+        # θ_phy first (parameter order = flat vector order)
+        if self.use_physics:
+            p = physics.n_params
+            self.theta_phy = nn.Parameter(torch.zeros(p, dtype=torch.float64))
+            self.register_buffer("theta_phy_star", torch.full((p,), float("nan"), dtype=torch.float64))
+        # NN input map x = P φ + c (selection, δ-basis, normalisation)
+        sel, n_y = self._nn_selection()
+        D = np.zeros((len(sel), n_phi))
+        D[np.arange(len(sel)), sel] = 1.0
+        if input_transform == "delta" and n_y > 1:
+            D[:n_y] = _difference_rows(n_y) @ D[:n_y]
+        self.register_buffer("nn_select", torch.as_tensor(D, dtype=torch.float64))
+        self.register_buffer("nn_P", torch.as_tensor(D, dtype=torch.float64).clone())
+        self.register_buffer("nn_c", torch.zeros(len(sel), dtype=torch.float64))
+        self.register_buffer("out_scale", torch.ones((), dtype=torch.float64))
+        self.layers = nn.ModuleList()
+        if self.use_nn:
+            widths = (len(sel),) + self.hidden + (1,)
+            for a, b in zip(widths[:-1], widths[1:]):
+                self.layers.append(nn.Linear(a, b, dtype=torch.float64))
+        self.reset_parameters(seed)
+
+    # ---- layout ---------------------------------------------------------------------------
+    @property
+    def n_phi(self) -> int:
+        return self.n_a + self.n_b
+
+    @property
+    def u_index(self) -> int:
+        """Index of the most recent input u(t-n_k-1) in φ (forward / invertible layouts)."""
+        return self.n_a
+
+    def _nn_selection(self) -> tuple[list[int], int]:
+        """Indices of φ the NN sees and how many of them (first) form the output window."""
+        if self.structure == "inverse":
+            n_y = self.n_a + 1
+        else:
+            n_y = self.n_a
+        sel = list(range(self.n_phi))
+        if self.structure == "invertible":
+            sel.remove(self.u_index)  # [B1] (26): the NN does not see u(t-n_k-1)
+        return sel, n_y
+
+    @property
+    def n_params(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+    def param_slices(self) -> dict[str, slice]:
+        """Slices of the flat parameter vector: ``theta_phy``, ``layers.0.weight``, …"""
+        out, i = {}, 0
+        for name, p in self.named_parameters():
+            out[name] = slice(i, i + p.numel())
+            i += p.numel()
+        return out
+
+    @property
+    def phy_slice(self) -> slice:
+        return slice(0, self.physics.n_params if self.use_physics else 0)
+
+    def parameter_vector(self) -> torch.Tensor:
+        """All trainable parameters as one flat float64 vector (θ_phy first)."""
+        return torch.nn.utils.parameters_to_vector(self.parameters()).detach().clone()
+
+    def load_parameter_vector(self, theta: torch.Tensor) -> None:
+        if theta.numel() != self.n_params:
+            raise ValueError(f"parameter vector has {theta.numel()} entries, the model {self.n_params}")
+        torch.nn.utils.vector_to_parameters(theta.detach().clone(), self.parameters())
+
+    # ---- initialisation and normalisation ------------------------------------------------
+    def reset_parameters(self, seed: int | torch.Generator = 0) -> None:
+        """Glorot-uniform hidden layers, zero biases, output layer scaled by ``out_init_scale``;
+        θ_phy set to θ*_phy when it is known."""
+        g = seed if isinstance(seed, torch.Generator) else torch.Generator().manual_seed(int(seed))
+        with torch.no_grad():
+            for i, lin in enumerate(self.layers):
+                fan_out, fan_in = lin.weight.shape
+                a = math.sqrt(6.0 / (fan_in + fan_out))
+                w = (2.0 * torch.rand(lin.weight.shape, generator=g, dtype=torch.float64) - 1.0) * a
+                if i == len(self.layers) - 1:
+                    w = w * self.out_init_scale
+                lin.weight.copy_(w)
+                lin.bias.zero_()
+            if self.use_physics and bool(torch.all(torch.isfinite(self.theta_phy_star))):
+                self.theta_phy.copy_(self.theta_phy_star)
+
+    def fit_normalisation(self, phi: torch.Tensor) -> None:
+        """Set the NN input normalisation from training regressors φ [M, n_phi] (buffers)."""
+        phi = torch.as_tensor(phi, dtype=torch.float64)
+        z = phi @ self.nn_select.T
+        mean = z.mean(0)
+        std = z.std(0)
+        tiny = 1e-12 * (z.abs().max(0).values + 1e-300)
+        std = torch.where(std > tiny, std, torch.ones_like(std))  # constant inputs: no scaling
+        self.nn_P.copy_(self.nn_select / std[:, None])
+        self.nn_c.copy_(-mean / std)
+
+    def set_physics_estimate(self, theta_star) -> None:
+        """Store θ*_phy (the physics-only least-squares estimate, [B1] (7)) and start from it."""
+        t = torch.as_tensor(np.asarray(theta_star, dtype=float), dtype=torch.float64)
+        with torch.no_grad():
+            self.theta_phy_star.copy_(t)
+            self.theta_phy.copy_(t)
+
+    # ---- evaluation ----------------------------------------------------------------------
+    def prepare(self, phi: torch.Tensor) -> Prepared:
+        """θ-independent parts of the prediction for regressors φ [M, n_phi]."""
+        phi = self._check_phi(phi)
+        off = T = x = None
+        if self.use_physics:
+            off, T = self.physics.features(phi)
+        if self.use_nn:
+            x = phi @ self.nn_P.T + self.nn_c
+        return Prepared(off, T, x)
+
+    def _unflatten(self, theta: torch.Tensor):
+        sl = self.param_slices()
+        th_phy = theta[sl["theta_phy"]] if self.use_physics else None
+        layers = []
+        for i, lin in enumerate(self.layers):
+            W = theta[sl[f"layers.{i}.weight"]].view(lin.weight.shape)
+            b = theta[sl[f"layers.{i}.bias"]]
+            layers.append((W, b))
+        return th_phy, layers
+
+    def _mlp(self, x, layers):
+        act = _ACTIVATIONS[self.activation]
+        for W, b in layers[:-1]:
+            x = act(torch.addmm(b, x, W.T))
+        W, b = layers[-1]
+        return torch.addmm(b, x, W.T)[:, 0] * self.out_scale
+
+    def predict(self, theta: torch.Tensor, prep: Prepared) -> torch.Tensor:
+        """ŷ [M] for a flat parameter vector θ on prepared data."""
+        th_phy, layers = self._unflatten(theta)
+        out = 0.0
+        if self.use_physics:
+            out = prep.offset + prep.T @ th_phy
+        if self.use_nn:
+            out = out + self._mlp(prep.x, layers)
+        return out
+
+    def jacobian(self, theta: torch.Tensor, prep: Prepared, chunk: int = 20000) -> torch.Tensor:
+        """Exact ∂ŷ/∂θ [M, n_params]: closed form for one hidden layer (tanh, sigmoid,
+        identity) or no hidden layer, torch.func.jacfwd in row chunks otherwise."""
+        M = len(prep)
+        th_phy, layers = self._unflatten(theta)
+        closed = (not self.use_nn or len(layers) == 1 or
+                  (len(layers) == 2 and self.activation in ("tanh", "sigmoid", "identity")))
+        if not closed:
+            return torch.cat([torch.func.jacfwd(lambda th: self.predict(th, prep.rows(slice(i, i + chunk))))(theta)
+                              for i in range(0, M, chunk)], dim=0)
+        J = torch.empty(M, self.n_params, dtype=torch.float64)
+        i = 0
+        if self.use_physics:
+            p = prep.T.shape[1]
+            J[:, :p] = prep.T
+            i = p
+        if self.use_nn:
+            s = self.out_scale
+            x = prep.x
+            n = x.shape[1]
+            if len(layers) == 1:
+                torch.mul(x, s, out=J[:, i:i + n])
+                J[:, i + n] = s
+            else:
+                (W1, b1), (W2, b2) = layers
+                H = W1.shape[0]
+                h = _ACTIVATIONS[self.activation](torch.addmm(b1, x, W1.T))
+                if self.activation == "tanh":
+                    dh = 1.0 - h * h
+                elif self.activation == "sigmoid":
+                    dh = h * (1.0 - h)
+                else:
+                    dh = torch.ones_like(h)
+                G = dh * (s * W2[0])  # ∂ŷ/∂(pre-activation) [M, H]
+                torch.mul(G[:, :, None], x[:, None, :], out=J[:, i:i + H * n].view(M, H, n))
+                i += H * n
+                J[:, i:i + H] = G
+                torch.mul(h, s, out=J[:, i + H:i + 2 * H])
+                J[:, i + 2 * H] = s
+        return J
+
+    def forward(self, phi: torch.Tensor) -> torch.Tensor:
+        """One-step prediction ŷ(θ, φ) [B] for a batch of regressors φ [B, n_phi] ([B1] (10)).
+
+        In simulation (NOE) mode φ holds the model's own past outputs (SPEC §3 item 3)."""
+        return self.physics_part(phi) + self.nn_part(phi)
+
+    def physics_part(self, phi: torch.Tensor, theta_phy: torch.Tensor | None = None) -> torch.Tensor:
+        """f_phy(θ_phy, φ) [B] (zero without physics); ``theta_phy`` defaults to the model's."""
+        phi = self._check_phi(phi)
+        if not self.use_physics:
+            return torch.zeros(phi.shape[0], dtype=torch.float64)
+        return self.physics(phi, self.theta_phy if theta_phy is None else theta_phy)
+
+    def nn_part(self, phi: torch.Tensor) -> torch.Tensor:
+        """f_NN(θ_NN, φ) [B] (zero without NN)."""
+        phi = self._check_phi(phi)
+        if not self.use_nn:
+            return torch.zeros(phi.shape[0], dtype=torch.float64)
+        return self._mlp(phi @ self.nn_P.T + self.nn_c, [(l.weight, l.bias) for l in self.layers])
+
+    def _check_phi(self, phi):
+        if not isinstance(phi, torch.Tensor):
+            phi = torch.as_tensor(np.asarray(phi, dtype=float))
+        if phi.dtype != torch.float64:
+            raise TypeError(f"regressors must be float64 (SPEC §0), got {phi.dtype}")
+        if phi.ndim != 2 or phi.shape[1] != self.n_phi:
+            raise ValueError(f"regressor batch must have shape [B, {self.n_phi}] (n_a + n_b), "
+                             f"got {tuple(phi.shape)}")
+        return phi
+
+    # ---- structure for inversion ---------------------------------------------------------
+    def psi_mask(self) -> torch.Tensor:
+        """Boolean mask of the θ_phy entries ψ multiplying u(t-n_k-1) ([B1] (29)); found by
+        perturbing that entry of a fixed probe regressor."""
+        if not self.use_physics or self.structure == "inverse":
+            return torch.zeros(self.physics.n_params if self.use_physics else 0, dtype=torch.bool)
+        phi0 = torch.linspace(0.3, 0.9, self.n_phi, dtype=torch.float64)[None, :].repeat(2, 1)
+        phi0[0, self.u_index], phi0[1, self.u_index] = 0.0, 1.0
+        _, T = self.physics.features(phi0)
+        return (T[1] - T[0]).abs() > 0
+
+    @property
+    def analytically_invertible(self) -> bool:
+        """True when ŷ is affine in u(t-n_k-1) with a coefficient ψ known from the physics:
+        the invertible PGNN [B1] (26) or a physics-only forward model."""
+        return (self.structure == "invertible" or (self.structure == "forward" and not self.use_nn)) \
+            and self.use_physics and self.physics.affine_in_latest_input
+
+    def extra_repr(self) -> str:
+        return (f"structure={self.structure}, n_a={self.n_a}, n_b={self.n_b}, n_k={self.n_k}, "
+                f"use_physics={self.use_physics}, use_nn={self.use_nn}, hidden={self.hidden}, "
+                f"activation={self.activation}, input_transform={self.input_transform}")
+
+
+# --------------------------------------------------------------------------------------------
+# numba fast path (one hidden tanh layer or no NN; built-in physics maps)
+# --------------------------------------------------------------------------------------------
+@dataclass
+class FastPGNN:
+    """Flat numpy export of a PGNN for the numba inversion kernels.
+
+    ``blob`` (float64) = [theta_phy (p), theta_phy_start (p), W (H × n_phi, the first layer
+    folded with the input map), b (H), w2 (H), b2, cfg…]; ``meta`` (int64) =
+    [kind, p, H, n_phi, u_index, use_phys, use_nn, n_a, n_b, n_k, n_cfg].
+    """
+
+    blob: np.ndarray
+    meta: np.ndarray
+    structure: str
+    n_a: int
+    n_b: int
+    n_k: int
+
+
+def fast_pgnn(model: PGNN, theta_start=None) -> FastPGNN | None:
+    """Export ``model`` for the numba kernels, or None when it has no fast path (NN deeper
+    than one hidden layer or not tanh, physics map without a numba kernel).
+
+    ``theta_start`` is the θ_phy of the physics feedforward that starts Newton ([B1] Alg. 1,
+    θ*_phy); default: the model's θ*_phy if known, else its θ_phy.
+    """
+    if model.use_nn and not (len(model.hidden) == 1 and model.activation == "tanh"):
+        return None
+    if model.use_physics and model.physics.fast_kind < 0:
+        return None
+    with torch.no_grad():
+        if model.use_physics:
+            th = model.theta_phy.detach().numpy().copy()
+            star = model.theta_phy_star.detach().numpy()
+            if theta_start is None:
+                theta_start = star if np.all(np.isfinite(star)) else th
+            ts = np.asarray(theta_start, dtype=float)
+            cfg = model.physics.fast_config()
+            kind = model.physics.fast_kind
+        else:
+            th = ts = np.zeros(0)
+            cfg, kind = np.zeros(0), -1
+        if model.use_nn:
+            (l1, l2) = model.layers
+            s = float(model.out_scale)
+            W = (l1.weight @ model.nn_P).numpy()  # fold the input map into the first layer
+            b = (l1.bias + l1.weight @ model.nn_c).numpy()
+            w2 = s * l2.weight[0].numpy()
+            b2 = s * float(l2.bias[0])
+            H = W.shape[0]
+        else:
+            W, b, w2, b2, H = np.zeros((0, model.n_phi)), np.zeros(0), np.zeros(0), 0.0, 0
+    blob = np.concatenate([th, ts, W.ravel(), b, w2, [b2], cfg]).astype(np.float64)
+    meta = np.array([kind, th.size, H, model.n_phi, model.u_index, int(model.use_physics),
+                     int(model.use_nn), model.n_a, model.n_b, model.n_k, cfg.size], dtype=np.int64)
+    return FastPGNN(blob, meta, model.structure, model.n_a, model.n_b, model.n_k)
+
+
+@numba.njit(cache=True)
+def _fast_physics(kind, cfg, theta, phi):
+    """f_phy(θ, φ) of the built-in maps (same formulas as the torch classes)."""
+    if kind == 0:  # LinearFeatures
+        n = int(cfg[0])
+        s = 0.0
+        for i in range(n):
+            s += theta[i] * phi[i]
+        return s
+    elif kind == 1:  # RigidBodyForward
+        Ts = cfg[0]
+        na = int(cfg[1])
+        y1, y2, u1 = phi[0], phi[1], phi[na]
+        v = (y1 - y2) / Ts
+        sg = 1.0 if v > 0 else (-1.0 if v < 0 else 0.0)
+        return 2.0 * y1 - y2 + Ts * Ts * (theta[0] * u1 - theta[1] * v - theta[2] * sg)
+    else:  # RigidBodyInverse
+        Ts = cfg[0]
+        acc = (phi[0] - 2.0 * phi[1] + phi[2]) / (Ts * Ts)
+        v = (phi[1] - phi[2]) / Ts
+        sg = 1.0 if v > 0 else (-1.0 if v < 0 else 0.0)
+        return theta[0] * acc + theta[1] * v + theta[2] * sg
+
+
+@numba.njit(cache=True)
+def _unpack(blob, meta):
+    p, H, n = meta[1], meta[2], meta[3]
+    i = 0
+    th = blob[i:i + p]; i += p
+    ts = blob[i:i + p]; i += p
+    W = blob[i:i + H * n].reshape((H, n)); i += H * n
+    b = blob[i:i + H]; i += H
+    w2 = blob[i:i + H]; i += H
+    b2 = blob[i]; i += 1
+    cfg = blob[i:i + meta[10]]
+    return th, ts, W, b, w2, b2, cfg
+
+
+@numba.njit(cache=True)
+def fast_predict(blob, meta, phi):
+    """ŷ(θ, φ) for one regressor φ (numba; equals ``PGNN.forward``)."""
+    th, ts, W, b, w2, b2, cfg = _unpack(blob, meta)
+    out = 0.0
+    if meta[5]:
+        out += _fast_physics(meta[0], cfg, th, phi)
+    if meta[6]:
+        H, n = meta[2], meta[3]
+        acc = b2
+        for j in range(H):
+            z = b[j]
+            for i in range(n):
+                z += W[j, i] * phi[i]
+            acc += w2[j] * np.tanh(z)
+        out += acc
+    return out
+
+
+@numba.njit(cache=True)
+def fast_physics_value(blob, meta, phi, use_start):
+    """f_phy(θ, φ) for θ_phy (``use_start`` False) or the start θ*_phy (True); 0 without physics."""
+    if not meta[5]:
+        return 0.0
+    th, ts, W, b, w2, b2, cfg = _unpack(blob, meta)
+    return _fast_physics(meta[0], cfg, ts if use_start else th, phi)
+
+
+@numba.njit(cache=True)
+def fast_physics_affine(blob, meta, phi, use_start):
+    """(a, ψ) with f_phy(φ) = a + ψ u(t-n_k-1): physics part at u = 0 and its input gain
+    (affine maps only), for θ_phy (``use_start`` False) or the start θ*_phy (True)."""
+    if not meta[5]:
+        return 0.0, 0.0
+    th, ts, W, b, w2, b2, cfg = _unpack(blob, meta)
+    theta = ts if use_start else th
+    k = meta[4]
+    keep = phi[k]
+    phi[k] = 0.0
+    a = _fast_physics(meta[0], cfg, theta, phi)
+    phi[k] = 1.0
+    psi = _fast_physics(meta[0], cfg, theta, phi) - a
+    phi[k] = keep
+    return a, psi
+
+
+@numba.njit(cache=True)
+def fast_nn_affine(blob, meta, phi):
+    """(f_NN(φ), ∂f_NN/∂u(t-n_k-1)) for one regressor φ (zero without NN)."""
+    th, ts, W, b, w2, b2, cfg = _unpack(blob, meta)
+    if not meta[6]:
+        return 0.0, 0.0
+    H, n, k = meta[2], meta[3], meta[4]
+    val = b2
+    d = 0.0
+    for j in range(H):
+        z = b[j]
+        for i in range(n):
+            z += W[j, i] * phi[i]
+        h = np.tanh(z)
+        val += w2[j] * h
+        d += w2[j] * (1.0 - h * h) * W[j, k]
+    return val, d
+
+
+# ---- feedforward regressor window (numba), shared by the inversions of pipeline.invert -----
+# state = [r window (n_a + 1): r(t+n_k+1), r(t+n_k), …, r(t+n_k+1-n_a);
+#          input history (n_b): u_ff(t-1), …, u_ff(t-n_b);  φ scratch (n_a + n_b)]
+def fast_state(fm: FastPGNN, r_past) -> np.ndarray:
+    """Initial window state for a feedforward run: ``r_past`` = [r(n_k), r(n_k-1), …,
+    r(n_k-n_a)] (the reference before the first new sample r(n_k+1)), zero past inputs."""
+    n_a, n_b = fm.n_a, fm.n_b
+    s = np.zeros(2 * (n_a + n_b) + 1)
+    r_past = np.asarray(r_past, dtype=float)
+    if r_past.shape != (n_a + 1,):
+        raise ValueError(f"r_past must hold n_a + 1 = {n_a + 1} samples, got {r_past.shape}")
+    s[:n_a + 1] = r_past  # the first push of r(n_k+1) completes the window
+    return s
+
+
+@numba.njit(cache=True)
+def fast_push_reference(state, meta, r_new):
+    """Shift the reference window and insert the newest sample r(t+n_k+1)."""
+    n_y = meta[7] + 1
+    for i in range(n_y - 1, 0, -1):
+        state[i] = state[i - 1]
+    state[0] = r_new
+
+
+@numba.njit(cache=True)
+def fast_build_phi(state, meta, inverse_layout):
+    """φ_ff (forward layout, u(t) slot = 0) or φ'_ff (inverse layout) from the state; a view
+    into the state's scratch part."""
+    n_a, n_b = meta[7], meta[8]
+    n_y = n_a + 1
+    phi = state[n_y + n_b:]
+    if inverse_layout:
+        for i in range(n_y):
+            phi[i] = state[i]  # r(t+n_k+1-i), i = 0..n_a
+        for i in range(n_b - 1):
+            phi[n_y + i] = state[n_y + i]  # u_ff(t-1-i)
+    else:
+        for i in range(n_a):
+            phi[i] = state[1 + i]  # r(t+n_k-i)
+        phi[n_a] = 0.0  # u_ff(t), the unknown
+        for i in range(n_b - 1):
+            phi[n_a + 1 + i] = state[n_y + i]  # u_ff(t-1-i)
+    return phi
+
+
+@numba.njit(cache=True)
+def fast_push_input(state, meta, u):
+    """Shift the input history and insert u_ff(t)."""
+    n_y, n_b = meta[7] + 1, meta[8]
+    for i in range(n_b - 1, 0, -1):
+        state[n_y + i] = state[n_y + i - 1]
+    state[n_y] = u
+
+
+def padded_reference(r, n_a: int, n_k: int) -> np.ndarray:
+    """r(j) for j = -n_a … N + n_k, held at r(0) before the start and at r(N-1) after the end
+    (at rest), so that ``out[j + n_a] = r(j)``."""
+    r = np.asarray(r, dtype=np.float64)
+    if r.ndim != 1 or r.shape[0] < 1:
+        raise ValueError(f"reference must be a non-empty 1-D signal, got shape {r.shape}")
+    if not np.all(np.isfinite(r)):
+        raise ValueError("reference contains NaN/inf")
+    N = r.shape[0]
+    return r[np.clip(np.arange(-n_a, N + n_k + 1), 0, N - 1)]

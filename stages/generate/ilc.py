@@ -1,0 +1,54 @@
+"""data.kind=ilc: learn each reference's optimal input by norm-optimal ILC on the true plant
+(SPEC §4), then record the closed-loop experiment with that input as ``u_ff`` and ``f_opt``.
+
+The learning model is the plant's linear part seen by the feedforward
+(:meth:`System.learning_model`); the error per trial is logged (``ilc/<ref>/rms``, step =
+trial) and drawn.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline import plots
+from pipeline.data import Dataset
+from pipeline.invert.ilc import make_update, norm_optimal_ilc, system_trial
+from pipeline.runner import ConfigError
+from stages._common import check_references, reference_specs
+from stages.generate.closed_loop import check as check_closed_loop
+
+
+def check(cfg, system) -> None:
+    check_closed_loop(cfg, system)
+    try:
+        system.learning_model()
+    except NotImplementedError as exc:
+        raise ConfigError(f"data=ilc: {exc}") from exc
+    if not 0 < float(cfg.data.ilc.gain) < 2:
+        raise ConfigError(f"data.ilc.gain={cfg.data.ilc.gain}: the learning gain must be in (0, 2)")
+
+
+def make(cfg, system, ctx) -> Dataset:
+    p = cfg.data.ilc
+    refs = check_references(reference_specs(cfg.data.references), system)
+    model = system.learning_model()
+    parts, curves = [], {}
+    for name, r in ctx.progress(refs.items(), desc="ILC", total=len(refs)):
+        rng = ctx.rng(f"data/{name}")
+        update = make_update(model, r.size, backend=str(p.backend))
+        s2 = update.sigma_max ** 2  # weights relative to σ_max(G)² (SPEC §2.3)
+        update = make_update(model, r.size, w=float(p.w_rel) * s2, w_delta=float(p.w_delta_rel) * s2,
+                             backend=str(p.backend))
+        res = norm_optimal_ilc(system_trial(system, r, rng if p.noise else None), None, r.size,
+                               gain=float(p.gain), n_trials=int(p.trials), tol=float(p.tol),
+                               update=update, progress=True)
+        for i, e in enumerate(res.rms):
+            ctx.metric(f"ilc/{name}/rms", e, step=i)
+        ctx.metric(f"ilc/{name}/final_rms", res.rms[-1])
+        curves[name] = np.asarray(res.rms)
+        f = res.f
+        v = system.noise(r.size, rng)
+        sim = system.simulate(r, u_ff=f, v=v).as_dict()
+        sim.update(f_opt=f, t=np.arange(r.size) * system.Ts)
+        parts.append(sim)
+    ctx.figure(plots.trials(curves, title=f"{system.name}: ILC error per trial"), "ilc_trials.png")
+    return Dataset.from_segments(parts, {"Ts": system.Ts, "references": list(refs)})

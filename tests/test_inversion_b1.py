@@ -1,0 +1,191 @@
+"""Tests of the [B1] feedforward inversions (pipeline/invert/{direct,analytic,newton}.py):
+Newton [B1] Alg. 1, analytic [B1] (27), direct inverse [B1] (13), physics [B1] (8)."""
+import numpy as np
+import pytest
+import torch
+
+from pipeline.invert.analytic import analytic_feedforward, physics_feedforward
+from pipeline.invert.direct import direct_feedforward
+from pipeline.invert.newton import BOUNDS, DIVERGED, newton_feedforward, newton_solve
+from pipeline.models.pgnn import PGNN, LinearFeatures, RigidBodyForward, RigidBodyInverse, fast_pgnn
+
+TS = 1e-3
+THETA_ARX = [1.5, -0.7, 1.0, 0.5]  # SPEC §2.4: stable, minimum phase (zero at -0.5)
+
+
+def known_model(structure, n_k=1, out_scale=0.3, seed=0):
+    """ARX physics + tanh NN with f_NN(0) = 0 exactly (zero biases, no input offset), so
+    y = 0, u = 0 is an equilibrium and a simulation from rest matches the inversions'
+    at-rest padding."""
+    m = PGNN(2, 2, n_k, structure=structure, physics=LinearFeatures(4), hidden=(8,),
+             out_init_scale=1.0, seed=seed, input_transform="raw")
+    m.set_physics_estimate(THETA_ARX)
+    with torch.no_grad():
+        m.out_scale.fill_(out_scale)
+    return m
+
+
+def simulate(model, u):
+    """y(t) = ŷ(φ(t)) from rest (past y and u zero), noise free, forward layout."""
+    n_a, n_b, n_k = model.n_a, model.n_b, model.n_k
+    N = u.shape[0]
+    y = np.zeros(N + n_k + 1)
+    up = lambda j: u[j] if 0 <= j < N else 0.0
+    yp = lambda j: y[j] if j >= 0 else 0.0
+    with torch.no_grad():
+        for t in range(N + n_k + 1):
+            phi = [yp(t - i) for i in range(1, n_a + 1)] + [up(t - n_k - i) for i in range(1, n_b + 1)]
+            y[t] = float(model(torch.tensor([phi], dtype=torch.float64))[0])
+    return y
+
+
+def smooth_input(N, seed=0):
+    rng = np.random.default_rng(seed)
+    u = np.convolve(rng.standard_normal(N), np.ones(10) / 10, mode="same")
+    u[:5] = 0.0
+    return u
+
+
+@pytest.mark.parametrize("structure", ["forward", "invertible"])
+def test_newton_recovers_the_known_inverse(structure):
+    m = known_model(structure)
+    u_true = smooth_input(300)
+    r = simulate(m, u_true)[:300]  # r(t) for t < N; later samples held by the padding
+    res = newton_feedforward(m, r, k=5)
+    # the last n_k + 1 samples need r beyond the record (held at r(N-1)): compare before
+    n = 300 - m.n_k - 1
+    assert res.residual.max() < 1e-10  # [B1] (23) solved
+    assert res.n_fallback == 0
+    np.testing.assert_allclose(res.u_ff[:n], u_true[:n], rtol=0, atol=1e-10 * np.abs(u_true).max())
+    if structure == "invertible":
+        # Assumption 5.1 holds: ŷ is affine in u(t-n_k-1), Newton = analytic [B1] (27)
+        u_an = analytic_feedforward(m, r)
+        np.testing.assert_allclose(res.u_ff, u_an, rtol=0, atol=1e-12 * np.abs(u_an).max())
+        np.testing.assert_allclose(u_an[:n], u_true[:n], rtol=0, atol=1e-12 * np.abs(u_true).max())
+        # one Newton step solves an affine equation (up to rounding)
+        assert newton_feedforward(m, r, k=1).residual.max() < 1e-13
+
+
+@pytest.mark.parametrize("fn", ["direct", "analytic", "newton", "physics_fwd", "physics_inv"])
+def test_fast_path_equals_torch_reference(fn):
+    r = 0.5 * np.sin(np.linspace(0, 6, 400)) + 0.1 * np.linspace(0, 1, 400) ** 2
+    structure = {"direct": "inverse", "analytic": "invertible", "newton": "forward",
+                 "physics_fwd": "forward", "physics_inv": "inverse"}[fn]
+    m = known_model(structure, n_k=0, seed=4)
+    if fn == "direct":
+        a, b = direct_feedforward(m, r), direct_feedforward(m, r, fast=False)
+    elif fn == "analytic":
+        a, b = analytic_feedforward(m, r), analytic_feedforward(m, r, fast=False)
+    elif fn == "newton":
+        ra = newton_feedforward(m, r, k=5, u_bounds=(-40, 40))
+        rb = newton_feedforward(m, r, k=5, u_bounds=(-40, 40), fast=False)
+        np.testing.assert_array_equal(ra.flags, rb.flags)
+        a, b = ra.u_ff, rb.u_ff
+    else:
+        a, b = physics_feedforward(m, r), physics_feedforward(m, r, fast=False)
+    assert np.max(np.abs(a - b)) <= 1e-10 * np.max(np.abs(b))
+    with pytest.raises(ValueError, match="fast=True"):
+        PGNN_deep = PGNN(2, 2, structure=structure, physics=LinearFeatures(4), hidden=(3, 3))
+        {"direct": direct_feedforward, "analytic": analytic_feedforward,
+         "physics_fwd": physics_feedforward, "physics_inv": physics_feedforward,
+         "newton": newton_feedforward}[fn](PGNN_deep, r, fast=True)
+
+
+def test_fast_newton_on_rigid_body_physics():
+    # linear-motor physics [B1] (32): u is determined to ~ulp(y)/ψ (ψ = Ts²/m ~ 5e-8 m/N),
+    # so fast and reference agree to that level, not to 1e-10 relative
+    r = 0.05 * (1 - np.cos(np.linspace(0, 2 * np.pi, 1500)))
+    m = PGNN(2, 1, physics=RigidBodyForward(TS), hidden=(8,), out_init_scale=1.0, seed=2)
+    m.set_physics_estimate([1 / 20, 50 / 20, 10 / 20])
+    with torch.no_grad():
+        m.out_scale.fill_(2e-8)  # NN worth ~0.4 N of force
+    a = newton_feedforward(m, r)
+    b = newton_feedforward(m, r, fast=False)
+    psi = TS ** 2 / 20
+    assert np.max(np.abs(a.u_ff - b.u_ff)) < 100 * np.spacing(0.1) / psi
+    assert a.residual.max() < 1e-15 and a.n_fallback == 0
+
+
+def test_physics_feedforward_closed_form_and_layouts():
+    # [B1] (32) inverted: u(t) = m δ²r(t+1) + f_v δr(t) + f_c sign(δr(t)), n_k = 0
+    m_, fv, fc = 20.0, 50.0, 10.0
+    t = np.arange(800) * TS
+    r = 0.02 * np.sin(2 * np.pi * 2 * t)
+    fwd = PGNN(2, 1, physics=RigidBodyForward(TS), use_nn=False)
+    fwd.set_physics_estimate([1 / m_, fv / m_, fc / m_])
+    inv = PGNN(2, 1, structure="inverse", physics=RigidBodyInverse(TS), use_nn=False)
+    inv.set_physics_estimate([m_, fv, fc])
+    re = np.concatenate([[r[0]], r, [r[-1]]])  # held before/after
+    acc = (re[2:] - 2 * re[1:-1] + re[:-2]) / TS ** 2
+    vel = (re[1:-1] - re[:-2]) / TS
+    u_ref = m_ * acc + fv * vel + fc * np.sign(vel)
+    for model in (fwd, inv):
+        for fast in (None, False):
+            u = physics_feedforward(model, r, fast=fast)
+            # forward form: u = (r - 2r1 + r2 + ...)/ψ, cancellation ~ ulp(r)/ψ ~ 1e-10 N
+            np.testing.assert_allclose(u, u_ref, rtol=0, atol=1e-6)
+
+
+def test_newton_bounds_are_reported():
+    m = known_model("forward", n_k=0, seed=1)
+    u_true = smooth_input(200, seed=3)
+    r = simulate(m, u_true)[:200]
+    lim = 0.5 * np.abs(u_true).max()
+    res = newton_feedforward(m, r, k=5, u_bounds=(-lim, lim))
+    assert np.all(np.abs(res.u_ff) <= lim)
+    assert res.n_bounds > 0
+    # never silent: a sample is either solved ([B1] (23) to rounding) or flagged
+    unsolved = res.residual > 1e-12
+    assert np.all(res.flags[unsolved] & BOUNDS)
+    assert np.all(res.residual[res.flags == 0] < 1e-12)
+
+
+def test_newton_divergence_falls_back_to_best_iterate():
+    # a NN with a large gain on u(t-1) makes ∂ŷ/∂u change sign: Newton wanders off
+    m = known_model("forward", n_k=0, seed=1, out_scale=50.0)
+    with torch.no_grad():
+        m.layers[0].weight.mul_(20.0)
+    fm = fast_pgnn(m)
+    rng = np.random.default_rng(0)
+    n_div = 0
+    for _ in range(300):
+        phi = rng.standard_normal(4)
+        phi[m.u_index] = 0.0
+        r_next = 3.0 * rng.standard_normal()
+        u0, v0, f0, i0 = newton_solve(fm.blob, fm.meta, phi.copy(), r_next, 0, -np.inf, np.inf)
+        u5, v5, f5, i5 = newton_solve(fm.blob, fm.meta, phi.copy(), r_next, 5, -np.inf, np.inf)
+        assert v5 <= v0 and i0 == 0  # the returned iterate is the best one, start included
+        p = phi.copy()
+        p[m.u_index] = u5
+        with torch.no_grad():  # reported residual is |V_R| at the returned input
+            assert abs(r_next - float(m(torch.tensor(p[None]))[0])) == pytest.approx(v5, abs=1e-12)
+        n_div += bool(f5 & DIVERGED)
+    assert n_div > 0  # this model does make Newton diverge, and it is reported
+    rb = newton_feedforward(m, np.linspace(0, 3, 200), k=5)
+    assert rb.n_diverged > 0 and rb.n_fallback >= rb.n_diverged
+
+
+def test_wrong_model_for_the_method_raises():
+    fwd = known_model("forward")
+    with pytest.raises(ValueError, match="NN does not see"):
+        analytic_feedforward(fwd, np.zeros(10))
+    with pytest.raises(ValueError, match="direct-inverse PGNN"):
+        direct_feedforward(fwd, np.zeros(10))
+    with pytest.raises(ValueError, match="forward-layout"):
+        newton_feedforward(known_model("inverse"), np.zeros(10))
+    with pytest.raises(ValueError, match="u_min < u_max"):
+        newton_feedforward(fwd, np.zeros(10), u_bounds=(1, -1))
+
+
+def test_direct_inverse_of_a_linear_model_is_exact():
+    # inverse ARX (16) with the exact inverse parameters of SPEC §2.4 (n_k = 0, ψ0 = 1):
+    # u(t) = y(t+1) - 1.5 y(t) + 0.7 y(t-1) - 0.5 u(t-1)
+    fwd = PGNN(2, 2, physics=LinearFeatures(4), use_nn=False)
+    fwd.set_physics_estimate(THETA_ARX)
+    inv = PGNN(2, 2, structure="inverse", physics=LinearFeatures(4), use_nn=False)
+    inv.set_physics_estimate([1.0, -1.5, 0.7, -0.5])
+    u_true = smooth_input(300, seed=5)
+    r = simulate(fwd, u_true)[:300]
+    for u in (direct_feedforward(inv, r), analytic_feedforward(fwd, r),
+              newton_feedforward(fwd, r, k=1).u_ff):
+        np.testing.assert_allclose(u[:299], u_true[:299], rtol=0, atol=1e-12)

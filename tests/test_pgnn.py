@@ -1,0 +1,257 @@
+"""Tests of the PGNN models (pipeline/models/pgnn.py) and the NARX / direct-inverse
+identification (pipeline/identify/narx.py), [B1] (7), (10)-(14), (26), (29)."""
+import numpy as np
+import pytest
+import torch
+
+from pipeline.identify.narx import (criterion, forward_regressor, identify_pgnn,
+                                    inverse_regressor, physics_least_squares, regularizer_sqrt)
+from pipeline.models.pgnn import PGNN, LinearFeatures, RigidBodyForward, RigidBodyInverse
+
+TS = 1e-3
+
+
+def motor_equation_noise(N, seed=0, sigma_v=1e-6, parasitics=True, m=20.0, f_v=50.0, f_c=10.0):
+    """Exactly-NARX linear motor (SPEC §2.2 'equation' noise) under a PD loop with white
+    input excitation Δu ~ N(0, 50²); returns (r, y, u)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(N) * TS
+    r = 0.05 * np.sin(2 * np.pi * 0.5 * t) * np.minimum(1.0, t / 0.2)
+    v = sigma_v * rng.standard_normal(N)
+    du = 50.0 * rng.standard_normal(N)
+    y, u = np.zeros(N), np.zeros(N)
+    for k in range(N):
+        if k >= 2:
+            vel = (y[k - 1] - y[k - 2]) / TS
+            if parasitics:
+                fr = (f_c + 5.0 * np.exp(-(vel / 0.01) ** 2)) * np.tanh(vel / 1e-3)
+                fr += 5.0 * np.sin(2 * np.pi * y[k - 1] / 0.025 + 0.3)
+            else:
+                fr = f_c * np.sign(vel)
+            y[k] = 2 * y[k - 1] - y[k - 2] + TS ** 2 / m * (u[k - 1] - f_v * vel - fr) + v[k]
+        e = r[k] - y[k]
+        ed = (e - (r[k - 1] - y[k - 1])) / TS if k > 0 else 0.0
+        u[k] = 2e5 * e + 3e3 * ed + du[k]
+    return r, y, u
+
+
+def _fd_jacobian(model, theta, prep, h=1e-6):
+    cols = []
+    for i in range(theta.numel()):
+        e = torch.zeros_like(theta)
+        e[i] = h * max(1.0, abs(float(theta[i])))
+        cols.append((model.predict(theta + e, prep) - model.predict(theta - e, prep)) / (2 * e[i]))
+    return torch.stack(cols, 1)
+
+
+# ---- regressors ----------------------------------------------------------------------------
+def test_forward_regressor_time_shifts():
+    k = np.arange(10.0)
+    reg = forward_regressor(k, 1000 * k, n_a=2, n_b=3, n_k=1)
+    # first complete row t = max(n_a, n_k + n_b) = 4: [y(3), y(2), u(2), u(1), u(0)]
+    assert reg.t[0] == 4 and reg.t[-1] == 9
+    np.testing.assert_array_equal(reg.phi[0], [3, 2, 2000, 1000, 0])
+    np.testing.assert_array_equal(reg.phi[:, 0], reg.t - 1)
+    np.testing.assert_array_equal(reg.phi[:, 2], 1000 * (reg.t - 2))  # u(t - n_k - 1)
+    np.testing.assert_array_equal(reg.target, reg.t)
+
+
+def test_inverse_regressor_time_shifts():
+    k = np.arange(10.0)
+    reg = inverse_regressor(k, 1000 * k, n_a=2, n_b=3, n_k=1)
+    # φ'(t) = [y(t+2), y(t+1), y(t), u(t-1), u(t-2)], target u(t); t = 2 .. N-3 = 7
+    assert reg.t[0] == 2 and reg.t[-1] == 7
+    np.testing.assert_array_equal(reg.phi[0], [4, 3, 2, 1000, 0])
+    np.testing.assert_array_equal(reg.target, 1000 * reg.t)
+    reg = inverse_regressor(k, 1000 * k, n_a=2, n_b=1, n_k=0)
+    np.testing.assert_array_equal(reg.phi[0], [2, 1, 0])  # t = 1: y(2), y(1), y(0)
+    assert reg.phi.shape == (8, 3)
+
+
+def test_orders_the_data_cannot_support_raise():
+    with pytest.raises(ValueError, match="need more than 5 samples"):
+        forward_regressor(np.zeros(5), np.zeros(5), n_a=5, n_b=2, n_k=0)
+    with pytest.raises(ValueError, match="at least"):
+        inverse_regressor(np.zeros(3), np.zeros(3), n_a=3, n_b=1, n_k=2)
+    with pytest.raises(ValueError, match="n_b >= 1"):
+        forward_regressor(np.zeros(50), np.zeros(50), n_a=2, n_b=0, n_k=0)
+    m = PGNN(2, 1, physics=RigidBodyForward(TS), hidden=(16,))
+    with pytest.raises(ValueError, match="training rows cannot identify"):
+        identify_pgnn(m, np.arange(30.0), np.ones(30), n_restarts=1, val_fraction=0.0)
+
+
+# ---- model structure ------------------------------------------------------------------------
+@pytest.mark.parametrize("structure", ["forward", "inverse", "invertible"])
+@pytest.mark.parametrize("hidden,activation", [((6,), "tanh"), ((), "tanh"), ((5, 4), "tanh"),
+                                               ((6,), "sigmoid")])
+def test_jacobian_matches_finite_differences(structure, hidden, activation):
+    phys = RigidBodyInverse(TS) if structure == "inverse" else LinearFeatures(4)
+    m = PGNN(2, 2, 1, structure=structure, physics=phys, hidden=hidden, activation=activation,
+             out_init_scale=1.0, seed=3)
+    g = torch.Generator().manual_seed(1)
+    phi = torch.randn(200, 4, generator=g, dtype=torch.float64)
+    m.fit_normalisation(phi)
+    with torch.no_grad():
+        m.out_scale.fill_(0.7)
+        m.theta_phy.copy_(torch.randn(3 if structure == "inverse" else 4, generator=g, dtype=torch.float64))
+    # a generic point: random biases too
+    th = m.parameter_vector() + 0.3 * torch.randn(m.n_params, generator=g, dtype=torch.float64)
+    prep = m.prepare(phi)
+    J = m.jacobian(th, prep)
+    Jfd = _fd_jacobian(m, th, prep)
+    # central differences with h ~ 1e-6: truncation ~h² |f'''| ~ 1e-12, rounding ~ eps/h ~ 1e-10
+    assert torch.allclose(J, Jfd, rtol=1e-6, atol=1e-6 * float(Jfd.abs().max()))
+    Jad = torch.func.jacfwd(lambda t: m.predict(t, prep))(th)
+    assert torch.allclose(J, Jad, rtol=1e-12, atol=1e-14)
+
+
+def test_initial_pgnn_equals_physics_and_parts():
+    g = torch.Generator().manual_seed(0)
+    phi = torch.randn(50, 3, generator=g, dtype=torch.float64)
+    m = PGNN(2, 1, physics=RigidBodyForward(TS), out_init_scale=0.0)
+    m.fit_normalisation(phi)
+    m.set_physics_estimate([0.05, 2.5, 0.5])
+    assert torch.equal(m(phi), m.physics_part(phi))
+    m = PGNN(2, 1, physics=RigidBodyForward(TS))  # default: tiny output layer
+    m.set_physics_estimate([0.05, 2.5, 0.5])
+    with torch.no_grad():
+        nn_rel = float(m.nn_part(phi).abs().max() / m.physics_part(phi).abs().max())
+    assert 0 < nn_rel < 1e-2
+    # the physics-only and black-box models are the same class with one part switched off
+    p_only = PGNN(2, 1, physics=RigidBodyForward(TS), use_nn=False)
+    assert p_only.n_params == 3 and not any(True for _ in p_only.layers)
+    bb = PGNN(2, 1, physics=None, use_physics=False, hidden=(4,))
+    assert bb.n_params == 3 * 4 + 4 + 4 + 1
+    assert torch.equal(bb(phi), bb.nn_part(phi))
+    with pytest.raises(ValueError, match="at least one part"):
+        PGNN(2, 1, physics=RigidBodyForward(TS), use_physics=False, use_nn=False)
+
+
+def test_invertible_nn_ignores_latest_input_and_forward_does_not():
+    g = torch.Generator().manual_seed(0)
+    phi = torch.randn(20, 4, generator=g, dtype=torch.float64)
+    phi2 = phi.clone()
+    phi2[:, 2] += 1.0  # u(t - n_k - 1) at index n_a = 2
+    kw = dict(physics=LinearFeatures(4), hidden=(5,), out_init_scale=1.0)
+    inv = PGNN(2, 2, structure="invertible", **kw)
+    fwd = PGNN(2, 2, structure="forward", **kw)
+    assert torch.equal(inv.nn_part(phi), inv.nn_part(phi2))
+    assert not torch.allclose(fwd.nn_part(phi), fwd.nn_part(phi2))
+    assert inv.analytically_invertible and not fwd.analytically_invertible
+    assert inv.psi_mask().tolist() == [False, False, True, False]
+    assert PGNN(2, 1, physics=RigidBodyForward(TS)).psi_mask().tolist() == [True, False, False]
+
+
+def test_normalisation_is_saved_with_the_model(tmp_path):
+    g = torch.Generator().manual_seed(0)
+    phi = 1e-2 * torch.randn(100, 3, generator=g, dtype=torch.float64) + 5.0
+    m = PGNN(2, 1, physics=RigidBodyForward(TS), out_init_scale=1.0)
+    m.fit_normalisation(phi)
+    x = m.prepare(phi).x
+    # 'delta' basis: y(t-1), y(t-1) - y(t-2), u(t-1), each standardised on the training data
+    assert torch.allclose(x.mean(0), torch.zeros(3, dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(x.std(0), torch.ones(3, dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(x[:, 1] * (phi[:, 0] - phi[:, 1]).std() + (phi[:, 0] - phi[:, 1]).mean(),
+                          phi[:, 0] - phi[:, 1], atol=1e-12)
+    torch.save(m.state_dict(), tmp_path / "m.pt")
+    m2 = PGNN(2, 1, physics=RigidBodyForward(TS), out_init_scale=1.0, seed=5)
+    m2.load_state_dict(torch.load(tmp_path / "m.pt"))
+    assert torch.equal(m2(phi), m(phi))
+
+
+# ---- criteria --------------------------------------------------------------------------------
+def test_physics_least_squares_recovers_contained_plant():
+    # parasitics off, F_fric = f_c sign: the physics model contains the plant (SPEC §2.2);
+    # with σ_v = 0 the closed form [B1] (7) is exact up to rounding
+    r, y, u = motor_equation_noise(3000, sigma_v=0.0, parasitics=False)
+    for struct, phys in [("forward", RigidBodyForward(TS)), ("inverse", RigidBodyInverse(TS))]:
+        m = PGNN(2, 1, structure=struct, physics=phys, use_nn=False)
+        reg = (inverse_regressor if struct == "inverse" else forward_regressor)(y, u, 2, 1, 0)
+        th = physics_least_squares(m, reg.phi, reg.target)
+        p = phys.physical(th) if struct == "forward" else dict(zip(phys.param_names, th))
+        assert p["m"] == pytest.approx(20.0, rel=1e-7)
+        assert p["f_v"] == pytest.approx(50.0, rel=1e-6)
+        assert p["f_c"] == pytest.approx(10.0, rel=1e-6)
+
+
+def test_lm_on_pgnn_reaches_closed_form_regularised_optimum():
+    # a PGNN with a linear NN (hidden=()) is linear in all its parameters: the regularised
+    # criterion [B1] (12) in normalised units has a closed-form augmented LS solution
+    r, y, u = motor_equation_noise(2000, seed=1)
+    m = PGNN(2, 1, physics=RigidBodyForward(TS), hidden=(), out_init_scale=1.0)
+    lam = 0.3
+    fit = identify_pgnn(m, y, u, lam=lam, n_restarts=2, val_fraction=0.0, max_iter=200,
+                        ftol=0.0, gtol=1e-14)
+    reg = forward_regressor(y, u, 2, 1, 0)
+    prep = m.prepare(torch.as_tensor(reg.phi))
+    M = len(reg)
+    c = 1 / (fit.sigma * np.sqrt(M))
+    X = torch.cat([prep.T, prep.x * m.out_scale, m.out_scale * torch.ones(M, 1, dtype=torch.float64)], 1).numpy()
+    z = reg.target - prep.offset.numpy()
+    ts = fit.theta_phy_star
+    Raug = np.zeros((3, X.shape[1]))
+    Raug[:, :3] = np.sqrt(lam) * np.diag(1 / np.abs(ts))
+    A = np.vstack([c * X, Raug])
+    b = np.concatenate([c * z, np.sqrt(lam) * ts / np.abs(ts)])
+    sc = np.linalg.norm(A, axis=0)
+    x_ls = np.linalg.lstsq(A / sc, b, rcond=None)[0] / sc
+    th = m.parameter_vector().numpy()
+    # relative error in the column-scaled coordinates (cond(A/sc) ~ 1.3, so the LS solution
+    # is defined to ~1e-15 there; single NN entries can be near zero, hence not entrywise)
+    assert np.linalg.norm(sc * (th - x_ls)) / np.linalg.norm(sc * x_ls) < 1e-10
+    assert fit.cost == pytest.approx(float(np.sum((A @ x_ls - b) ** 2)), rel=1e-10)
+
+
+def test_regulariser_units():
+    # Λ = 0.01 I: a 10% change of all three physical parameters costs 3 · 0.01 · 0.1² = 3e-4
+    g = torch.Generator().manual_seed(0)
+    phi = torch.randn(100, 3, generator=g, dtype=torch.float64)
+    m = PGNN(2, 1, physics=RigidBodyForward(TS), use_nn=False)
+    ts = torch.tensor([0.05, 2.5, -0.5], dtype=torch.float64)
+    prep = m.prepare(phi)
+    target = m.physics.forward(phi, ts)
+    R = torch.as_tensor(regularizer_sqrt(0.01, 3))
+    res, jac = criterion(m, prep, target, 1.0, ts, R)
+    th = 1.1 * ts
+    mse = float(((target - m.predict(th, prep)) ** 2).mean())
+    assert float(res(th).square().sum()) == pytest.approx(mse + 3e-4, rel=1e-12)
+    # [B1] (29): ψ (the 1/m entry multiplying u(t-1)) is not regularised
+    keep = ~PGNN(2, 1, structure="invertible", physics=RigidBodyForward(TS)).psi_mask().numpy()
+    R29 = torch.as_tensor(regularizer_sqrt(0.01, 3, keep))
+    res29, _ = criterion(m, prep, target, 1.0, ts, R29)
+    assert float(res29(th).square().sum()) == pytest.approx(mse + 2e-4, rel=1e-12)
+    # the criterion is linear in θ here: central differences with a large step are exact up
+    # to rounding (~eps·|r|/(h θ) ~ 1e-13 against entries >= 1e-7)
+    assert torch.allclose(jac(th), _fd_jac_res(res, th), rtol=1e-6, atol=1e-12)
+
+
+def _fd_jac_res(res, th, h=1e-2):
+    cols = []
+    for i in range(th.numel()):
+        e = torch.zeros_like(th)
+        e[i] = h * max(abs(float(th[i])), 1e-3)
+        cols.append((res(th + e) - res(th - e)) / (2 * e[i]))
+    return torch.stack(cols, 1)
+
+
+def test_best_of_restarts_validation_block_and_determinism():
+    r, y, u = motor_equation_noise(3000, seed=2)
+    kw = dict(physics=RigidBodyForward(TS), hidden=(4,))
+    m = PGNN(2, 1, **kw)
+    fit = identify_pgnn(m, y, u, n_restarts=3, seed=7, val_fraction=0.25, max_iter=15)
+    costs = [rr.cost for rr in fit.restarts]
+    assert fit.best == int(np.argmin(costs)) and len(set(costs)) == 3
+    assert torch.equal(m.parameter_vector(), fit.restarts[fit.best].theta)
+    # the validation block is the contiguous tail: 750 samples -> 748 complete rows
+    assert fit.n_val == 750 - 2 and fit.n_train == 2250 - 2
+    for rr in fit.restarts:
+        assert rr.history[0] >= rr.history[-1] and len(rr.val_history) == len(rr.history)
+    # the returned cost is the criterion at the returned parameters
+    reg = forward_regressor(y[:2250], u[:2250], 2, 1, 0)
+    res, _ = criterion(m, m.prepare(torch.as_tensor(reg.phi)), torch.as_tensor(reg.target),
+                       fit.sigma, torch.as_tensor(fit.theta_phy_star),
+                       torch.as_tensor(regularizer_sqrt(0.01, 3)))
+    assert float(res(m.parameter_vector()).square().sum()) == pytest.approx(fit.cost, rel=1e-12)
+    m2 = PGNN(2, 1, **kw)
+    identify_pgnn(m2, y, u, n_restarts=3, seed=7, val_fraction=0.25, max_iter=15)
+    assert torch.equal(m2.parameter_vector(), m.parameter_vector())

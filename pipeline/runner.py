@@ -89,6 +89,7 @@ class StageContext:
     inputs: dict[str, dict]
     workdir: Path
     system: Any = None
+    key: str = ""               # the stage's cache key (hash of its config and inputs)
     metrics: list = field(default_factory=list)
     tags: dict = field(default_factory=dict)
     figures: list = field(default_factory=list)
@@ -234,7 +235,7 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, 
             else:
                 tmp = store / name / f".tmp-{key[:20]}-{os.getpid()}-{time.time_ns()}"
                 tmp.mkdir(parents=True)
-                ctx = StageContext(cfg, name, {u: results[u] for u in mod.UPSTREAM}, tmp, system)
+                ctx = StageContext(cfg, name, {u: results[u] for u in mod.UPSTREAM}, tmp, system, key)
                 _seed_everything(int(cfg.seed), name)
                 t0 = time.perf_counter()
                 try:

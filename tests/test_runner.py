@@ -146,3 +146,17 @@ def test_stage_subset_needs_cached_upstream(store, cfg_of):
         runner.run_job(cfg_of(*SHORT_TWO_MASS, "stages=[evaluate]"))
     runner.run_job(cfg_of(*SHORT_TWO_MASS, "stages=[generate,baseline]"))
     assert set(_cache_state(store)) == {"generate", "baseline"}
+
+
+def test_dataset_contract_parquet_and_sidecar(store, cfg_of):
+    from pipeline import data
+    runner.run_job(cfg_of(*SHORT_TWO_MASS, "system.noise.std=1e-6"))
+    [path] = list((store / "cache" / "generate").glob("*/data/train.parquet"))
+    ds = data.load(path)
+    meta = json.loads(path.with_suffix(".json").read_text())
+    assert {"system", "Ts", "seed", "config_hash"} <= set(meta)
+    assert meta["system"] == "two_mass_stribeck" and meta["Ts"] == 1e-3
+    assert path.parent.parent.name == meta["config_hash"][:20]
+    assert {"t", "r", "u", "y", "u_ff", "u_fb", "f_opt", "y_clean", "v"} <= set(ds.frame.columns)
+    # simulated data replay exactly: y = y_clean + v
+    np.testing.assert_array_equal(ds["y"], ds["y_clean"] + ds["v"])

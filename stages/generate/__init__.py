@@ -26,6 +26,7 @@ def run(ctx) -> dict:
     impl = implementation("generate", str(cfg.data.kind))
     ds = impl.make(cfg, ctx.system, ctx)
     ds.meta.update({"system": getattr(ctx.system, "name", ""), "seed": int(cfg.seed),
+                    "config_hash": ctx.key,
                     "data": OmegaConf.to_container(cfg.data, resolve=True)})
     ds.meta.setdefault("Ts", getattr(ctx.system, "Ts", None))
     ctx.dataset(ds, "train")

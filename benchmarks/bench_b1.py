@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import resource
+import sys
 import time
 
 import numpy as np
@@ -23,10 +24,9 @@ import torch
 
 from pipeline.identify.narx import identify_pgnn
 from pipeline.invert.analytic import analytic_feedforward, analytic_step
-from pipeline.invert.direct import direct_feedforward, direct_step, initial_state
+from pipeline.invert.direct import direct_feedforward, direct_step, per_sample_seconds
 from pipeline.invert.newton import newton_feedforward, newton_step
-from pipeline.models.pgnn import (PGNN, RigidBodyForward, RigidBodyInverse, fast_pgnn,
-                                  padded_reference)
+from pipeline.models.pgnn import PGNN, RigidBodyForward, RigidBodyInverse, fast_pgnn
 from pipeline.references import b1_evaluation_reference, b1_training_reference
 from pipeline.systems.linear_motor import LinearMotor
 
@@ -42,26 +42,13 @@ def motor_data(n: int, seed: int = 0):
     return res.r, res.y, res.u
 
 
-def per_sample_times(step, fm, r, *args, warmup=200):
-    r_ext = padded_reference(r, fm.n_a, fm.n_k)
-    state = initial_state(fm, r_ext)
-    N = r.shape[0]
-    ts = np.empty(N)
-    pc = time.perf_counter_ns
-    for t in range(N):
-        rn = r_ext[t + fm.n_k + 1 + fm.n_a]
-        t0 = pc()
-        step(fm.blob, fm.meta, state, rn, *args)
-        ts[t] = pc() - t0
-    return ts[warmup:] * 1e-9
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=120_000, help="training samples")
     ap.add_argument("--max-iter", type=int, default=100, help="LM iterations of the timed restart")
     ap.add_argument("--hidden", type=int, default=16)
     a = ap.parse_args()
+    sys.stdout.reconfigure(line_buffering=True)
     torch.set_num_threads(1)
 
     t0 = time.perf_counter()
@@ -94,7 +81,7 @@ def main():
         m = models[struct]
         fm = fast_pgnn(m)
         whole(m)  # warm-up / compile
-        ts = per_sample_times(step, fm, r_ev, *args)
+        ts = per_sample_seconds(step, fm, r_ev, *args)
         t0 = time.perf_counter()
         whole(m)
         tw = (time.perf_counter() - t0) / r_ev.shape[0]

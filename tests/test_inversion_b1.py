@@ -189,3 +189,38 @@ def test_direct_inverse_of_a_linear_model_is_exact():
     for u in (direct_feedforward(inv, r), analytic_feedforward(fwd, r),
               newton_feedforward(fwd, r, k=1).u_ff):
         np.testing.assert_allclose(u[:299], u_true[:299], rtol=0, atol=1e-12)
+
+
+def test_averaged_input_feedforward_is_bounded_without_nyquist_oscillation():
+    # SPEC §2.2 sampling pitfall: the continuous (ZOH) motor is identified with the averaged
+    # input w = ū; inverting for w and applying u_ff(t) = (w(t) + w(t+1))/2 gives a smooth,
+    # bounded feedforward, while inverting the averaged model for u itself (u(t) = 2w(t) -
+    # u(t-1)) oscillates at the Nyquist frequency
+    from pipeline.identify.narx import identify_pgnn
+    from pipeline.invert.direct import nyquist_fraction
+    from pipeline.models.pgnn import PhysicsModelFeatures, physics_features_for
+    from pipeline.references import b1_evaluation_reference, b1_training_reference
+    from pipeline.systems.linear_motor import LinearMotor
+    plant = LinearMotor(noise={"structure": "output", "std": 1e-7}, cogging=False)
+    pm = plant.physics
+    assert pm.averaged_input
+    rng = np.random.default_rng(0)
+    r = b1_training_reference(TS, duration=10.0).r
+    sim = plant.simulate(r, du=50 * rng.standard_normal(r.size), v=plant.noise(r.size, rng))
+    w = pm.model_input(sim.u)
+    m = PGNN(2, 1, physics=physics_features_for(pm, "forward", 2, 1, input_is_model_input=True),
+             use_nn=False)
+    identify_pgnn(m, sim.y, w)
+    assert m.physics.physical(m.theta_phy.detach().numpy())["m"] == pytest.approx(20.0, rel=0.05)
+    r_ev = b1_evaluation_reference(0.15, TS).r
+    u_exact_phys = pm.feedforward(m.theta_phy.detach().numpy(), r_ev)
+    for u in (pm.applied_input(analytic_feedforward(m, r_ev)),
+              pm.applied_input(newton_feedforward(m, r_ev, k=5).u_ff)):
+        assert nyquist_fraction(u) < 1e-3
+        assert np.max(np.abs(u)) <= 1.01 * np.max(np.abs(u_exact_phys))
+        np.testing.assert_allclose(u, u_exact_phys, rtol=0, atol=1e-6 * np.abs(u_exact_phys).max())
+    # negative control: the same physics written on (u(t-1), u(t-2)) and inverted for u
+    m2 = PGNN(2, 2, physics=PhysicsModelFeatures(pm), use_nn=False)
+    m2.set_physics_estimate(m.theta_phy.detach().numpy())
+    u_bad = analytic_feedforward(m2, r_ev)
+    assert nyquist_fraction(u_bad) > 0.1

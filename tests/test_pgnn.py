@@ -255,3 +255,46 @@ def test_best_of_restarts_validation_block_and_determinism():
     m2 = PGNN(2, 1, **kw)
     identify_pgnn(m2, y, u, n_restarts=3, seed=7, val_fraction=0.25, max_iter=15)
     assert torch.equal(m2.parameter_vector(), m.parameter_vector())
+
+
+def test_builtin_physics_maps_equal_the_plants_physics_models():
+    from pipeline.models.pgnn import PhysicsModelFeatures, physics_features_for
+    from pipeline.systems.arx_bias import ARXPhysics
+    from pipeline.systems.linear_motor import LinearMotorPhysics
+    g = torch.Generator().manual_seed(0)
+    phi = 1e-3 * torch.randn(64, 3, generator=g, dtype=torch.float64)
+    phi[:, 2] = 100 * torch.randn(64, generator=g, dtype=torch.float64)
+    lm = LinearMotorPhysics(TS)
+    for structure in ("forward", "inverse"):
+        ours = physics_features_for(lm, structure, 2, 1)
+        assert isinstance(ours, RigidBodyInverse if structure == "inverse" else RigidBodyForward)
+        theirs = PhysicsModelFeatures(lm, inverse=structure == "inverse")
+        for a, b in zip(ours.features(phi), theirs.features(phi)):
+            assert torch.allclose(a, b, rtol=1e-13, atol=0)
+    arx = ARXPhysics(2, 2)
+    assert isinstance(physics_features_for(arx, "forward", 2, 2), LinearFeatures)
+    with pytest.raises(ValueError, match="make them equal"):
+        physics_features_for(arx, "forward", 3, 2)
+
+
+def test_arx_inverse_asymptotic_bias_matches_simulation():
+    # [B1] (18) in closed form vs a long simulation of SPEC §2.4 (N = 4e5, 4 seeds pooled):
+    # the LS estimate's spread is ~ σ/sqrt(N) ~ 1e-3 against a bias of ~2e-2
+    from scipy.signal import lfilter
+    from pipeline.identify.narx import arx_inverse_asymptotics
+    a, b, sv = [1.5, -0.7], [1.0, 0.5], 0.1
+    th_inv, bias, M = arx_inverse_asymptotics(a, b, 1.0, sv)
+    np.testing.assert_allclose(th_inv, [1.0, -1.5, 0.7, -0.5])
+    rng = np.random.default_rng(0)
+    N = 400_000
+    u = rng.standard_normal(N)
+    v = sv * rng.standard_normal(N)
+    A = [1.0, -1.5, 0.7]
+    y = lfilter([0.0, 1.0, 0.5], A, u) + lfilter([1.0], A, v)
+    reg = inverse_regressor(y[1000:], u[1000:], 2, 2, 0)  # drop the start-up transient
+    Mhat = reg.phi.T @ reg.phi / len(reg)
+    np.testing.assert_allclose(Mhat, M, rtol=0.02, atol=0.02 * np.abs(M).max())
+    m = PGNN(2, 2, structure="inverse", physics=LinearFeatures(4), use_nn=False)
+    th = physics_least_squares(m, reg.phi, reg.target)
+    assert np.linalg.norm(th - th_inv - bias) < 0.1 * np.linalg.norm(bias)
+    assert np.linalg.norm(bias) > 0.01

@@ -6,8 +6,6 @@ rounding of a well-conditioned problem remains); filters against scipy to 1e-12 
 recursion, different code path); gradients against central finite differences (O(h²)
 truncation, linear map: exact up to rounding).
 """
-import warnings
-
 import numpy as np
 import pytest
 import scipy.signal
@@ -104,7 +102,8 @@ def test_reflect_unstable_roots_keeps_magnitude_response(basis):
     assert n == 3
     new_poles = np.roots(ar_polynomial(b_new, basis, Ts))
     assert np.max(np.abs(new_poles)) < 1.0
-    np.testing.assert_allclose(np.sort(np.abs(new_poles)), np.sort(np.minimum(np.abs(poles), 1 / np.abs(poles))),
+    np.testing.assert_allclose(np.sort(np.abs(new_poles)),
+                               np.sort(np.minimum(np.abs(poles), 1 / np.abs(poles))),
                                rtol=1e-10)
     w = np.linspace(0, np.pi, 64)
     _, h_old = scipy.signal.freqz([1.0], ar_polynomial(b, basis, Ts), w)

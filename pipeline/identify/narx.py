@@ -34,7 +34,7 @@ from pipeline.models.pgnn import PGNN, Prepared
 
 __all__ = ["Regression", "forward_regressor", "inverse_regressor", "build_regression",
            "physics_least_squares", "regularizer_sqrt", "RestartResult", "NarxFit",
-           "identify_pgnn", "criterion"]
+           "identify_pgnn", "criterion", "arx_inverse_asymptotics"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -392,3 +392,65 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
     fit.best = int(np.argmin([r.cost for r in fit.restarts]))
     model.load_parameter_vector(fit.restarts[fit.best].theta)
     return fit
+
+
+# --------------------------------------------------------------------------------------------
+# [B1] §II-C: asymptotic bias of the direct inverse of a linear ARX system
+# --------------------------------------------------------------------------------------------
+def arx_inverse_asymptotics(a, b, sigma_u: float, sigma_v: float):
+    """Exact inverse parameters θ0', regressor covariance M and the asymptotic bias (18) of
+    the direct-inverse least squares ([B1] (15)-(18)) for the ARX system
+
+        y(t) = Σ a_i y(t-i) + Σ b_i u(t-i) + v(t)      (n_k = 0, white u, white v)
+
+    identified as u(t) ≈ θ'ᵀ φ'(t), φ'(t) = [y(t+1), …, y(t+1-n_a), u(t-1), …, u(t-n_b+1)].
+
+    With s(t) = [y(t), …, y(t-n_a+1), u(t-1), …, u(t-n_b+1)], φ'(t) = [y(t+1); s(t)],
+    y(t+1) = c s(t) + b_1 u(t) + v(t+1); the stationary covariance P of s solves a discrete
+    Lyapunov equation (scipy), so M = E[φ'φ'ᵀ] is exact, and (18) gives
+
+        lim θ̂' - θ0' = -M⁻¹ E[φ'(t) v(t+1)] / ψ0 = -M⁻¹ [σ_v², 0, …, 0]ᵀ / b_1.
+
+    (the paper prints the sign as +; the minus follows from (15): u = θ0'ᵀφ' - v(t+1)/ψ0.)
+
+    Returns
+    -------
+    theta_inv : ndarray [n_a + n_b]
+        θ0' = [1, -a_1, …, -a_{n_a}, -b_2, …, -b_{n_b}] / b_1.
+    bias : ndarray [n_a + n_b]
+        Asymptotic bias of the direct-inverse estimate.
+    M : ndarray [n_a + n_b, n_a + n_b]
+        E[φ'φ'ᵀ].
+    """
+    from scipy.linalg import solve_discrete_lyapunov
+
+    a = np.atleast_1d(np.asarray(a, dtype=float))
+    b = np.atleast_1d(np.asarray(b, dtype=float))
+    n_a, n_b = a.size, b.size
+    if n_a < 1 or n_b < 1 or b[0] == 0.0:
+        raise ValueError(f"need n_a >= 1, n_b >= 1 and b_1 != 0; got a={a}, b={b}")
+    ns = n_a + n_b - 1
+    c = np.concatenate([a, b[1:]])
+    A = np.zeros((ns, ns))
+    B = np.zeros((ns, 2))
+    A[0] = c
+    B[0] = [b[0], 1.0]  # y(t+1) = c s(t) + b_1 u(t) + v(t+1)
+    for i in range(1, n_a):
+        A[i, i - 1] = 1.0  # y(t+1-i) shifts down
+    if n_b > 1:
+        B[n_a, 0] = 1.0  # u(t) enters as the newest input lag
+        for i in range(n_a + 1, ns):
+            A[i, i - 1] = 1.0
+    if np.any(np.abs(np.linalg.eigvals(A)) >= 1.0):
+        raise ValueError(f"the ARX system a={a}, b={b} is not stable: no stationary covariance")
+    Q = np.diag([sigma_u ** 2, sigma_v ** 2])
+    P = solve_discrete_lyapunov(A, B @ Q @ B.T)
+    M = np.empty((ns + 1, ns + 1))
+    M[0, 0] = c @ P @ c + b[0] ** 2 * sigma_u ** 2 + sigma_v ** 2
+    M[0, 1:] = M[1:, 0] = c @ P
+    M[1:, 1:] = P
+    theta_inv = np.concatenate([[1.0], -a, -b[1:]]) / b[0]
+    e = np.zeros(ns + 1)
+    e[0] = sigma_v ** 2 / b[0]
+    bias = -np.linalg.solve(M, e)
+    return theta_inv, bias, M

@@ -33,6 +33,10 @@ from typing import Callable
 import numba
 import numpy as np
 
+__all__ = ["ArxPGNN", "DiscreteController", "LoopState", "as_arx", "arx_from_tf", "simulate_closed_loop",
+           "jacobian_uff", "jacobian_theta", "simulate_closed_loop_torch", "SimErrorFit", "sim_error_criterion",
+           "closed_loop_exogenous", "identify_sim_error"]
+
 # --------------------------------------------------------------------------------------
 # model and controller as plain arrays
 # --------------------------------------------------------------------------------------
@@ -124,7 +128,8 @@ class ArxPGNN:
         if model.use_nn and not (len(model.hidden) == 1 and model.activation == "tanh"):
             raise ValueError(f"the [B2] PGNN (30) has one tanh hidden layer, got hidden={model.hidden}, "
                              f"activation={model.activation!r}")
-        with torch_no_grad():
+        import torch
+        with torch.no_grad():
             th = model.theta_phy.detach().numpy().copy()
             if model.use_nn:
                 l1, l2 = model.layers
@@ -200,10 +205,15 @@ class ArxPGNN:
             y = y + self.out_scale * (h @ self.W2 + self.b2)
         return y
 
-
-def torch_no_grad():
-    import torch
-    return torch.no_grad()
+    def input_gain(self, phi: np.ndarray) -> np.ndarray:
+        """∂ŷ/∂u(k-n_k-1) at regressors ``phi`` [..., n_a + n_b] [m/N] (inverse relation (19))."""
+        phi = np.asarray(phi, dtype=np.float64)
+        g = np.full(phi.shape[:-1], self.theta_phy[self.n_a])
+        if self.n1:
+            h = np.tanh((phi @ self.nn_P.T + self.nn_c) @ self.W1.T + self.b1)
+            col = self.W1 @ self.nn_P[:, self.n_a]          # ∂z/∂u(k-n_k-1)
+            g = g + self.out_scale * ((1.0 - h * h) * self.W2) @ col
+        return g
 
 
 def as_arx(model) -> ArxPGNN:

@@ -6,7 +6,7 @@ The output-error criterion ([K] (7))
 
 is minimised by iterating, with the weighting 1/B^{j-1}(q) fixed ([K] (10), (27), (30)),
 
-    θ^j, φ^j = argmin ‖W^{j-1} (f̂ − M θ − g_φ(r))‖² + λ R^{j-1}(φ),    M = [R, −F̂] ([K] (14)).
+    θ^j, φ^j = argmin ‖W^{j-1} (f̂ − M θ − g_φ(r))‖² + λ R^{j-1}(φ),   M = [R, −F̂] ([K] (14)).
 
 W^{j-1} is a recursive filter (never an N×N matrix).  Within an iteration θ enters linearly:
 for the rational model the step is closed-form least squares on the column-scaled W M; for
@@ -39,7 +39,7 @@ from pipeline.identify.lm import LMResult, levenberg_marquardt
 from pipeline.identify.orthogonal import ModelSubspace, model_subspace, orthogonal_regularizer
 from pipeline.models.rational import RationalFeedforward, Segments, filter_segments
 
-__all__ = ["REGULARIZERS", "SKIterate", "SKResult", "SKNotConvergedWarning", "sk_iterations",
+__all__ = ["REGULARIZERS", "SKIterate", "SKResult", "SKNotConvergedWarning", "sk_iterations", "sk_restarts",
            "oe_cost", "output_error_lm", "output_error_problem", "OEResult", "prepare_data"]
 
 #: relative size below which a projected Jacobian column is rounding noise (see _varpro_step)
@@ -332,7 +332,8 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
                                        / max(np.linalg.norm(snap[1]), 1e-300)))
         it = SKIterate(j=j, theta=snap[0], phi=snap[1], g_gain=snap[2], J_OE=oe_cost(model, data),
                        J_weighted=J_w, regularizer=reg, change=change, n_reflected=n_ref,
-                       condition=sub.condition, n_truncated=sub.n_truncated, lm_iter=lm_iter, lm_message=lm_msg,
+                       condition=sub.condition, n_truncated=sub.n_truncated, lm_iter=lm_iter,
+                       lm_message=lm_msg,
                        seconds=time.perf_counter() - t0)
         iterates.append(it)
         if callback is not None:
@@ -352,6 +353,49 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
     _restore(model, b.theta, b.phi, b.g_gain)
     return SKResult(model=model, best=best, iterates=iterates, converged=converged,
                     message=message, reflected=reflected)
+
+
+def _sk_restart(job: tuple) -> tuple[SKResult, float, bool]:
+    """One SK run for :func:`sk_restarts` (module level: picklable for a process pool)."""
+    model, r, f_hat, kw = job
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", SKNotConvergedWarning)
+        res = sk_iterations(model, r, f_hat, **kw)
+    warned = any(issubclass(w.category, SKNotConvergedWarning) for w in caught)
+    return res, time.perf_counter() - t0, warned
+
+
+def sk_restarts(models, r, f_hat, *, n_jobs: int = 1, **kw) -> list[tuple[SKResult, float, bool]]:
+    """:func:`sk_iterations` from several initial models (random restarts, SPEC §5).
+
+    Parameters
+    ----------
+    models : sequence of RationalFeedforward
+        One initial model per restart (e.g. g_φ initialised from different seeds).
+    r, f_hat
+        Training data, as :func:`sk_iterations`.
+    n_jobs : int
+        Worker processes (``spawn`` context: each imports only this module's dependencies);
+        1 runs the restarts in this process.
+    **kw
+        Passed to :func:`sk_iterations`.
+
+    Returns
+    -------
+    list of (SKResult, seconds, not_converged)
+        In the order of ``models``; ``not_converged`` is True when the run stopped at
+        ``max_iter`` (its :class:`SKNotConvergedWarning` is captured, not re-raised).
+    """
+    jobs = [(m, r, f_hat, kw) for m in models]
+    if int(n_jobs) <= 1 or len(jobs) == 1:
+        return [_sk_restart(j) for j in jobs]
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    ctx = multiprocessing.get_context("spawn")    # never fork a process that holds torch threads
+    with ProcessPoolExecutor(max_workers=min(int(n_jobs), len(jobs)), mp_context=ctx) as pool:
+        return list(pool.map(_sk_restart, jobs))
 
 
 # ----------------------------------------------------------------------------- direct OE

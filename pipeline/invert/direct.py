@@ -11,6 +11,8 @@ per-sample step :func:`direct_step` for real-time use and timing) and the torch 
 """
 from __future__ import annotations
 
+import time
+
 import numba
 import numpy as np
 import torch
@@ -20,7 +22,7 @@ from pipeline.models.pgnn import (PGNN, FastPGNN, fast_build_phi, fast_pgnn, fas
                                   padded_reference)
 
 __all__ = ["direct_feedforward", "direct_step", "reference_regressor", "resolve_fast",
-           "initial_state"]
+           "initial_state", "per_sample_seconds", "nyquist_fraction"]
 
 
 def resolve_fast(model: PGNN, fast: bool | None, **kw) -> FastPGNN | None:
@@ -101,3 +103,37 @@ def direct_feedforward(model: PGNN, r, *, fast: bool | None = None) -> np.ndarra
         for t in range(N):
             u[t] = float(model(reference_regressor(model, r_ext, u, t))[0])
     return u
+
+
+def per_sample_seconds(step, fm: FastPGNN, r, *args, warmup: int = 200) -> np.ndarray:
+    """Wall time [s] of each sample of a feedforward computed sample by sample, one call of
+    the numba per-sample kernel ``step(blob, meta, state, r_new, *args)`` per sample from
+    Python (dispatch overhead included, as a sample-by-sample loop pays it; SPEC §7 cost).
+    The first ``warmup`` samples are dropped (one extra call compiles the kernel first)."""
+    r_ext = padded_reference(r, fm.n_a, fm.n_k)
+    N = r_ext.shape[0] - fm.n_a - fm.n_k - 1
+    if N <= warmup:
+        raise ValueError(f"the reference has {N} samples; timing needs more than warmup={warmup}")
+    state = initial_state(fm, r_ext)
+    step(fm.blob, fm.meta, state.copy(), r_ext[fm.n_k + 1 + fm.n_a], *args)  # compile
+    out = np.empty(N)
+    pc = time.perf_counter_ns
+    for t in range(N):
+        rn = r_ext[t + fm.n_k + 1 + fm.n_a]
+        t0 = pc()
+        step(fm.blob, fm.meta, state, rn, *args)
+        out[t] = pc() - t0
+    return out[warmup:] * 1e-9
+
+
+def nyquist_fraction(u, band: float = 0.9) -> float:
+    """Share of the energy of u - mean(u) at frequencies above ``band`` × Nyquist: ≈ 0 for a
+    smooth feedforward, large for one oscillating at the Nyquist frequency (the z = -1 pole
+    of a sample-by-sample inverse of a sampled mass, SPEC §2.2)."""
+    u = np.asarray(u, dtype=float)
+    U = np.abs(np.fft.rfft(u - u.mean())) ** 2
+    tot = float(U.sum())
+    if tot == 0.0:
+        return 0.0
+    f = np.fft.rfftfreq(u.shape[0])  # cycles per sample, Nyquist = 0.5
+    return float(U[f > 0.5 * band].sum() / tot)

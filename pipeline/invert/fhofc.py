@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Callable
 
 import numpy as np
 import scipy.linalg as sla
@@ -29,7 +29,7 @@ from pipeline.identify.sim_error import (ArxPGNN, DiscreteController, LoopState,
                                          simulate_closed_loop)
 
 __all__ = ["FHOFCResult", "ILResult", "difference_matrix", "fhofc", "fhofc_receding", "il_fhofc",
-           "linear_ilc", "check_validity"]
+           "linear_ilc", "check_validity", "inverse_model_feedforward", "lemma_5_1_gap", "lemma_5_2_gap"]
 
 
 @dataclass
@@ -118,7 +118,7 @@ def _check_bounds(name: str, bounds, n: int):
 
 def fhofc(model: ArxPGNN, ctrl: DiscreteController, r, *, gamma: float = 0.0, target=None, u_ff0=None,
           state: LoopState | None = None, u_prev: float = 0.0, uff_bounds: tuple | None = None,
-          u_bounds: tuple | None = None, max_iter: int = 50, ftol: float = 1e-12, check_range: bool = True,
+          u_bounds: tuple | None = None, max_iter: int = 50, ftol: float = 1e-10, check_range: bool = True,
           range_margin: float = 0.1, max_horizon: int = 5000) -> FHOFCResult:
     """FHOFC [B2] (17): the feedforward minimising ‖R* - Φ̂(θ̂, x0, R, U_ff)‖² + ‖γΔU_ff‖².
 
@@ -145,7 +145,8 @@ def fhofc(model: ArxPGNN, ctrl: DiscreteController, r, *, gamma: float = 0.0, ta
     max_iter : int
         Maximum solver iterations.
     ftol : float
-        Stop when an accepted step lowers the cost by less than ftol times the cost.
+        Stop when a step lowers (or is predicted to lower) the cost by less than ftol times the
+        cost.
     check_range : bool
         Refuse references outside the model's validity range (:func:`check_validity`).
     range_margin : float
@@ -217,7 +218,12 @@ def _residual_jac(model, ctrl, r, tgt, gamma, u, state, u_prev, need_jac=True):
 
 
 def _solve_gn(model, ctrl, r, tgt, gamma, u, state, u_prev, max_iter, ftol):
-    """Gauss–Newton with Levenberg damping (μ = 0 first) on the stacked least squares."""
+    """Gauss–Newton with Levenberg damping (μ = 0 first) on the stacked least squares.
+
+    Stops ('ftol') when an accepted step, or the Gauss–Newton model's predicted decrease of an
+    undamped step, is below ftol times the cost: near the minimum of a nearly linear problem
+    further steps only move rounding noise.
+    """
     N = r.shape[0]
     d = model.delay
     D = difference_matrix(N)
@@ -236,29 +242,37 @@ def _solve_gn(model, ctrl, r, tgt, gamma, u, state, u_prev, max_iter, ftol):
             res, _, _, J, _ = _residual_jac(model, ctrl, r, tgt, gamma, u, state, u_prev)
         need = False
         n_iter += 1
-        colnorm = np.sqrt(np.sum(J ** 2, axis=0) + gamma ** 2 * 2.0)
+        colnorm = np.sqrt(np.sum(J ** 2, axis=0) + 2.0 * gamma ** 2)
         step = _gn_step(J, res, gamma, D, d, mu, colnorm)
+        # decrease predicted by the Gauss–Newton model ‖[e - Jδ; γΔ(u + δ)]‖²
+        pred_res = np.concatenate([res[:N] - J @ step, res[N:] + gamma * _diff(step)])
+        pred = cost - float(pred_res @ pred_res)
+        if mu == 0.0 and pred <= ftol * cost:
+            message, converged = "ftol", True
+            break
         u_new = u + step
         res_new, *_ = _residual_jac(model, ctrl, r, tgt, gamma, u_new, state, u_prev, need_jac=False)
         finite = bool(np.all(np.isfinite(res_new)))
         decrease = float((res - res_new) @ (res + res_new)) if finite else -np.inf
+        scale2 = float(colnorm.max()) ** 2
         if decrease > 0:
             u, cost_old = u_new, cost
             res = res_new
             cost = float(res @ res)
             history.append(cost)
-            mu = mu / 10.0 if mu > 1e-14 * float(colnorm.max()) ** 2 else 0.0
+            rho = decrease / pred if pred > 0 else 0.0
+            if rho > 0.75 or mu < 1e-14 * scale2:
+                mu = mu / 10.0 if mu > 1e-14 * scale2 else 0.0
+            elif rho < 0.25:
+                mu = 1e-6 * scale2 if mu == 0.0 else mu * 4.0
             need = True
             if decrease <= ftol * cost_old:
                 message, converged = "ftol", True
                 break
         else:
             # reject: raise the damping (relative to the largest column norm²)
-            if np.max(np.abs(step)) <= 1e-15 * max(1.0, float(np.max(np.abs(u)))):
-                message, converged = "step_tol", True
-                break
-            mu = 1e-6 * float(colnorm.max()) ** 2 if mu == 0.0 else mu * 10.0
-            if mu > 1e20 * float(colnorm.max()) ** 2:
+            mu = 1e-6 * scale2 if mu == 0.0 else mu * 10.0
+            if mu > 1e20 * scale2:
                 message, converged = "mu_max", True
                 break
     return u, history, n_iter, converged, message
@@ -477,6 +491,56 @@ def fhofc_receding(model: ArxPGNN, ctrl: DiscreteController, r, *, h: int, gamma
                        time.perf_counter() - t0)
 
 
+def inverse_model_feedforward(model: ArxPGNN, r, *, max_iter: int = 50, tol: float = 1e-15) -> np.ndarray:
+    """Inverse-model feedforward [B2] (20): per sample, u_ff(k) solving r(k+n_k+1) = ŷ(k+n_k+1)
+    with the regressor filled by the reference and past u_ff (scalar Newton, exact derivative).
+
+    Assumes the inverse relation (19) is unique (ŷ monotone in u(k-n_k-1)) and r(i) = ŷ(i) = 0
+    at rest before k = 0; the last n_k + 1 inputs move no output inside the horizon and keep
+    the previous value.  For a nonminimum-phase model the result grows without bound (the
+    inverse is unstable): it is the reference of Lemma 5.1, not a practical feedforward there.
+
+    Parameters
+    ----------
+    model : ArxPGNN
+    r : array_like [m], shape (N,)
+    max_iter : int
+        Newton iterations per sample.
+    tol : float
+        Relative step size at which Newton stops.
+
+    Returns
+    -------
+    u_ff : ndarray [N]
+    """
+    r = np.asarray(r, dtype=np.float64).reshape(-1)
+    N, d = r.shape[0], model.delay
+    n_a, n_b, n_k = model.n_a, model.n_b, model.n_k
+    u = np.zeros(N)
+    for k in range(N - d):
+        t = k + d                                   # output sample moved first by u_ff(k)
+        phi = np.zeros(model.n_phi)
+        for i in range(1, n_a + 1):
+            phi[i - 1] = r[t - i] if t - i >= 0 else 0.0
+        for i in range(1, n_b + 1):
+            j = t - n_k - i
+            phi[n_a + i - 1] = u[j] if j >= 0 else 0.0
+        x = -0.0
+        for _ in range(max_iter):
+            phi[n_a] = x
+            f = float(model.one_step(phi[None, :])[0]) - r[t]
+            g = float(model.input_gain(phi[None, :])[0])
+            if g == 0.0:
+                raise ValueError(f"the model is not invertible at sample {k}: ∂ŷ/∂u = 0")
+            step = f / g
+            x -= step
+            if abs(step) <= tol * max(abs(x), 1e-300):
+                break
+        u[k] = x
+    u[N - d:] = u[N - d - 1] if N > d else 0.0
+    return u
+
+
 # --------------------------------------------------------------------------------------
 # iterative learning: IL-FHOFC [B2] (22) and linear ILC [B2] (23)
 # --------------------------------------------------------------------------------------
@@ -616,3 +680,30 @@ def linear_ilc(model: ArxPGNN, ctrl: DiscreteController, r, plant: Callable[[np.
         du[:N - d] = sla.solve_triangular(B, e[d:], lower=True)   # [B2] (23)
         u = u + alpha * du
     return out
+
+
+# --------------------------------------------------------------------------------------
+# the recovery results of [B2] §V as checks
+# --------------------------------------------------------------------------------------
+
+def _rel(a, b) -> float:
+    nb = float(np.linalg.norm(b))
+    return float(np.linalg.norm(a - b)) / nb if nb > 0 else float(np.linalg.norm(a - b))
+
+
+def lemma_5_1_gap(model: ArxPGNN, ctrl: DiscreteController, r) -> float:
+    """Lemma 5.1: relative difference between the receding-horizon FHOFC (18) with h = n_k + 1,
+    Γ = 0 and the inverse-model feedforward (20) (inputs that move an output in the horizon)."""
+    r = np.asarray(r, dtype=np.float64).reshape(-1)
+    d = model.delay
+    rh = fhofc_receding(model, ctrl, r, h=d, gamma=0.0, check_range=False)
+    return _rel(rh.u_ff[:r.size - d], inverse_model_feedforward(model, r)[:r.size - d])
+
+
+def lemma_5_2_gap(model: ArxPGNN, ctrl: DiscreteController, r, plant: Callable[[np.ndarray], np.ndarray],
+                  n_trials: int = 4, alpha: float = 1.0) -> float:
+    """Lemma 5.2: largest relative difference over trials between the feedforwards of IL-FHOFC
+    (22) with a linear model and Γ = 0 and of the ILC update (23) from the same first input."""
+    a = il_fhofc(model, ctrl, r, plant, n_trials=n_trials, alpha=alpha, gamma=0.0, check_range=False)
+    b = linear_ilc(model, ctrl, r, plant, n_trials=n_trials, alpha=alpha, u_ff0=a.u_ff[0])
+    return max(_rel(x, y) for x, y in zip(a.u_ff, b.u_ff))

@@ -36,7 +36,8 @@ import numpy as np
 import torch
 from torch import nn
 
-__all__ = ["PhysicsFeatures", "LinearFeatures", "RigidBodyForward", "RigidBodyInverse", "PGNN",
+__all__ = ["PhysicsFeatures", "LinearFeatures", "RigidBodyForward", "RigidBodyInverse",
+           "PhysicsModelFeatures", "physics_features_for", "PGNN",
            "Prepared", "FastPGNN", "fast_pgnn", "fast_predict", "fast_physics_value", "fast_physics_affine",
            "fast_nn_affine", "fast_state", "fast_push_reference", "fast_build_phi",
            "fast_push_input", "padded_reference"]
@@ -201,6 +202,68 @@ class RigidBodyInverse(PhysicsFeatures):
 
     def fast_config(self):
         return np.array([self.Ts])
+
+
+class PhysicsModelFeatures(PhysicsFeatures):
+    """Adapter for a plant's nominal physics model (``pipeline.systems``) exposing
+    ``offset(φ)`` and ``features(φ)`` (forward layout) or ``inverse_features(φ')`` (inverse
+    layout, offset 0), numpy/torch-agnostic.  No numba fast path (the inversions then use
+    their torch reference); prefer :func:`physics_features_for`, which maps the known plants
+    to the built-in maps.
+    """
+
+    def __init__(self, physics_model, inverse: bool = False):
+        super().__init__()
+        need = ("inverse_features",) if inverse else ("offset", "features")
+        missing = [a for a in need if not hasattr(physics_model, a)]
+        if missing:
+            raise ValueError(f"{type(physics_model).__name__} has no {missing}; it cannot serve as "
+                             "the physics part of a PGNN")
+        self.pm = physics_model
+        self.inverse = bool(inverse)
+        n = len(physics_model.param_names)
+        self.param_names = tuple(f"theta'_{i}" for i in range(n)) if inverse \
+            else tuple(physics_model.param_names)
+
+    def features(self, phi):
+        if self.inverse:
+            T = self.pm.inverse_features(phi)
+            return torch.zeros(phi.shape[0], dtype=phi.dtype), T
+        return self.pm.offset(phi), self.pm.features(phi)
+
+    def physical(self, theta):
+        if self.inverse:
+            return super().physical(theta)
+        return self.pm.physical(np.asarray(theta, dtype=float))
+
+
+def physics_features_for(physics_model, structure: str, n_a: int, n_b: int,
+                         input_is_model_input: bool = False) -> PhysicsFeatures:
+    """The PGNN physics map of a plant's nominal physics model for a regressor layout.
+
+    Known plants get the built-in maps with numba kernels: the linear motor's [B1] (32)
+    (``LinearMotorPhysics`` with a non-averaged input; average the input beforehand with its
+    ``model_input``) → :class:`RigidBodyForward` / :class:`RigidBodyInverse`; ARX
+    (``ARXPhysics``) → :class:`LinearFeatures` (forward: θ = [a, b]; inverse: θ' of [B1] (16)).
+    Anything else → :class:`PhysicsModelFeatures`.
+
+    ``input_is_model_input``: the data's input is already the physics model's input w
+    (``physics_model.model_input(u)``, e.g. the averaged ū of the continuous linear motor),
+    so the map is the direct-input one.
+    """
+    name = type(physics_model).__name__
+    inverse = structure == "inverse"
+    averaged = getattr(physics_model, "averaged_input", False)
+    if name == "LinearMotorPhysics" and (input_is_model_input or not averaged):
+        Ts = physics_model.Ts
+        return RigidBodyInverse(Ts) if inverse else RigidBodyForward(Ts, n_a)
+    if name == "ARXPhysics":
+        if (physics_model.n_a, physics_model.n_b) != (n_a, n_b):
+            raise ValueError(f"ARX physics has n_a={physics_model.n_a}, n_b={physics_model.n_b}; the "
+                             f"PGNN regressor n_a={n_a}, n_b={n_b}: make them equal")
+        names = None if inverse else physics_model.param_names
+        return LinearFeatures(n_a + n_b, names)
+    return PhysicsModelFeatures(physics_model, inverse)
 
 
 # --------------------------------------------------------------------------------------------

@@ -24,8 +24,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from math import comb
-from typing import Sequence
-
 import numpy as np
 import scipy.linalg
 import scipy.signal

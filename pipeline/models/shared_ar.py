@@ -50,20 +50,31 @@ class ReferenceWindow(nn.Module):
         ``delta``: features (r, δr, …, δ^q r) (units m/s^i); ``shift``: the raw window.
     Ts : float
         Sample time [s].
+    normalisation : {'std', 'maxabs'}
+        Per feature: subtract the training mean and divide by the training standard deviation
+        (``std``), or divide by the largest training magnitude (``maxabs``, no centring).  The
+        high δ-powers of a jerk-limited reference are sparse (δ⁴r is zero except for spikes at
+        the jerk switches), so ``std`` maps their spikes to ~20 standard deviations where
+        ``maxabs`` keeps every feature in [-1, 1].
 
     Notes
     -----
-    The normalisation (mean, std per feature, buffers of the module) is set from the training
-    references with :meth:`fit` and is part of the saved model (SPEC §3).
+    The normalisation (offset and scale per feature, buffers of the module) is set from the
+    training references with :meth:`fit` and is part of the saved model (SPEC §3).
     """
 
-    def __init__(self, q: int = 4, basis: str = "delta", Ts: float = 1e-3):
+    NORMALISATIONS = ("std", "maxabs")
+
+    def __init__(self, q: int = 4, basis: str = "delta", Ts: float = 1e-3, normalisation: str = "std"):
         super().__init__()
         if int(q) < 0:
             raise ValueError(f"window length q must be >= 0, got {q}")
         if basis not in BASES:
             raise ValueError(f"unknown window basis '{basis}'; choose one of {BASES}")
+        if normalisation not in self.NORMALISATIONS:
+            raise ValueError(f"unknown normalisation '{normalisation}'; choose one of {self.NORMALISATIONS}")
         self.q, self.basis, self.Ts = int(q), basis, float(Ts)
+        self.normalisation = normalisation
         self.register_buffer("mean", torch.zeros(self.q + 1, dtype=torch.float64))
         self.register_buffer("std", torch.ones(self.q + 1, dtype=torch.float64))
 
@@ -76,14 +87,18 @@ class ReferenceWindow(nn.Module):
         return basis_columns(r, segments, self.basis, self.q, self.Ts)
 
     def fit(self, r, segments: Segments | None = None) -> "ReferenceWindow":
-        """Set the normalisation from training references (features with zero spread keep std 1)."""
+        """Set the normalisation from training references (a feature with zero spread keeps
+        scale 1)."""
         if segments is None:
             r, segments = Segments.concat(r, "reference")
         X = self.features(r, segments)
-        std = X.std(axis=0)
+        if self.normalisation == "std":
+            offset, scale = X.mean(axis=0), X.std(axis=0)
+        else:
+            offset, scale = np.zeros(X.shape[1]), np.abs(X).max(axis=0)
         with torch.no_grad():
-            self.mean.copy_(torch.from_numpy(X.mean(axis=0)))
-            self.std.copy_(torch.from_numpy(np.where(std > 0, std, 1.0)))
+            self.mean.copy_(torch.from_numpy(offset))
+            self.std.copy_(torch.from_numpy(np.where(scale > 0, scale, 1.0)))
         return self
 
     def forward(self, X: torch.Tensor) -> torch.Tensor:
@@ -168,16 +183,16 @@ def make_approximator(kind: str = "mlp", n_in: int = 5, seed: int = 0, **kw) -> 
     return kinds[kind](n_in=n_in, seed=seed, **kw)
 
 
-def per_sample_jacobian(module: nn.Module, X: torch.Tensor, phi: torch.Tensor | None = None,
-                        chunk_size: int = 8192) -> tuple[torch.Tensor, torch.Tensor]:
+def per_sample_jacobian(module: nn.Module, X: torch.Tensor, phi: torch.Tensor | None = None
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
     """Output y [N] of ``module`` on samples X and the per-sample Jacobian ∂y_k/∂φ [N, n_φ].
 
     φ is the flat vector of ``module.parameters()`` (``parameters_to_vector`` order); the
     module's parameters are restored afterwards.  The samples must be independent (no
     batch statistics).  When every parameter belongs to an ``nn.Linear`` the Jacobian is
     assembled from one forward and one backward pass (for a Linear layer with input h and
-    output gradient δ, ∂y_k/∂W = δ_k h_kᵀ and ∂y_k/∂c = δ_k); otherwise per-sample gradients
-    by ``torch.func`` (vmap of grad, in chunks).
+    output gradient δ, ∂y_k/∂W = δ_k h_kᵀ and ∂y_k/∂c = δ_k); otherwise by forward mode, one
+    ``torch.func.jvp`` per parameter (n_φ batched passes: slower, but for any module).
     """
     params = list(module.parameters())
     saved = nn.utils.parameters_to_vector(params).detach().clone()
@@ -189,7 +204,7 @@ def per_sample_jacobian(module: nn.Module, X: torch.Tensor, phi: torch.Tensor | 
         owned = {id(p) for m in linear for p in m.parameters(recurse=False)}
         if all(id(p) in owned for p in params):
             return _linear_jacobian(module, X, linear, params)
-        return _func_jacobian(module, X, params, chunk_size)
+        return _func_jacobian(module, X, params)
     finally:
         with torch.no_grad():
             nn.utils.vector_to_parameters(saved, params)
@@ -229,19 +244,25 @@ def _linear_jacobian(module, X, linear, params):
     return y.detach(), JT.T
 
 
-def _func_jacobian(module, X, params, chunk_size):
+def _func_jacobian(module, X, params):
+    """Forward-mode fallback: one Jacobian-vector product (torch.func.jvp) per parameter."""
     names = [n for n, _ in module.named_parameters()]
     shapes = [p.shape for _, p in module.named_parameters()]
     sizes = [math.prod(s) for s in shapes]
     phi = nn.utils.parameters_to_vector(params).detach()
 
-    def f(p, x):
+    def f(p):
         d = {k: c.view(s) for k, c, s in zip(names, torch.split(p, sizes), shapes)}
-        return torch.func.functional_call(module, d, (x[None, :],)).reshape(-1)[0]
+        return torch.func.functional_call(module, d, (X,)).reshape(-1)
     with torch.no_grad():
-        y = module(X).reshape(-1)
-    J = torch.func.vmap(torch.func.grad(f), in_dims=(None, 0), chunk_size=chunk_size)(phi, X)
-    return y.detach(), J.detach()
+        y = f(phi)
+        JT = torch.empty(phi.numel(), X.shape[0], dtype=torch.float64)
+        e = torch.zeros_like(phi)
+        for i in range(phi.numel()):
+            e[i] = 1.0
+            JT[i] = torch.func.jvp(f, (phi,), (e,))[1]
+            e[i] = 0.0
+    return y, JT.T
 
 
 class SharedARPGNN(RationalFeedforward):

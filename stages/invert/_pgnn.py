@@ -1,0 +1,47 @@
+"""Helpers of the [B1] PGNN inversions (invert.kind = direct | newton | analytic)."""
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.invert.direct import nyquist_fraction, per_sample_seconds
+from pipeline.models.pgnn import fast_pgnn
+from pipeline.runner import ConfigError
+
+
+def check_structure(cfg, kind: str, allowed: tuple[str, ...]) -> None:
+    """The identified model must have a layout the inversion can use."""
+    if str(cfg.identify.kind) != "narx":
+        raise ConfigError(f"invert.kind={kind} inverts a PGNN identified by identify.kind=narx, "
+                          f"got identify.kind={cfg.identify.kind}")
+    s = cfg.model.get("structure")
+    if s not in allowed:
+        raise ConfigError(f"invert.kind={kind} needs model.structure in {allowed}, got {s!r}; "
+                          "leave model.structure to invert.model_structure")
+
+
+def trained(ctx):
+    model = ctx.inputs["train"]["model"]
+    if model is None:
+        raise ConfigError("no trained model: set identify=narx")
+    return model
+
+
+def applied(ctx, w: np.ndarray) -> np.ndarray:
+    """The input to apply for a feedforward of the model input w (identity unless the
+    physics model averages its input, SPEC §2.2: u_ff(t) = (w(t) + w(t+1))/2)."""
+    if ctx.inputs["train"].get("model_input"):
+        return ctx.system.physics.applied_input(w)
+    return w
+
+
+def log_common(ctx, name: str, model, r: np.ndarray, u_ff: np.ndarray, step, *args) -> None:
+    """Per-sample cost of the sample-by-sample kernel ``step`` (median over the samples of
+    this reference after warm-up, SPEC §7) and the feedforward's Nyquist energy share and
+    peak (SPEC §2.2: bounded, no z = -1 oscillation)."""
+    fm = fast_pgnn(model)
+    if fm is not None and r.size > 400:
+        ts = per_sample_seconds(step, fm, r, *args)
+        ctx.metric(f"{name}/sample_seconds_median", float(np.median(ts)))
+        ctx.metric(f"{name}/sample_seconds_p99", float(np.percentile(ts, 99)))
+    ctx.metric(f"{name}/nyquist_fraction", nyquist_fraction(u_ff))
+    ctx.metric(f"{name}/max_abs_u_ff", float(np.max(np.abs(u_ff))))

@@ -1,0 +1,17 @@
+"""invert.kind=analytic: analytic inversion of the invertible PGNN, [B1] (26)-(27) (SPEC §6)."""
+from __future__ import annotations
+
+from pipeline.invert.analytic import analytic_feedforward, analytic_step
+from stages.invert._pgnn import applied, check_structure, log_common, trained
+
+
+def check(cfg, system) -> None:
+    check_structure(cfg, "analytic", ("invertible",))
+
+
+def feedforward(ctx, name, r):
+    model = trained(ctx)
+    w = analytic_feedforward(model, r)
+    u = applied(ctx, w)
+    log_common(ctx, name, model, r, u, analytic_step)
+    return u

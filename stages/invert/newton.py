@@ -1,0 +1,48 @@
+"""invert.kind=newton: Newton inversion of the forward PGNN, [B1] Algorithm 1 (SPEC §6).
+
+``invert.k`` Newton updates per sample from the physics feedforward, optional input bounds
+``invert.u_min``/``u_max`` [N] (on the model input w).  Every sample Newton could not solve
+cleanly is counted (``invert/<ref>/newton_bounds|singular|diverged``), never silent.
+"""
+from __future__ import annotations
+
+import math
+
+from pipeline.invert.newton import newton_feedforward, newton_step
+from pipeline.runner import ConfigError
+from stages.invert._pgnn import applied, check_structure, log_common, trained
+
+
+def _bounds(cfg):
+    lo = cfg.invert.get("u_min")
+    hi = cfg.invert.get("u_max")
+    lo = -math.inf if lo is None else float(lo)
+    hi = math.inf if hi is None else float(hi)
+    return lo, hi
+
+
+def check(cfg, system) -> None:
+    check_structure(cfg, "newton", ("forward", "invertible"))
+    k = cfg.invert.get("k")
+    if not isinstance(k, int) or k < 0:
+        raise ConfigError(f"invert.k={k!r}: give a non-negative integer number of Newton updates")
+    lo, hi = _bounds(cfg)
+    if not lo < hi:
+        raise ConfigError(f"invert.u_min={lo} must be below invert.u_max={hi}")
+
+
+def feedforward(ctx, name, r):
+    model = trained(ctx)
+    k = int(ctx.cfg.invert.k)
+    lo, hi = _bounds(ctx.cfg)
+    res = newton_feedforward(model, r, k=k, u_bounds=None if math.isinf(lo) and math.isinf(hi)
+                             else (lo, hi))
+    ctx.metric(f"{name}/newton_bounds", res.n_bounds)
+    ctx.metric(f"{name}/newton_singular", res.n_singular)
+    ctx.metric(f"{name}/newton_diverged", res.n_diverged)
+    ctx.metric(f"{name}/newton_max_residual", float(res.residual.max()))
+    if res.n_fallback:
+        ctx.tag(f"newton_fallback_{name}", res.n_fallback)
+    u = applied(ctx, res.u_ff)
+    log_common(ctx, name, model, r, u, newton_step, k, lo, hi)
+    return u

@@ -1,0 +1,136 @@
+"""identify.kind=narx: PGNN identification from one-step (NARX) residuals, [B1] §II-B, §V-B.
+
+The criterion follows from ``model.structure``: forward → [B1] (12), inverse (direct-inverse
+PGNN) → [B1] (14), invertible → [B1] (29) (ψ not regularised), physics-only → [B1] (7).
+The physics part is the plant's nominal physics model (``pipeline.models.pgnn.
+physics_features_for``).  If the plant's physics model takes a transformed input w =
+``physics.model_input(u)`` (the averaged ū of the continuous linear motor, SPEC §2.2), the
+PGNN is identified on (y, w) and the inversions turn w back into u with
+``physics.applied_input``.
+
+Logged: the loss curve of every restart (``train/loss/restart<i>`` per accepted LM step, and
+``train/val_loss/restart<i>``), the best restart's cost and seconds, θ*_phy and θ̂_phy as
+physical parameters.
+"""
+from __future__ import annotations
+
+import numpy as np
+from omegaconf import OmegaConf
+
+from pipeline.identify.narx import identify_pgnn
+from pipeline.models.pgnn import PGNN, physics_features_for
+from pipeline.runner import ConfigError
+
+STRUCTURES = ("forward", "inverse", "invertible")
+
+
+def _model_cfg(cfg) -> dict:
+    m = OmegaConf.to_container(cfg.model, resolve=True)
+    m.pop("name", None)
+    return m
+
+
+def check(cfg, system) -> None:
+    m = _model_cfg(cfg)
+    if m.get("structure") not in STRUCTURES:
+        raise ConfigError(f"model.structure={m.get('structure')!r}; choose one of {STRUCTURES} "
+                          "(set by invert.model_structure when the model config leaves it open)")
+    for k in ("n_a", "n_b", "n_k"):
+        if not isinstance(m.get(k), int) or m[k] < (1 if k == "n_b" else 0):
+            raise ConfigError(f"model.{k}={m.get(k)!r}: give a non-negative integer (n_b >= 1)")
+    ident = cfg.identify
+    if int(ident.n_restarts) < 1 or int(ident.max_iter) < 0:
+        raise ConfigError(f"identify.n_restarts={ident.n_restarts} (>= 1) / max_iter="
+                          f"{ident.max_iter} (>= 0)")
+    if not 0.0 <= float(ident.val_fraction) < 1.0:
+        raise ConfigError(f"identify.val_fraction={ident.val_fraction}; give a value in [0, 1)")
+    if system is not None and m.get("use_physics", True):
+        try:
+            build_model(cfg, system)
+        except ValueError as exc:
+            raise ConfigError(f"model: {exc}") from exc
+
+
+def uses_model_input(system) -> bool:
+    """True when the physics model's input w differs from u (averaged input)."""
+    return bool(getattr(system.physics, "averaged_input", False))
+
+
+def build_model(cfg, system) -> PGNN:
+    m = _model_cfg(cfg)
+    structure = m.pop("structure")
+    phys = None
+    if m.get("use_physics", True):
+        phys = physics_features_for(system.physics, structure, m["n_a"], m["n_b"],
+                                    input_is_model_input=uses_model_input(system))
+    m["hidden"] = tuple(m.get("hidden") or ())
+    return PGNN(structure=structure, physics=phys, seed=int(cfg.seed), **m)
+
+
+def fit(ctx) -> dict:
+    cfg, system = ctx.cfg, ctx.system
+    model = build_model(cfg, system)
+    ds = ctx.inputs["generate"]["dataset"]
+    ys, us = [], []
+    for seg in ds.segments():
+        y, u = seg["y"].to_numpy(np.float64), seg["u"].to_numpy(np.float64)
+        if uses_model_input(system):
+            u = system.physics.model_input(u)  # w = ū (SPEC §2.2 sampling pitfall)
+        ys.append(y)
+        us.append(u)
+    ident = cfg.identify
+    lam = OmegaConf.to_container(cfg.regularizer.lam, resolve=True) \
+        if OmegaConf.is_list(cfg.regularizer.get("lam")) else float(cfg.regularizer.get("lam", 0.0))
+    fit_ = identify_pgnn(model, ys, us, lam=lam, n_restarts=int(ident.n_restarts),
+                         seed=int(cfg.seed), val_fraction=float(ident.val_fraction),
+                         max_iter=int(ident.max_iter), ftol=float(ident.ftol),
+                         gtol=float(ident.gtol), mu0=float(ident.mu0),
+                         patience=int(ident.patience),
+                         progress=lambda it: ctx.progress(it, desc="LM restarts"))
+    for i, rr in enumerate(fit_.restarts):
+        for step, c in enumerate(rr.history):
+            ctx.metric(f"loss/restart{i}", c, step=step)
+        for step, c in enumerate(rr.val_history):
+            ctx.metric(f"val_loss/restart{i}", c, step=step)
+        ctx.metric("restart_cost", rr.cost, step=i)
+        ctx.metric("restart_seconds", rr.seconds, step=i)
+        ctx.metric("restart_iterations", rr.n_iter, step=i)
+    best = fit_.restarts[fit_.best]
+    ctx.metric("cost", best.cost)
+    if best.val_cost is not None:
+        ctx.metric("val_cost", best.val_cost)
+    ctx.metric("best_restart", fit_.best)
+    ctx.metric("seconds_per_restart", float(np.mean([r.seconds for r in fit_.restarts])))
+    ctx.metric("n_params", model.n_params)
+    ctx.tag("lm_stop", best.message)
+    physical = {}
+    if model.use_physics:
+        th = model.theta_phy.detach().numpy()
+        physical = model.physics.physical(th)
+        for k, v in physical.items():
+            ctx.metric(f"theta_phy/{k}", v)
+        for k, v in model.physics.physical(fit_.theta_phy_star).items():
+            ctx.metric(f"theta_phy_star/{k}", v)
+    ctx.figure(_loss_figure(fit_), "loss.png")
+    model.eval()
+    return {"model": model, "model_input": uses_model_input(system),
+            "theta_phy_star": fit_.theta_phy_star, "physical": physical,
+            "costs": [r.cost for r in fit_.restarts], "best": fit_.best, "sigma": fit_.sigma}
+
+
+def _loss_figure(fit_):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for i, rr in enumerate(fit_.restarts):
+        lw = 2.0 if i == fit_.best else 0.8
+        ax.semilogy(rr.history, lw=lw, label=f"restart {i}" if i == fit_.best else None)
+        if rr.val_history:
+            ax.semilogy(rr.val_history, lw=lw, ls=":", color=ax.lines[-1].get_color())
+    ax.set_xlabel("accepted LM step")
+    ax.set_ylabel("normalised cost")
+    ax.set_title("LM loss per restart (solid: training criterion, dotted: validation MSE)",
+                 fontsize=8)
+    ax.legend(fontsize=7)
+    return fig

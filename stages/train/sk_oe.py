@@ -1,0 +1,249 @@
+"""identify.kind=sk_oe: [K] feedforward by SK iterations for output error (SPEC §5, [K] Alg. 5/19).
+
+Model (``model.kind``): ``rational`` ([K] VI-B parametrisation 1) or ``pgnn_shared_ar`` ([K] (6),
+parametrisation 2).  Data: every segment's reference r and optimal input f̂ (``f_opt``, else u).
+The PGNN is trained from ``identify.n_restarts`` Glorot initialisations (in ``identify.n_jobs``
+processes); the restart with the lowest J_OE is the model.  Regulariser: ``regularizer.name``
+orthogonal ([K] (29), λ = ``regularizer.lam``) or none.
+
+Logged (``train/…``): J_OE per SK iteration of the kept restart (``sk_J_OE``, step j) and of
+every restart (``sk_J_OE/restart<i>``); J_OE of the last iterate, the minimum over iterates and
+the reported model (SPEC §8 K3); the direct LM on J_OE from the reported model
+(``oe_check/J_before|J_after|improvement``); roots of B reflected (tag ``sk_reflected``);
+interpretability (SPEC §7): θ, θ's relative error against the plant's coefficients where the
+model class holds them, ``share_C_in_model`` (‖U1ᵀ W g‖/‖W g‖), ``ratio_C_M``, ``corr_M_C``,
+and the spread of f_M over the restarts per training reference (``spread_f_M/<ref>``, K2).
+Figures: J_OE per SK iteration; f̂, f, f_M, f_C (as [K] Fig. 6) with every restart's f_M.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+
+from pipeline.identify.orthogonal import interpretability, spread_over_inits
+from pipeline.identify.sk import output_error_lm, sk_restarts
+from pipeline.models.rational import RationalFeedforward, basis_coefficients, basis_matrix
+from pipeline.models.shared_ar import ReferenceWindow, SharedARPGNN, make_approximator
+from pipeline.runner import ConfigError
+
+KINDS = ("rational", "pgnn_shared_ar")
+REGULARIZERS = ("none", "orthogonal")
+
+
+# ----------------------------------------------------------------------------- config -> objects
+def _model_cfg(cfg) -> dict:
+    return OmegaConf.to_container(cfg.model, resolve=True)
+
+
+def check(cfg, system) -> None:
+    m = _model_cfg(cfg)
+    if m.get("kind") not in KINDS:
+        raise ConfigError(f"identify.kind=sk_oe needs model.kind in {KINDS}, got {m.get('kind')!r} "
+                          "(model=rational or model=pgnn_shared_ar)")
+    for k, lo in (("n_a", 1), ("n_b", 0)):
+        if not isinstance(m.get(k), int) or m[k] < lo:
+            raise ConfigError(f"model.{k}={m.get(k)!r}: give an integer >= {lo}")
+    if m.get("basis") not in ("shift", "delta"):
+        raise ConfigError(f"model.basis={m.get('basis')!r}; choose 'shift' or 'delta'")
+    reg = str(cfg.regularizer.name)
+    if reg not in REGULARIZERS:
+        raise ConfigError(f"identify.kind=sk_oe supports regularizer in {REGULARIZERS}, got {reg!r}")
+    if reg == "orthogonal" and not float(cfg.regularizer.lam) >= 0:
+        raise ConfigError(f"regularizer.lam={cfg.regularizer.lam}: give λ >= 0")
+    ident = cfg.identify
+    for k in ("max_iter", "n_restarts", "n_jobs"):
+        if int(ident[k]) < 1:
+            raise ConfigError(f"identify.{k}={ident[k]}: give an integer >= 1")
+    if m["kind"] == "pgnn_shared_ar":
+        if m.get("approximator") not in ("mlp", "residual"):
+            raise ConfigError(f"model.approximator={m.get('approximator')!r}; choose 'mlp' or 'residual'")
+        if m.get("window_basis") not in ("shift", "delta"):
+            raise ConfigError(f"model.window_basis={m.get('window_basis')!r}; choose 'shift' or 'delta'")
+
+
+def build_model(m: dict, Ts: float, r_train: list[np.ndarray], seed: int) -> RationalFeedforward:
+    """The model of ``model.*`` (PGNN: g_φ initialised from ``seed``, window normalised on r_train)."""
+    if m["kind"] == "rational":
+        return RationalFeedforward(m["n_a"], m["n_b"], basis=m["basis"], Ts=Ts)
+    window = ReferenceWindow(int(m["window"]), m["window_basis"], Ts).fit(r_train)
+    kw = dict(activation=m["activation"], out_bias=bool(m["out_bias"]),
+              out_scale=float(m["out_init_scale"]))
+    if m["approximator"] == "mlp":
+        kw["hidden"] = tuple(m["hidden"])
+    else:
+        kw.update(width=int(m["width"]), n_blocks=int(m["n_blocks"]))
+    g = make_approximator(m["approximator"], window.n_features, seed=seed, **kw)
+    return SharedARPGNN(m["n_a"], m["n_b"], g, window, basis=m["basis"], Ts=Ts)
+
+
+def true_theta(system, model) -> np.ndarray | None:
+    """The plant's col(a, b) in the model's basis and normalisation, where the class holds it
+    (two-mass plant (31): B(δ), A(δ) without the damper; None otherwise)."""
+    coeffs = getattr(system, "delta_coefficients", None)
+    if coeffs is None:
+        return None
+    a_d, b_d = coeffs(0.0)
+    if b_d.size - 1 != model.n_b or a_d.size > model.n_a:
+        return None
+    Ts = model.Ts
+    c_b = basis_matrix("delta", b_d.size - 1, Ts) @ b_d          # q^-1 coefficients of B
+    beta = basis_coefficients(c_b, model.basis, Ts)
+    c_a = basis_matrix("delta", model.n_a - 1, Ts) @ np.r_[a_d, np.zeros(model.n_a - a_d.size)]
+    alpha = basis_coefficients(c_a, model.basis, Ts)
+    return np.r_[alpha / beta[0], beta[1:] / beta[0]]
+
+
+# ----------------------------------------------------------------------------- stage
+def fit(ctx) -> dict:
+    cfg, system = ctx.cfg, ctx.system
+    m = _model_cfg(cfg)
+    ident = cfg.identify
+    ds = ctx.inputs["generate"]["dataset"]
+    names = list(ds.meta.get("references") or [])
+    rs, fs = [], []
+    for seg in ds.segments():
+        rs.append(seg["r"].to_numpy(np.float64))
+        fs.append(seg["f_opt" if "f_opt" in seg else "u"].to_numpy(np.float64))
+    if len(names) != len(rs):
+        names = [f"seg{i}" for i in range(len(rs))]
+    reg = str(cfg.regularizer.name)
+    is_pgnn = m["kind"] == "pgnn_shared_ar"
+    kw = dict(max_iter=int(ident.max_iter), tol=float(ident.tol), column_scale=bool(ident.column_scale),
+              regularizer=reg if is_pgnn else "none",
+              lam=float(cfg.regularizer.lam) if reg == "orthogonal" else 0.0,
+              lm_max_iter=int(ident.lm_max_iter), lm_ftol=float(ident.lm_ftol),
+              lm_gtol=float(ident.lm_gtol))
+    n_restarts = int(ident.n_restarts) if is_pgnn else 1
+    seeds = [int(ctx.rng(f"train/restart{i}").integers(2**31 - 1)) for i in range(n_restarts)]
+    models = [build_model(m, ds.Ts, rs, s) for s in seeds]
+    if not is_pgnn and reg != "none":
+        ctx.tag("regularizer_ignored", "the rational model has no approximator")
+    t0 = time.perf_counter()
+    outs = sk_restarts(models, rs, fs, n_jobs=int(ident.n_jobs), **kw)
+    ctx.metric("restarts_seconds", time.perf_counter() - t0)
+
+    results = [o[0] for o in outs]
+    J_rep = [r.J_OE[r.best] for r in results]
+    best = int(np.argmin(J_rep))
+    res = results[best]
+    model = res.model
+    for i, (r, o) in enumerate(zip(results, outs)):
+        for it in r.iterates:
+            ctx.metric(f"sk_J_OE/restart{i}", it.J_OE, step=it.j)
+        ctx.metric("restart_J_OE", J_rep[i], step=i)
+        ctx.metric("restart_seconds", o[1], step=i)
+    for it in res.iterates:                                   # the kept restart ([K] (7) per j)
+        ctx.metric("sk_J_OE", it.J_OE, step=it.j)
+        ctx.metric("sk_J_weighted", it.J_weighted, step=it.j)
+        ctx.metric("sk_regularizer", it.regularizer, step=it.j)
+        ctx.metric("sk_param_change", it.change, step=it.j)
+        ctx.metric("sk_seconds", it.seconds, step=it.j)
+        ctx.metric("sk_condition", it.condition, step=it.j)
+        ctx.metric("sk_truncated", it.n_truncated, step=it.j)
+    ctx.metric("best_restart", best)
+    ctx.metric("J_OE_last_iterate", res.iterates[-1].J_OE)        # SPEC §8 K3
+    ctx.metric("J_OE_min_iterate", min(res.J_OE))
+    ctx.metric("J_OE", J_rep[best])
+    ctx.metric("best_iterate", res.best)
+    ctx.metric("sk_iterations", len(res.iterates) - 1)
+    ctx.metric("sk_seconds_per_iteration", res.seconds_per_iter)
+    ctx.tag("sk_converged", res.converged)
+    ctx.tag("sk_reflected", ",".join(map(str, res.reflected)) or "none")
+    ctx.tag("sk_not_converged_restarts", sum(o[2] for o in outs))
+
+    # K3: does a direct LM on J_OE ([K] (7)) from the SK result still improve it?
+    t0 = time.perf_counter()
+    oe = output_error_lm(model, rs, fs, max_iter=int(ident.oe_check_iter))
+    ctx.metric("oe_check/J_before", oe.J_before)
+    ctx.metric("oe_check/J_after", oe.J_after)
+    ctx.metric("oe_check/improvement", oe.improvement)
+    ctx.metric("oe_check/seconds", time.perf_counter() - t0)
+    ctx.tag("oe_check_stop", oe.lm.message)
+
+    # interpretability (SPEC §7)
+    tt = true_theta(system, model)
+    it = interpretability(model, rs, fs, theta_true=tt)
+    labels = [f"a{i + 1}" for i in range(model.n_a)] + [f"b{i + 1}" for i in range(model.n_b)]
+    for k, v in zip(labels, model.theta):
+        ctx.metric(f"theta/{k}", v)
+    if tt is not None:
+        for k, v in zip(labels, it["theta_rel_err"]):
+            ctx.metric(f"theta_rel_err/{k}", v)
+    ctx.metric("max_pole_abs", float(np.max(np.abs(model.poles()))) if model.n_b else 0.0)
+    spreads = {}
+    if is_pgnn:
+        for k in ("share_C_in_model", "ratio_C_M", "corr_M_C"):
+            ctx.metric(k, it[k])
+        for i, r in enumerate(results):
+            iti = interpretability(r.model, rs, fs)
+            ctx.metric("restart_share_C_in_model", iti["share_C_in_model"], step=i)
+            ctx.metric("restart_ratio_C_M", iti["ratio_C_M"], step=i)
+        theta_all = np.array([r.model.theta for r in results])
+        for k, v in zip(labels, theta_all.std(axis=0) / np.maximum(np.abs(theta_all.mean(axis=0)), 1e-300)):
+            ctx.metric(f"theta_spread/{k}", v)
+        if len(results) > 1:                                   # K2: spread of f_M over restarts
+            parts = [_f_M(r.model, rs) for r in results]
+            for j, name in enumerate(names):
+                spreads[name] = spread_over_inits([p[j] for p in parts], fs[j])
+                ctx.metric(f"spread_f_M/{name}", spreads[name])
+            ctx.metric("spread_f_M/all", spread_over_inits([np.concatenate(p) for p in parts],
+                                                           np.concatenate(fs)))
+        ctx.figure(_fig6(model, [r.model for r in results], rs, fs, names, reg), "f_M_f_C.png")
+    ctx.figure(_sk_figure(results, best), "sk_J_OE.png")
+    model.eval()
+    return {"model": model, "restart_models": [r.model for r in results], "best": best,
+            "J_OE": J_rep, "spread_f_M": spreads, "theta_true": tt, "oe_check": oe.J_after}
+
+
+def _f_M(model, rs) -> list[np.ndarray]:
+    out = []
+    for r in rs:
+        with torch.no_grad():
+            f_M, _ = model.parts(model.inputs(r))
+        out.append(f_M.numpy())
+    return out
+
+
+# ----------------------------------------------------------------------------- figures
+def _sk_figure(results, best):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for i, r in enumerate(results):
+        ax.semilogy([it.j for it in r.iterates], r.J_OE, marker="o", lw=2.0 if i == best else 0.8,
+                    label=f"restart {i}" + (" (kept)" if i == best else ""))
+    ax.set_xlabel("SK iteration j (0 = equation-error initialisation)")
+    ax.set_ylabel("J_OE [N²]  ([K] (7))")
+    ax.legend(fontsize=7)
+    return fig
+
+
+def _fig6(model, models, rs, fs, names, reg):
+    """[K] Fig. 6: f̂, f = f_M + f_C, f_M, f_C on the training reference with the smallest
+    velocity (Stribeck region), with every restart's f_M (thin) to show the (non-)uniqueness."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    j = int(np.argmin([np.max(np.abs(np.diff(r))) for r in rs]))
+    Ts = model.Ts
+    t = np.arange(rs[j].size) * Ts
+    with torch.no_grad():
+        inp = model.inputs(rs[j])
+        f_M, f_C = (x.numpy() for x in model.parts(inp))
+    fig, ax = plt.subplots(figsize=(7, 3.8))
+    for mm in models:
+        with torch.no_grad():
+            ax.plot(t, mm.parts(mm.inputs(rs[j]))[0].numpy(), color="tab:blue", lw=0.5, alpha=0.5)
+    ax.plot(t, fs[j], "k--", lw=1.2, label="f̂ (optimal)")
+    ax.plot(t, f_M + f_C, color="tab:green", lw=1.0, label="f = f_M + f_C")
+    ax.plot(t, f_M, color="tab:blue", lw=1.2, label="f_M (model; thin: other restarts)")
+    ax.plot(t, f_C, color="tab:red", lw=1.2, label="f_C (approximator)")
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("force [N]")
+    ax.set_title(f"[K] Fig. 6, regularizer={reg}, reference {names[j]}", fontsize=9)
+    ax.legend(fontsize=7)
+    return fig

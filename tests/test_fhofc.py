@@ -348,3 +348,46 @@ def test_lemma_gap_functions(mp, nmp):
     from pipeline.invert.fhofc import inverse_model_feedforward, fhofc_receding
     u_rh = fhofc_receding(lin, ctrl, r, h=1, check_range=False).u_ff
     assert rel(u_rh[:-1], inverse_model_feedforward(other, r)[:-1]) > 1e-3
+
+
+# ---------------------------------------------------------------------------- pipeline stages
+B2_SMALL = ["experiment=b2_rot_trans", "data.references=[{name:R_d,kind:b2_R,repeats:3}]",
+            "data.excitation.t_start=3.0", "data.excitation.t_stop=6.0", "model.hidden=[2]",
+            "identify.max_iter=3", "identify.linear_max_iter=3"]
+
+
+@pytest.mark.slow
+def test_b2_stages_run_and_log_bound_terms(store, cfg_of):
+    """train=sim_error → invert=fhofc → evaluate on a short record; the (15) terms are logged and
+    consistent with the evaluate stage's tracking error; IL-FHOFC logs one rms per trial."""
+    from pipeline import runner
+    out = runner.run_job(cfg_of(*B2_SMALL))
+    tr = out["train"]
+    assert tr["arx"].n1 == 2 and tr["y_d"].shape == tr["y_hat_d"].shape == (900,)
+    assert tr["identification_error"] == pytest.approx(
+        np.linalg.norm(tr["y_d"] - tr["y_hat_d"]) / np.sqrt(900), rel=1e-12)
+    import mlflow
+    runs = mlflow.search_runs(experiment_names=["b2_rot_trans"])
+    m = runs.iloc[0]
+    assert m["metrics.invert/R/bound/bound_holds"] == 1.0
+    assert m["metrics.invert/R/bound/identification_error"] == pytest.approx(tr["identification_error"])
+    # evaluate noise = same realisation: its rms of r - y_clean is close to the measured tracking error
+    assert m["metrics.invert/R/bound/tracking_error"] == pytest.approx(m["metrics.evaluate/R/rms"], rel=0.05)
+    il = runner.run_job(cfg_of(*B2_SMALL, "invert=il_fhofc", "invert.n_trials=2", "invert.trial_noise=false"))
+    assert il["invert"]["u_ff"]["R"].shape == (300,)
+    hist = mlflow.MlflowClient().get_metric_history(
+        mlflow.search_runs(experiment_names=["b2_rot_trans"]).iloc[0]["run_id"], "invert/R/trial_rms")
+    assert len(hist) == 2 and hist[1].value < hist[0].value
+
+
+@pytest.mark.parametrize("override,message", [
+    ("identify=narx", "identify.kind=sim_error"),
+    ("model.hidden=[4,4]", "one tanh hidden layer"),
+    ("identify.theta_star=ls", "theta_star"),
+    ("invert.gamma=-1", "gamma"),
+])
+def test_b2_bad_config_fails_before_work(store, cfg_of, override, message):
+    from pipeline import runner
+    base = [o for o in B2_SMALL if not o.startswith("identify.")] if override.startswith("identify=") else B2_SMALL
+    with pytest.raises(runner.ConfigError, match=message):
+        runner.run_job(cfg_of(*base, override))

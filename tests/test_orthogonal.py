@@ -83,8 +83,21 @@ def test_rank_deficient_subspace_raises_with_smallest_singular_value():
 
 
 # ----------------------------------------------------------------------------- PGNN pieces
-@pytest.mark.parametrize("module", [MLP(3, (4, 5), seed=1), ResidualMLP(3, width=4, n_blocks=2, seed=2)])
-def test_per_sample_jacobian_matches_torch_func(module):
+class _TiedLayers(nn.Module):
+    """The same Linear applied twice (shared weights: per-sample gradients add up)."""
+
+    def __init__(self):
+        super().__init__()
+        self.lin = nn.Linear(3, 3, dtype=torch.float64)
+        self.out = nn.Linear(3, 1, bias=False, dtype=torch.float64)
+
+    def forward(self, x):
+        return self.out(torch.tanh(self.lin(torch.tanh(self.lin(x))))).squeeze(-1)
+
+
+@pytest.mark.parametrize("module", [MLP(3, (4, 5), seed=1), ResidualMLP(3, width=4, n_blocks=2, seed=2),
+                                    _TiedLayers()])
+def test_per_sample_jacobian_matches_autograd(module):
     X = torch.from_numpy(np.random.default_rng(2).standard_normal((40, 3)))
     y, J = per_sample_jacobian(module, X)
     phi = nn.utils.parameters_to_vector(module.parameters()).detach()

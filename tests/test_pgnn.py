@@ -186,7 +186,8 @@ def test_lm_on_pgnn_reaches_closed_form_regularised_optimum():
     prep = m.prepare(torch.as_tensor(reg.phi))
     M = len(reg)
     c = 1 / (fit.sigma * np.sqrt(M))
-    X = torch.cat([prep.T, prep.x * m.out_scale, m.out_scale * torch.ones(M, 1, dtype=torch.float64)], 1).numpy()
+    ones = torch.ones(M, 1, dtype=torch.float64)
+    X = torch.cat([prep.T, prep.x * m.out_scale, m.out_scale * ones], 1).numpy()
     z = reg.target - prep.offset.numpy()
     ts = fit.theta_phy_star
     Raug = np.zeros((3, X.shape[1]))
@@ -298,3 +299,21 @@ def test_arx_inverse_asymptotic_bias_matches_simulation():
     th = physics_least_squares(m, reg.phi, reg.target)
     assert np.linalg.norm(th - th_inv - bias) < 0.1 * np.linalg.norm(bias)
     assert np.linalg.norm(bias) > 0.01
+
+
+def test_mirrored_init_is_exactly_physics_with_live_hidden_units():
+    g = torch.Generator().manual_seed(0)
+    phi = torch.randn(40, 3, generator=g, dtype=torch.float64)
+    m = PGNN(2, 1, physics=RigidBodyForward(TS), hidden=(6,), out_init="mirrored",
+             out_init_scale=1.0, seed=4)
+    m.fit_normalisation(phi)
+    m.set_physics_estimate([0.05, 2.5, 0.5])
+    with torch.no_grad():  # zero up to the rounding of the output sum
+        assert float(m.nn_part(phi).abs().max()) < 1e-15 * float(m.out_scale)
+    J = m.jacobian(m.parameter_vector(), m.prepare(phi))
+    sl = m.param_slices()["layers.0.weight"]
+    # hidden-layer columns are as large as the output-layer ones (not ~out_init_scale smaller)
+    assert float(J[:, sl].abs().max()) > 0.1 * float(J[:, m.param_slices()["layers.1.weight"]].abs().max())
+    assert torch.linalg.matrix_rank(J[:, 3:]) >= 6  # pairs are separable by LM
+    with pytest.raises(ValueError, match="out_init"):
+        PGNN(2, 1, physics=RigidBodyForward(TS), out_init="zero")

@@ -14,6 +14,7 @@ import torch
 from pipeline.identify.orthogonal import RankDeficientModelError
 from pipeline.identify.sk import (SKNotConvergedWarning, oe_cost, output_error_lm,
                                   output_error_problem, prepare_data, sk_iterations)
+from pipeline.invert.rational_filter import rational_feedforward
 from pipeline.models.rational import (RationalFeedforward, Segments, UnstableFilterError,
                                       ar_polynomial, basis_coefficients, basis_columns,
                                       basis_matrix, filter_segments, recursive_filter,
@@ -115,6 +116,17 @@ def test_feedforward_refuses_unstable_filter():
     m = RationalFeedforward(2, 1, basis="shift", Ts=1.0, a=[1.0, 0.0], b=[-1.1])   # pole at 1.1
     with pytest.raises(UnstableFilterError, match="unstable"):
         m.feedforward(np.ones(10))
+    with pytest.raises(UnstableFilterError, match=r"\|z\| = \[1.1\]"):
+        rational_feedforward(m, np.ones(10))
+
+
+def test_rational_feedforward_reports_poles_and_parts():
+    m = RationalFeedforward(2, 1, basis="shift", Ts=1.0, a=[1.0, 0.5], b=[-0.8])    # pole at 0.8
+    r = np.sin(0.1 * np.arange(50))
+    out = rational_feedforward(m, r)
+    np.testing.assert_allclose(out.poles, [0.8], rtol=1e-14)
+    assert out.max_pole_abs == pytest.approx(0.8) and out.f_C is None
+    np.testing.assert_allclose(out.f, scipy.signal.lfilter([1.0, 0.5], [1.0, -0.8], r), rtol=0, atol=1e-13)
 
 
 @pytest.mark.parametrize("basis", ["shift", "delta"])

@@ -198,7 +198,8 @@ def test_identify_pgnn_lowers_identification_error(plant, loop):
     lin = identify_sim_error(PGNN(4, 4, 0, physics=LinearFeatures(8), use_nn=False), ctrl, sim.r, u_ex,
                              sim.y, sim.u, theta_star="sim_error", max_iter=20)
     # raw regressor as NN input: [B2] (30) is tanh(W1 φ + B1)
-    m = PGNN(4, 4, 0, physics=LinearFeatures(8), hidden=(8,), seed=0, input_transform="raw")
+    m = PGNN(4, 4, 0, physics=LinearFeatures(8), hidden=(8,), seed=0, input_transform="raw", out_init="mirrored",
+             out_init_scale=1.0)
     fit = identify_sim_error(m, ctrl, sim.r, u_ex, sim.y, sim.u, theta_star=lin.theta_phy_star,
                              max_iter=150, seed=0)
     y_hat, _ = simulate_closed_loop(fit.arx, ctrl, sim.r, u_ex)

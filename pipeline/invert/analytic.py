@@ -104,18 +104,15 @@ def analytic_feedforward(model: PGNN, r, *, fast: bool | None = None) -> np.ndar
         return _check_psi(_run(fm.blob, fm.meta, initial_state(fm, r_ext), r_ext, N, False, False),
                           model)
     u = np.full(N, np.nan)
-    k = model.u_index
     with torch.no_grad():
         for t in range(N):
             phi = reference_regressor(model, r_ext, u, t)
-            a = model.physics_part(phi)
-            phi1 = phi.clone()
-            phi1[0, k] = 1.0
-            psi = float(model.physics_part(phi1) - a)
+            a, psi = model.physics_affine(phi)
+            psi = float(psi[0])
             if psi == 0.0:
                 break
             rn = r_ext[t + model.n_k + 1 + model.n_a]
-            u[t] = (rn - float(a) - float(model.nn_part(phi))) / psi  # [B1] (27)
+            u[t] = (rn - float(a[0]) - float(model.nn_part(phi)[0])) / psi  # [B1] (27)
     return _check_psi(u, model)
 
 
@@ -144,18 +141,15 @@ def physics_feedforward(model: PGNN, r, *, theta=None, fast: bool | None = None)
         return _check_psi(u, model)
     th = torch.as_tensor(theta)
     u = np.full(N, np.nan)
-    k = model.u_index
     with torch.no_grad():
         for t in range(N):
             phi = reference_regressor(model, r_ext, u, t)
             if inverse_layout:
                 u[t] = float(model.physics_part(phi, th))
                 continue
-            a = model.physics_part(phi, th)
-            phi1 = phi.clone()
-            phi1[0, k] = 1.0
-            psi = float(model.physics_part(phi1, th) - a)
+            a, psi = model.physics_affine(phi, th)
+            psi = float(psi[0])
             if psi == 0.0:
                 break
-            u[t] = (r_ext[t + model.n_k + 1 + model.n_a] - float(a)) / psi  # [B1] (8)
+            u[t] = (r_ext[t + model.n_k + 1 + model.n_a] - float(a[0])) / psi  # [B1] (8)
     return _check_psi(u, model)

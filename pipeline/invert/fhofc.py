@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 import scipy.linalg as sla
 
-from pipeline.identify.sim_error import (ArxPGNN, DiscreteController, LoopState, jacobian_uff,
+from pipeline.identify.sim_error import (ArxPGNN, DiscreteController, LoopState, as_arx, jacobian_uff,
                                          simulate_closed_loop)
 
 __all__ = ["FHOFCResult", "ILResult", "difference_matrix", "fhofc", "fhofc_receding", "il_fhofc",
@@ -124,8 +124,9 @@ def fhofc(model: ArxPGNN, ctrl: DiscreteController, r, *, gamma: float = 0.0, ta
 
     Parameters
     ----------
-    model : ArxPGNN
-        Identified model θ̂ ([B2] (30); n1 = 0 is the linear model).
+    model : ArxPGNN or pipeline.models.pgnn.PGNN
+        Identified model θ̂ ([B2] (30); n1 = 0 is the linear model); a PGNN module is exported
+        with :meth:`ArxPGNN.from_pgnn` (no validity range then).
     ctrl : DiscreteController
         Feedback controller C(q) of the loop.
     r : array_like [m], shape (N_k,)
@@ -159,6 +160,7 @@ def fhofc(model: ArxPGNN, ctrl: DiscreteController, r, *, gamma: float = 0.0, ta
     FHOFCResult
     """
     t0 = time.perf_counter()
+    model = as_arx(model)
     r = np.asarray(r, dtype=np.float64).reshape(-1)
     N = r.shape[0]
     if N > max_horizon:
@@ -452,6 +454,7 @@ def fhofc_receding(model: ArxPGNN, ctrl: DiscreteController, r, *, h: int, gamma
     window stopped on max_iter).
     """
     t0 = time.perf_counter()
+    model = as_arx(model)
     r = np.asarray(r, dtype=np.float64).reshape(-1)
     N = r.shape[0]
     if h < 1:
@@ -513,6 +516,7 @@ def inverse_model_feedforward(model: ArxPGNN, r, *, max_iter: int = 50, tol: flo
     -------
     u_ff : ndarray [N]
     """
+    model = as_arx(model)
     r = np.asarray(r, dtype=np.float64).reshape(-1)
     N, d = r.shape[0], model.delay
     n_a, n_b, n_k = model.n_a, model.n_b, model.n_k
@@ -613,6 +617,7 @@ def il_fhofc(model: ArxPGNN, ctrl: DiscreteController, r, plant: Callable[[np.nd
     -------
     ILResult
     """
+    model = as_arx(model)
     r = np.asarray(r, dtype=np.float64).reshape(-1)
     N = r.shape[0]
     if not 0 < alpha <= 1:
@@ -657,6 +662,7 @@ def linear_ilc(model: ArxPGNN, ctrl: DiscreteController, r, plant: Callable[[np.
         Linear model Ĝ (n1 = 0 required).
     Other parameters as :func:`il_fhofc`.
     """
+    model = as_arx(model)
     if model.n1:
         raise ValueError(f"linear_ilc needs a linear model (n1 = 0), got n1 = {model.n1}; use model.linear_part()")
     if not 0 < alpha <= 1:

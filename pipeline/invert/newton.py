@@ -158,11 +158,9 @@ def _reference_solve(model: PGNN, phi: torch.Tensor, r_next: float, k: int, lo: 
     iu = model.u_index
     flags = 0
     with torch.no_grad():
-        a0 = model.physics_part(phi, theta_start)
-        phi1 = phi.clone()
-        phi1[0, iu] = 1.0
-        psi0 = float(model.physics_part(phi1, theta_start) - a0)
-    u = (r_next - float(a0)) / psi0 if psi0 != 0.0 else math.nan  # physics start [B1] (8)
+        a0, psi0 = model.physics_affine(phi, theta_start)
+        a0, psi0 = float(a0[0]), float(psi0[0])
+    u = (r_next - a0) / psi0 if psi0 != 0.0 else math.nan  # physics start [B1] (8)
     if not math.isfinite(u):
         u, flags = 0.0, flags | SINGULAR
     if u < lo:

@@ -325,6 +325,13 @@ class PGNN(nn.Module):
     out_init_scale : float
         Output-layer weights at initialisation = Glorot draw × this (small: the initial PGNN
         equals the physics model up to this factor, SPEC §3).
+    out_init : {'scaled', 'mirrored'}
+        ``'scaled'``: output weights = Glorot × ``out_init_scale``.  ``'mirrored'``: the units
+        of the last hidden layer come in identical pairs with opposite output weights (Glorot
+        × ``out_init_scale``), so the initial NN output is zero up to rounding (the initial PGNN
+        is the physics model) while every hidden unit has a full-size gradient; a tiny scaled
+        output layer instead leaves the hidden layer's Jacobian columns ~``out_init_scale``
+        small, which slows LM markedly.
     seed : int
         Seed of the initial NN weights (torch generator).
     """
@@ -332,7 +339,7 @@ class PGNN(nn.Module):
     def __init__(self, n_a: int, n_b: int, n_k: int = 0, *, structure: str = "forward",
                  physics: PhysicsFeatures | None = None, hidden=(16,), activation: str = "tanh",
                  use_physics: bool = True, use_nn: bool = True, input_transform: str = "delta",
-                 out_init_scale: float = 1e-3, seed: int = 0):
+                 out_init_scale: float = 1e-3, out_init: str = "scaled", seed: int = 0):
         super().__init__()
         if structure not in _STRUCTURES:
             raise ValueError(f"structure must be one of {_STRUCTURES}, got {structure!r}")
@@ -341,6 +348,8 @@ class PGNN(nn.Module):
                              f"n_b={n_b}, n_k={n_k}")
         if activation not in _ACTIVATIONS:
             raise ValueError(f"activation must be one of {sorted(_ACTIVATIONS)}, got {activation!r}")
+        if out_init not in ("scaled", "mirrored"):
+            raise ValueError(f"out_init must be 'scaled' or 'mirrored', got {out_init!r}")
         if input_transform not in ("delta", "raw"):
             raise ValueError(f"input_transform must be 'delta' or 'raw', got {input_transform!r}")
         if use_physics and physics is None:
@@ -355,6 +364,7 @@ class PGNN(nn.Module):
         self.hidden = tuple(int(h) for h in hidden)
         self.input_transform = input_transform
         self.out_init_scale = float(out_init_scale)
+        self.out_init = out_init
         self.physics = physics if use_physics else None
         n_phi = self.n_phi
 
@@ -440,6 +450,14 @@ class PGNN(nn.Module):
                     w = w * self.out_init_scale
                 lin.weight.copy_(w)
                 lin.bias.zero_()
+            if self.out_init == "mirrored" and len(self.layers) >= 2:
+                # pairs (j, j + h) of identical units with opposite output weights: f_NN = 0
+                last, out = self.layers[-2], self.layers[-1]
+                h = last.weight.shape[0] // 2
+                last.weight[h:2 * h] = last.weight[:h]
+                last.bias[h:2 * h] = last.bias[:h]
+                out.weight[0, h:2 * h] = -out.weight[0, :h]
+                out.weight[0, 2 * h:] = 0.0  # an odd unit out: no output at initialisation
             if self.use_physics and bool(torch.all(torch.isfinite(self.theta_phy_star))):
                 self.theta_phy.copy_(self.theta_phy_star)
 
@@ -507,8 +525,11 @@ class PGNN(nn.Module):
         closed = (not self.use_nn or len(layers) == 1 or
                   (len(layers) == 2 and self.activation in ("tanh", "sigmoid", "identity")))
         if not closed:
-            return torch.cat([torch.func.jacfwd(lambda th: self.predict(th, prep.rows(slice(i, i + chunk))))(theta)
-                              for i in range(0, M, chunk)], dim=0)
+            blocks = []
+            for i in range(0, M, chunk):
+                rows = prep.rows(slice(i, i + chunk))
+                blocks.append(torch.func.jacfwd(lambda th, rows=rows: self.predict(th, rows))(theta))
+            return torch.cat(blocks, dim=0)
         J = torch.empty(M, self.n_params, dtype=torch.float64)
         i = 0
         if self.use_physics:
@@ -581,6 +602,20 @@ class PGNN(nn.Module):
         _, T = self.physics.features(phi0)
         return (T[1] - T[0]).abs() > 0
 
+    def physics_affine(self, phi: torch.Tensor, theta_phy: torch.Tensor | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(a, ψ) with f_phy(φ) = a + ψ u(t-n_k-1) (forward layouts, affine physics): a at
+        u(t-n_k-1) = 0 and the input gain ψ from feature differences (exact for a feature
+        linear in u; a difference of outputs would cancel ~10 digits when ψ u << f)."""
+        phi = self._check_phi(phi)
+        th = self.theta_phy if theta_phy is None else theta_phy
+        p0, p1 = phi.clone(), phi.clone()
+        p0[:, self.u_index] = 0.0
+        p1[:, self.u_index] = 1.0
+        o0, T0 = self.physics.features(p0)
+        o1, T1 = self.physics.features(p1)
+        return o0 + T0 @ th, (o1 - o0) + (T1 - T0) @ th
+
     @property
     def analytically_invertible(self) -> bool:
         """True when ŷ is affine in u(t-n_k-1) with a coefficient ψ known from the physics:
@@ -591,7 +626,8 @@ class PGNN(nn.Module):
     def extra_repr(self) -> str:
         return (f"structure={self.structure}, n_a={self.n_a}, n_b={self.n_b}, n_k={self.n_k}, "
                 f"use_physics={self.use_physics}, use_nn={self.use_nn}, hidden={self.hidden}, "
-                f"activation={self.activation}, input_transform={self.input_transform}")
+                f"activation={self.activation}, input_transform={self.input_transform}, "
+                f"out_init={self.out_init}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -678,6 +714,17 @@ def _fast_physics(kind, cfg, theta, phi):
 
 
 @numba.njit(cache=True)
+def _fast_physics_gain(kind, cfg, theta, u_index):
+    """ψ = ∂f_phy/∂u(t-n_k-1) of the built-in forward maps, in closed form (a difference
+    f(u=1) - f(u=0) would lose ~10 digits to cancellation when ψ u << f, e.g. Ts²/m)."""
+    if kind == 0:  # LinearFeatures: θ of the u(t-n_k-1) column
+        return theta[u_index]
+    elif kind == 1:  # RigidBodyForward: Ts² / m
+        return cfg[0] * cfg[0] * theta[0]
+    return np.nan  # inverse map: no input gain
+
+
+@numba.njit(cache=True)
 def _unpack(blob, meta):
     p, H, n = meta[1], meta[2], meta[3]
     i = 0
@@ -731,10 +778,8 @@ def fast_physics_affine(blob, meta, phi, use_start):
     keep = phi[k]
     phi[k] = 0.0
     a = _fast_physics(meta[0], cfg, theta, phi)
-    phi[k] = 1.0
-    psi = _fast_physics(meta[0], cfg, theta, phi) - a
     phi[k] = keep
-    return a, psi
+    return a, _fast_physics_gain(meta[0], cfg, theta, k)
 
 
 @numba.njit(cache=True)

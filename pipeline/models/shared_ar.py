@@ -232,15 +232,33 @@ def _linear_jacobian(module, X, linear, params):
     for p in params:
         offsets[id(p)] = (k, p.numel())
         k += p.numel()
-    JT = torch.zeros(k, n, dtype=torch.float64)
+    JT = torch.empty(k, n, dtype=torch.float64)
+    filled: set[int] = set()
+
+    def write(p, factors):
+        """Rows of p in JT ← product of the broadcast factors (+= if p was written before,
+        i.e. a layer called twice with shared weights)."""
+        k0, size = offsets[id(p)]
+        rows = JT[k0:k0 + size].view(torch.broadcast_shapes(*(f.shape for f in factors)))
+        if id(p) in filled:
+            rows += factors[0] * factors[1] if len(factors) == 2 else factors[0]
+        elif len(factors) == 2:
+            torch.mul(*factors, out=rows)   # written in place: no [N, n_φ] temporary
+        else:
+            rows.copy_(factors[0])
+        filled.add(id(p))
+
     for (mod, h, _), d in zip(calls, deltas):
         if d is None:
             continue
-        k0, size = offsets[id(mod.weight)]
-        JT[k0:k0 + size] += torch.einsum("no,ni->oin", d, h).reshape(size, n)
+        dT, hT = d.T, h.T                                  # [out, N], [in, N]
+        write(mod.weight, (dT[:, None, :], hT[None, :, :]))   # ∂y_k/∂W = δ_k h_kᵀ
         if mod.bias is not None:
-            k0, size = offsets[id(mod.bias)]
-            JT[k0:k0 + size] += d.T
+            write(mod.bias, (dT,))                             # ∂y_k/∂c = δ_k
+    for p in params:                                       # parameters the output ignores
+        if id(p) not in filled:
+            k0, size = offsets[id(p)]
+            JT[k0:k0 + size] = 0.0
     return y.detach(), JT.T
 
 

@@ -32,14 +32,15 @@ def check(cfg, system) -> None:
         raise ConfigError("invert.kind=il_fhofc solves the full-horizon FHOFC; set invert.horizon=null")
 
 
-def ideal_feedforward(ctx, r) -> np.ndarray:
-    """The optimal input of r on the noise-free plant by norm-optimal ILC (pipeline.invert.ilc)."""
+def ideal_feedforward(ctx, r) -> tuple[np.ndarray, float]:
+    """The optimal input of r on the noise-free plant by norm-optimal ILC (pipeline.invert.ilc)
+    and the rms error of its last trial [m] (how ideal it is)."""
     from pipeline.invert.ilc import norm_optimal_ilc, system_trial
     inv = ctx.cfg.invert
     res = norm_optimal_ilc(system_trial(ctx.system, r), ctx.system.learning_model(), r.size,
                            w_delta=0.0, w_rel=float(inv.ideal_w_rel), n_trials=int(inv.ideal_trials),
                            backend="lifted")
-    return res.f
+    return res.f, float(res.rms[-1])
 
 
 def feedforward(ctx, name, r):
@@ -67,7 +68,8 @@ def feedforward(ctx, name, r):
         if not out.solver[i].converged:
             ctx.tag(f"fhofc_fallback_{name}_trial{i}", out.solver[i].message)
     if inv.trial_noise:
-        f_opt = ideal_feedforward(ctx, r)
+        f_opt, rms_opt = ideal_feedforward(ctx, r)
+        ctx.metric(f"{name}/ideal_noise_free_rms", rms_opt)
         for i in range(n_trials):
             y = system.simulate(r, u_ff=f_opt, v=noises[i]).y
             ctx.metric(f"{name}/ideal_rms", float(np.sqrt(np.mean((r - y) ** 2))), step=i)

@@ -63,7 +63,8 @@ def build_model(cfg, system) -> PGNN:
                 physics=LinearFeatures(int(m.n_a) + int(m.n_b), system.physics.param_names),
                 hidden=hidden, activation="tanh", use_nn=bool(hidden) and bool(m.get("use_nn", True)),
                 input_transform=str(m.get("input_transform", "raw")),
-                out_init_scale=float(m.get("out_init_scale", 1e-3)), seed=int(cfg.seed))
+                out_init_scale=float(m.get("out_init_scale", 1.0)), out_init=str(m.get("out_init", "mirrored")),
+                seed=int(cfg.seed))
 
 
 def fit(ctx) -> dict:

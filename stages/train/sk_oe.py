@@ -9,7 +9,8 @@ orthogonal ([K] (29), λ = ``regularizer.lam``) or none.
 Logged (``train/…``): J_OE per SK iteration of the kept restart (``sk_J_OE``, step j) and of
 every restart (``sk_J_OE/restart<i>``); J_OE of the last iterate, the minimum over iterates and
 the reported model (SPEC §8 K3); the direct LM on J_OE from the reported model
-(``oe_check/J_before|J_after|improvement``); roots of B reflected (tag ``sk_reflected``);
+(``oe_check/J_before|J_after|improvement``) and, for comparison, one more SK iteration with the
+same LM budget (``oe_check/sk_continued_J``); roots of B reflected (tag ``sk_reflected``);
 interpretability (SPEC §7): θ, θ's relative error against the plant's coefficients where the
 model class holds them, ``share_C_in_model`` (‖U1ᵀ W g‖/‖W g‖), ``ratio_C_M``, ``corr_M_C``,
 and the spread of f_M over the restarts per training reference (``spread_f_M/<ref>``, K2).
@@ -18,13 +19,14 @@ Figures: J_OE per SK iteration; f̂, f, f_M, f_C (as [K] Fig. 6) with every rest
 from __future__ import annotations
 
 import time
+import warnings
 
 import numpy as np
 import torch
 from omegaconf import OmegaConf
 
 from pipeline.identify.orthogonal import interpretability, spread_over_inits
-from pipeline.identify.sk import output_error_lm, sk_restarts
+from pipeline.identify.sk import SKNotConvergedWarning, output_error_lm, sk_iterations, sk_restarts
 from pipeline.models.rational import RationalFeedforward, basis_coefficients, basis_matrix
 from pipeline.models.shared_ar import ReferenceWindow, SharedARPGNN, make_approximator
 from pipeline.runner import ConfigError
@@ -162,6 +164,13 @@ def fit(ctx) -> dict:
     ctx.metric("oe_check/improvement", oe.improvement)
     ctx.metric("oe_check/seconds", time.perf_counter() - t0)
     ctx.tag("oe_check_stop", oe.lm.message)
+    # the same LM budget spent on one more SK iteration instead: separates "SK stops short of
+    # the OE optimum" from "the approximator is not trained to convergence"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SKNotConvergedWarning)
+        cont = sk_iterations(model, rs, fs, **{**kw, "max_iter": 1, "init": "model",
+                                               "lm_max_iter": int(ident.oe_check_iter)})
+    ctx.metric("oe_check/sk_continued_J", cont.iterates[-1].J_OE)
 
     # interpretability (SPEC §7)
     tt = true_theta(system, model)
@@ -223,27 +232,29 @@ def _sk_figure(results, best):
 
 
 def _fig6(model, models, rs, fs, names, reg):
-    """[K] Fig. 6: f̂, f = f_M + f_C, f_M, f_C on the training reference with the smallest
-    velocity (Stribeck region), with every restart's f_M (thin) to show the (non-)uniqueness."""
+    """[K] Fig. 6: f̂, f = f_M + f_C, f_M, f_C of the kept restart on the training reference with
+    the smallest velocity (Stribeck region); below, every restart's f_M minus their mean (the
+    (non-)uniqueness of θ, SPEC §8 K2)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     j = int(np.argmin([np.max(np.abs(np.diff(r))) for r in rs]))
-    Ts = model.Ts
-    t = np.arange(rs[j].size) * Ts
+    t = np.arange(rs[j].size) * model.Ts
     with torch.no_grad():
-        inp = model.inputs(rs[j])
-        f_M, f_C = (x.numpy() for x in model.parts(inp))
-    fig, ax = plt.subplots(figsize=(7, 3.8))
-    for mm in models:
-        with torch.no_grad():
-            ax.plot(t, mm.parts(mm.inputs(rs[j]))[0].numpy(), color="tab:blue", lw=0.5, alpha=0.5)
+        f_M, f_C = (x.numpy() for x in model.parts(model.inputs(rs[j])))
+        all_M = np.array([mm.parts(mm.inputs(rs[j]))[0].numpy() for mm in models])
+    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(7, 5.5), sharex=True,
+                                  gridspec_kw={"height_ratios": [2, 1]})
     ax.plot(t, fs[j], "k--", lw=1.2, label="f̂ (optimal)")
     ax.plot(t, f_M + f_C, color="tab:green", lw=1.0, label="f = f_M + f_C")
-    ax.plot(t, f_M, color="tab:blue", lw=1.2, label="f_M (model; thin: other restarts)")
+    ax.plot(t, f_M, color="tab:blue", lw=1.2, label="f_M (model)")
     ax.plot(t, f_C, color="tab:red", lw=1.2, label="f_C (approximator)")
-    ax.set_xlabel("t [s]")
     ax.set_ylabel("force [N]")
     ax.set_title(f"[K] Fig. 6, regularizer={reg}, reference {names[j]}", fontsize=9)
     ax.legend(fontsize=7)
+    for i, fm in enumerate(all_M):
+        ax2.plot(t, fm - all_M.mean(axis=0), lw=0.9, label=f"restart {i}")
+    ax2.set_xlabel("t [s]")
+    ax2.set_ylabel("f_M − mean f_M [N]")
+    ax2.legend(fontsize=6, ncol=5)
     return fig

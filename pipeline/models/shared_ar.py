@@ -189,7 +189,8 @@ def per_sample_jacobian(module: nn.Module, X: torch.Tensor, phi: torch.Tensor | 
 
     φ is the flat vector of ``module.parameters()`` (``parameters_to_vector`` order); the
     module's parameters are restored afterwards.  The samples must be independent (no
-    batch statistics).  When every parameter belongs to an ``nn.Linear`` the Jacobian is
+    batch statistics).  When every parameter belongs to an ``nn.Linear`` applied to [N, ·]
+    inputs (one row per sample) the Jacobian is
     assembled from one forward and one backward pass (for a Linear layer with input h and
     output gradient δ, ∂y_k/∂W = δ_k h_kᵀ and ∂y_k/∂c = δ_k); otherwise by forward mode, one
     ``torch.func.jvp`` per parameter (n_φ batched passes: slower, but for any module).
@@ -226,6 +227,8 @@ def _linear_jacobian(module, X, linear, params):
         for h in handles:
             h.remove()
     n = X.shape[0]
+    if any(h.dim() != 2 or h.shape[0] != n for _, h, _ in calls):
+        return _func_jacobian(module, X, params)    # a Linear not applied sample by sample
     # built transposed, [n_φ, N] contiguous (time along rows: cheap filtering), returned as
     # its [N, n_φ] view
     offsets, k = {}, 0

@@ -4,7 +4,8 @@ A stage is a module ``stages.<name>`` with
 
 - ``UPSTREAM``: the stages whose outputs it reads (``ctx.inputs[name]``);
 - ``DEPENDS``: the dotted config keys its result depends on;
-- ``VERSION``: bump it when the stage's code changes its results;
+- ``VERSION``: bump it when the stage's code changes its results (``KIND_KEY`` names the config
+  key choosing a ``stages/<name>/<kind>.py`` implementation, whose own ``VERSION`` counts too);
 - ``run(ctx) -> dict``: the result (picklable: arrays, DataFrames, modules, numbers);
 - optionally ``validate(cfg, system)``: raise before any work is done on bad input;
 - optionally ``CACHE = False`` (the report reads the tracking store and always runs).
@@ -140,7 +141,11 @@ def _select(cfg: DictConfig, key: str):
 
 
 def stage_key(cfg: DictConfig, name: str, mod, upstream_keys: dict[str, str]) -> str:
-    payload = {"stage": name, "version": getattr(mod, "VERSION", 1),
+    version = [getattr(mod, "VERSION", 1)]
+    if getattr(mod, "KIND_KEY", None):  # the chosen implementation's VERSION counts too
+        version.append(getattr(implementation(name, str(OmegaConf.select(cfg, mod.KIND_KEY))),
+                               "VERSION", 1))
+    payload = {"stage": name, "version": version,
                "config": {k: _select(cfg, k) for k in mod.DEPENDS},
                "upstream": {u: upstream_keys[u] for u in mod.UPSTREAM}}
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()

@@ -13,6 +13,7 @@ from pipeline.runner import implementation
 UPSTREAM = ()
 DEPENDS = ("system", "data", "seed")
 VERSION = 1
+KIND_KEY = "data.kind"
 
 
 def validate(cfg, system) -> None:

@@ -15,6 +15,7 @@ from stages._common import check_references, reference_specs
 UPSTREAM = ("generate", "baseline", "train")
 DEPENDS = ("invert", "evaluate.references")
 VERSION = 1
+KIND_KEY = "invert.kind"
 
 
 def validate(cfg, system) -> None:

@@ -11,6 +11,7 @@ from pipeline.runner import implementation
 UPSTREAM = ("generate", "baseline")
 DEPENDS = ("model", "identify", "regularizer", "seed")
 VERSION = 1
+KIND_KEY = "identify.kind"
 
 
 def validate(cfg, system) -> None:

@@ -101,7 +101,7 @@ def main():
     pgnn = SharedARPGNN(5, 2, make_approximator("mlp", 5, seed=0), win, basis="delta", Ts=plant.Ts)
     clock = Clock()
     res = sk_iterations(pgnn, rs, fs, max_iter=a.sk_iter, tol=0.0, regularizer="orthogonal",
-                        lam=1e-2, lm_max_iter=a.lm_iter)
+                        lam=1.0, lm_max_iter=a.lm_iter)
     report(f"PGNN N_a=5, N_b=2, MLP 5-10-10-1, orthogonal, {a.lm_iter} LM iterations/SK iteration",
            res, clock.lap())
     n_lm = sum(it.lm_iter for it in res.iterates[1:])

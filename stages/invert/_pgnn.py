@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import numpy as np
+import torch
 
+from pipeline.identify.narx import build_regression
 from pipeline.invert.direct import nyquist_fraction, per_sample_seconds
 from pipeline.models.pgnn import fast_pgnn
 from pipeline.runner import ConfigError
@@ -45,3 +47,37 @@ def log_common(ctx, name: str, model, r: np.ndarray, u_ff: np.ndarray, step, *ar
         ctx.metric(f"{name}/sample_seconds_p99", float(np.percentile(ts, 99)))
     ctx.metric(f"{name}/nyquist_fraction", nyquist_fraction(u_ff))
     ctx.metric(f"{name}/max_abs_u_ff", float(np.max(np.abs(u_ff))))
+
+
+def log_diagnostics(ctx, name: str, model, r: np.ndarray) -> None:
+    """Why a PGNN feedforward does (not) help, beyond the tracking error:
+
+    - ``<ref>/velocity_over_training``: max |δr| of the reference over max |δy| of the
+      training data; above 1 the feedforward evaluates the NN outside the operating
+      conditions it was trained on ([B1] Definition 6);
+    - ``nn_r2_unmodelled`` (once per run; forward layouts on an equation-noise plant, where
+      ``y_clean`` is the noise-free one-step output h(φ)): the share of the variance of the
+      true unmodelled dynamics g = h - f_phy(θ̂_phy) on the training rows that f_NN explains.
+    """
+    ds = ctx.inputs["generate"]["dataset"]
+    Ts = float(ctx.system.Ts)
+    v_train = max(float(np.max(np.abs(np.diff(seg["y"].to_numpy(np.float64))))) for seg in ds.segments()) / Ts
+    ctx.metric(f"{name}/velocity_over_training", float(np.max(np.abs(np.diff(r)))) / Ts / v_train)
+    if any(m[0] == f"{ctx.name}/nn_r2_unmodelled" for m in ctx.metrics):
+        return  # once per run
+    if (model.structure == "inverse" or not model.use_nn or "y_clean" not in ds.frame
+            or getattr(ctx.system, "structure", None) != "equation"):
+        return
+    g, nn = [], []
+    for seg in ds.segments():
+        u = seg["u"].to_numpy(np.float64)
+        if ctx.inputs["train"].get("model_input"):
+            u = ctx.system.physics.model_input(u)
+        reg = build_regression(model, seg["y"].to_numpy(np.float64), u)
+        phi = torch.as_tensor(reg.phi)
+        with torch.no_grad():
+            g.append(seg["y_clean"].to_numpy(np.float64)[reg.t] - model.physics_part(phi).numpy())
+            nn.append(model.nn_part(phi).numpy())
+    g, nn = np.concatenate(g), np.concatenate(nn)
+    if np.var(g) > 0:
+        ctx.metric("nn_r2_unmodelled", float(1.0 - np.var(g - nn) / np.var(g)))

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from pipeline.invert.direct import direct_feedforward, direct_step
-from stages.invert._pgnn import applied, check_structure, log_common, trained
+from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
 
 
 def check(cfg, system) -> None:
@@ -14,4 +14,5 @@ def feedforward(ctx, name, r):
     w = direct_feedforward(model, r)
     u = applied(ctx, w)
     log_common(ctx, name, model, r, u, direct_step)
+    log_diagnostics(ctx, name, model, r)
     return u

@@ -10,7 +10,7 @@ import math
 
 from pipeline.invert.newton import newton_feedforward, newton_step
 from pipeline.runner import ConfigError
-from stages.invert._pgnn import applied, check_structure, log_common, trained
+from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
 
 
 def _bounds(cfg):
@@ -45,4 +45,5 @@ def feedforward(ctx, name, r):
         ctx.tag(f"newton_fallback_{name}", res.n_fallback)
     u = applied(ctx, res.u_ff)
     log_common(ctx, name, model, r, u, newton_step, k, lo, hi)
+    log_diagnostics(ctx, name, model, r)
     return u

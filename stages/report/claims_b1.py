@@ -176,6 +176,24 @@ def _linear_motor(experiment, runs, figdir):
                     rows.append(_row(experiment, f"equation/{mt}/v0.15", "sample_seconds_median", v,
                                      paper=PAPER_SECONDS[mt]))
             lines.append("")
+        diag = []
+        r2 = {mt: table[(noise, mt)].get("invert/nn_r2_unmodelled") for mt in ("newton", "analytic")
+              if (noise, mt) in table}
+        if any(v is not None for v in r2.values()):
+            diag.append("share of the true unmodelled one-step dynamics explained by f_NN on the "
+                        "training rows (R²): " + ", ".join(f"{LABEL[k]} {v:.2f}" for k, v in r2.items()
+                                                          if v is not None))
+        vr = []
+        for mt in have:  # the same for every PGNN run (same data, same references)
+            vr = [(r, table[(noise, mt)].get(f"invert/{r}/velocity_over_training")) for r in refs]
+            vr = [(r, v) for r, v in vr if v is not None]
+            if vr:
+                break
+        if vr:
+            diag.append("max reference velocity / max training velocity ([B1] Def. 6: above 1 the NN "
+                        "extrapolates): " + ", ".join(f"{r} {v:.2f}" for r, v in vr))
+        if diag:
+            lines += ["Diagnostics: " + "; ".join(diag) + ".", ""]
         if noise == "equation":
             fig = _mae_figure(table, noise, refs, figdir / f"{experiment}-{noise}-mae.png")
             if fig:

@@ -132,13 +132,13 @@ def test_reference_outside_limits_fails_before_work(store, cfg_of):
 
 def test_measured_data_missing_file_and_nan(store, cfg_of, tmp_path):
     with pytest.raises(runner.ConfigError, match="does not exist"):
-        runner.run_job(cfg_of(*SHORT_TWO_MASS, "data=measured", f"data.path={tmp_path}/none.parquet"))
+        runner.run_job(cfg_of("experiment=physics_two_mass", "data=measured", f"data.path={tmp_path}/none.parquet"))
     import pandas as pd
     df = pd.DataFrame({"t": np.arange(5) * 1e-3, "r": np.zeros(5), "u": np.zeros(5),
                        "y": [0, 0, np.inf, 0, 0]})
     df.to_parquet(tmp_path / "bad.parquet")
     with pytest.raises(runner.ConfigError, match="column 'y'.*NaN/inf"):
-        runner.run_job(cfg_of(*SHORT_TWO_MASS, "data=measured", f"data.path={tmp_path}/bad.parquet"))
+        runner.run_job(cfg_of("experiment=physics_two_mass", "data=measured", f"data.path={tmp_path}/bad.parquet"))
 
 
 def test_stage_subset_needs_cached_upstream(store, cfg_of):

@@ -33,6 +33,8 @@ from typing import Callable
 import numba
 import numpy as np
 
+from pipeline.systems._statespace import ss_step, ss_step_columns
+
 __all__ = ["ArxPGNN", "DiscreteController", "LoopState", "as_arx", "arx_from_tf", "simulate_closed_loop",
            "jacobian_uff", "jacobian_theta", "simulate_closed_loop_torch", "SimErrorFit", "sim_error_criterion",
            "closed_loop_exogenous", "identify_sim_error"]
@@ -362,40 +364,59 @@ def _model_eval(yh, uh, n_a, n_b, n_k, th, W1, b1, W2, b2, P, c, so, phi, x, hbu
     return y
 
 
+@numba.njit(cache=True, inline="always")
+def _loop_buffers(N, n_a, n_b, P, W1, nc):
+    """Outputs ŷ, û (length N) and the per-sample scratch of :func:`_model_eval` (φ, NN input,
+    tanh, ∂ŷ/∂φ) and of the controller step (next state): (yhat, uhat, phi, x, hbuf, g, xn)."""
+    nphi = n_a + n_b
+    return (np.empty(N), np.empty(N), np.empty(nphi), np.empty(P.shape[0]), np.empty(max(W1.shape[0], 1)),
+            np.empty(nphi), np.empty(nc))
+
+
+@numba.njit(cache=True, inline="always")
+def _loop_advance(y, r_k, uff_k, yh, uh, xc, xn, Ac, Bc, Cc, Dc):
+    """Close the loop at sample k given ŷ(k) = ``y``: returns û(k) = C x_c + D (r(k) - ŷ(k)) +
+    u_ff(k) ([B2] (8), no computational delay), advances x_c and shifts ŷ, û into the
+    histories yh, uh (all in place)."""
+    u = ss_step(Ac, Bc, Cc, Dc, xc, xn, r_k - y, uff_k)
+    for i in range(yh.shape[0] - 1, 0, -1):
+        yh[i] = yh[i - 1]
+    if yh.shape[0] > 0:
+        yh[0] = y
+    for i in range(uh.shape[0] - 1, 0, -1):
+        uh[i] = uh[i - 1]
+    uh[0] = u
+    return u
+
+
+@numba.njit(cache=True, inline="always")
+def _chain_past(acc, g, J, Ju, k, n_a, n_b, n_k, causal):
+    """Chain rule through the recurrent regressor φ(k) = [ŷ(k-1..k-n_a), û(k-n_k-1..)]:
+    ``acc += Σ_i g_i J[k-i] + Σ_i g_{n_a+i} Ju[k-n_k-i]`` (g = ∂ŷ/∂φ, J/Ju rows = ∂ŷ/∂·, ∂û/∂·).
+    With ``causal`` the columns are inputs u_ff(j) and only those that can reach the lagged
+    sample are summed (j < k-i for ŷ(k-i), j ≤ k-n_k-i for û(k-n_k-i)); the rest are zero."""
+    n = acc.shape[0]
+    for i in range(1, n_a + 1):
+        if k - i >= 0:
+            gi = g[i - 1]
+            for j in range(k - i if causal else n):
+                acc[j] += gi * J[k - i, j]
+    for i in range(1, n_b + 1):
+        lag = n_k + i
+        if k - lag >= 0:
+            gi = g[n_a + i - 1]
+            for j in range(k - lag + 1 if causal else n):
+                acc[j] += gi * Ju[k - lag, j]
+
+
 @numba.njit(cache=True)
 def _cl_simulate(r, uff, yh, uh, xc, n_a, n_b, n_k, th, W1, b1, W2, b2, P, c, so, Ac, Bc, Cc, Dc):
     """Closed-loop model simulation [B2] (8)+(30); yh, uh, xc are updated in place."""
     N = r.shape[0]
-    nphi = n_a + n_b
-    nh = uh.shape[0]
-    nc = xc.shape[0]
-    yhat = np.empty(N)
-    uhat = np.empty(N)
-    phi = np.empty(nphi)
-    x = np.empty(P.shape[0])
-    hbuf = np.empty(W1.shape[0])
-    g = np.empty(nphi)
-    xn = np.empty(nc)
+    yhat, uhat, phi, x, hbuf, g, xn = _loop_buffers(N, n_a, n_b, P, W1, xc.shape[0])
     for k in range(N):
         y = _model_eval(yh, uh, n_a, n_b, n_k, th, W1, b1, W2, b2, P, c, so, phi, x, hbuf, g, False)
-        e = r[k] - y
-        u = Dc * e + uff[k]
-        for i in range(nc):
-            u += Cc[i] * xc[i]
-        for i in range(nc):
-            s = Bc[i] * e
-            for j in range(nc):
-                s += Ac[i, j] * xc[j]
-            xn[i] = s
-        for i in range(nc):
-            xc[i] = xn[i]
-        for i in range(n_a - 1, 0, -1):
-            yh[i] = yh[i - 1]
-        if n_a > 0:
-            yh[0] = y
-        for i in range(nh - 1, 0, -1):
-            uh[i] = uh[i - 1]
-        uh[0] = u
+        u = _loop_advance(y, r[k], uff[k], yh, uh, xc, xn, Ac, Bc, Cc, Dc)
         yhat[k] = y
         uhat[k] = u
     return yhat, uhat
@@ -406,68 +427,21 @@ def _cl_jac_uff(r, uff, yh, uh, xc, n_a, n_b, n_k, th, W1, b1, W2, b2, P, c, so,
     """Simulation plus J[k, j] = ∂ŷ(k)/∂u_ff(j) (lower triangular, forward sensitivities)
     and Ju[k, j] = ∂û(k)/∂u_ff(j)."""
     N = r.shape[0]
-    nphi = n_a + n_b
-    nh = uh.shape[0]
     nc = xc.shape[0]
-    yhat = np.empty(N)
-    uhat = np.empty(N)
+    yhat, uhat, phi, x, hbuf, g, xn = _loop_buffers(N, n_a, n_b, P, W1, nc)
     J = np.zeros((N, N))
     Ju = np.zeros((N, N))
-    Sx = np.zeros((nc, N))
-    Sxn = np.zeros(nc)
-    phi = np.empty(nphi)
-    x = np.empty(P.shape[0])
-    hbuf = np.empty(W1.shape[0])
-    g = np.empty(nphi)
-    xn = np.empty(nc)
+    Sx = np.zeros((nc, N))     # Sx[:, j] = ∂x_c(k)/∂u_ff(j)
+    Sxn = np.zeros((nc, N))
+    nBc = -Bc                  # ∂e = -∂ŷ: the controller seen from ŷ is (A, -B, C, -D)
     for k in range(N):
         y = _model_eval(yh, uh, n_a, n_b, n_k, th, W1, b1, W2, b2, P, c, so, phi, x, hbuf, g, True)
         # ∂ŷ(k)/∂u_ff(j), j < k: chain through past ŷ and û
-        for i in range(1, n_a + 1):
-            if k - i >= 0:
-                gi = g[i - 1]
-                for j in range(k - i):
-                    J[k, j] += gi * J[k - i, j]
-        for i in range(1, n_b + 1):
-            lag = n_k + i
-            if k - lag >= 0:
-                gi = g[n_a + i - 1]
-                for j in range(k - lag + 1):
-                    J[k, j] += gi * Ju[k - lag, j]
-        # û(k) = C x_c + D e + u_ff(k)
-        for j in range(k):
-            s = -Dc * J[k, j]
-            for i in range(nc):
-                s += Cc[i] * Sx[i, j]
-            Ju[k, j] = s
-        Ju[k, k] = 1.0
-        # x_c(k+1) = A x_c + B e
-        for j in range(k + 1):
-            for i in range(nc):
-                s = -Bc[i] * J[k, j]
-                for m in range(nc):
-                    s += Ac[i, m] * Sx[m, j]
-                Sxn[i] = s
-            for i in range(nc):
-                Sx[i, j] = Sxn[i]
-        e = r[k] - y
-        u = Dc * e + uff[k]
-        for i in range(nc):
-            u += Cc[i] * xc[i]
-        for i in range(nc):
-            s = Bc[i] * e
-            for j in range(nc):
-                s += Ac[i, j] * xc[j]
-            xn[i] = s
-        for i in range(nc):
-            xc[i] = xn[i]
-        for i in range(n_a - 1, 0, -1):
-            yh[i] = yh[i - 1]
-        if n_a > 0:
-            yh[0] = y
-        for i in range(nh - 1, 0, -1):
-            uh[i] = uh[i - 1]
-        uh[0] = u
+        _chain_past(J[k], g, J, Ju, k, n_a, n_b, n_k, True)
+        # û(k) = C x_c + D e + u_ff(k), x_c(k+1) = A x_c + B e, differentiated (∂e = -∂ŷ)
+        ss_step_columns(Ac, nBc, Cc, -Dc, Sx, Sxn, J[k], Ju[k], k + 1)
+        Ju[k, k] = 1.0                                    # ∂u_ff(k)/∂u_ff(k); J[k, k] = Sx[:, k] = 0
+        u = _loop_advance(y, r[k], uff[k], yh, uh, xc, xn, Ac, Bc, Cc, Dc)
         yhat[k] = y
         uhat[k] = u
     return yhat, uhat, J, Ju
@@ -481,20 +455,14 @@ def _cl_jac_theta(r, uff, yh, uh, xc, n_a, n_b, n_k, th, W1, b1, W2, b2, P, c, s
     n1 = W1.shape[0]
     nx = P.shape[0]
     NP = nphi + n1 * (nx + 2) + 1 if n1 > 0 else nphi
-    nh = uh.shape[0]
     nc = xc.shape[0]
-    yhat = np.empty(N)
-    uhat = np.empty(N)
+    yhat, uhat, phi, x, hbuf, g, xn = _loop_buffers(N, n_a, n_b, P, W1, nc)
     J = np.zeros((N, NP))      # ∂ŷ(k)/∂θ
     Ju = np.zeros((N, NP))     # ∂û(k)/∂θ
     Sx = np.zeros((nc, NP))    # ∂x_c(k)/∂θ
     Sxn = np.zeros((nc, NP))
+    nBc = -Bc                  # ∂e = -∂ŷ: the controller seen from ŷ is (A, -B, C, -D)
     acc = np.zeros(NP)
-    phi = np.empty(nphi)
-    x = np.empty(nx)
-    hbuf = np.empty(max(n1, 1))
-    g = np.empty(nphi)
-    xn = np.empty(nc)
     oW1 = nphi
     ob1 = oW1 + n1 * nx
     oW2 = ob1 + n1
@@ -514,52 +482,12 @@ def _cl_jac_theta(r, uff, yh, uh, xc, n_a, n_b, n_k, th, W1, b1, W2, b2, P, c, s
         if n1 > 0:
             acc[ob2] = so
         # chain through the recurrent regressor φ(k) = [ŷ(k-1..), û(k-n_k-1..)]
-        for i in range(1, n_a + 1):
-            if k - i >= 0:
-                gi = g[i - 1]
-                for p in range(NP):
-                    acc[p] += gi * J[k - i, p]
-        for i in range(1, n_b + 1):
-            lag = n_k + i
-            if k - lag >= 0:
-                gi = g[n_a + i - 1]
-                for p in range(NP):
-                    acc[p] += gi * Ju[k - lag, p]
-        # û(k) = C x_c(k) + D (r(k) - ŷ(k)) + u_ff(k);  x_c(k+1) = A x_c(k) + B e(k)
+        _chain_past(acc, g, J, Ju, k, n_a, n_b, n_k, False)
+        # û(k) = C x_c(k) + D (r(k) - ŷ(k)) + u_ff(k);  x_c(k+1) = A x_c(k) + B e(k), differentiated
         for p in range(NP):
             J[k, p] = acc[p]
-            Ju[k, p] = -Dc * acc[p]
-        for i in range(nc):
-            ci = Cc[i]
-            bi = Bc[i]
-            for p in range(NP):
-                Ju[k, p] += ci * Sx[i, p]
-                Sxn[i, p] = -bi * acc[p]
-            for m in range(nc):
-                am = Ac[i, m]
-                for p in range(NP):
-                    Sxn[i, p] += am * Sx[m, p]
-        for i in range(nc):
-            for p in range(NP):
-                Sx[i, p] = Sxn[i, p]
-        e = r[k] - y
-        u = Dc * e + uff[k]
-        for i in range(nc):
-            u += Cc[i] * xc[i]
-        for i in range(nc):
-            s = Bc[i] * e
-            for j in range(nc):
-                s += Ac[i, j] * xc[j]
-            xn[i] = s
-        for i in range(nc):
-            xc[i] = xn[i]
-        for i in range(n_a - 1, 0, -1):
-            yh[i] = yh[i - 1]
-        if n_a > 0:
-            yh[0] = y
-        for i in range(nh - 1, 0, -1):
-            uh[i] = uh[i - 1]
-        uh[0] = u
+        ss_step_columns(Ac, nBc, Cc, -Dc, Sx, Sxn, acc, Ju[k], NP)
+        u = _loop_advance(y, r[k], uff[k], yh, uh, xc, xn, Ac, Bc, Cc, Dc)
         yhat[k] = y
         uhat[k] = u
     return yhat, uhat, J

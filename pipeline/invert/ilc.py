@@ -47,6 +47,8 @@ from scipy.linalg import toeplitz
 from scipy.sparse.linalg import LinearOperator, cg, svds
 from tqdm.auto import tqdm
 
+from pipeline.systems._statespace import ss_step
+
 __all__ = [
     "impulse_response", "lifted_matrix", "process_sensitivity", "LTIFilter",
     "NormOptimalUpdate", "LiftedUpdate", "MatrixFreeUpdate", "make_update", "ILCResult",
@@ -75,18 +77,7 @@ def _ss_filter(A, B, C, D, u):  # pragma: no cover - compiled
         for i in range(n):
             x[i] = 0.0
         for k in range(N):
-            uk = u[b, k]
-            acc = D * uk
-            for i in range(n):
-                acc += C[i] * x[i]
-            y[b, k] = acc
-            for i in range(n):
-                s = B[i] * uk
-                for l in range(n):
-                    s += A[i, l] * x[l]
-                xn[i] = s
-            for i in range(n):
-                x[i] = xn[i]
+            y[b, k] = ss_step(A, B, C, D, x, xn, u[b, k])
     return y
 
 

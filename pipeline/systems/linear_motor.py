@@ -35,6 +35,7 @@ import numpy as np
 from numba import njit
 
 from pipeline.identify.least_squares import solve_scaled as least_squares
+from pipeline.systems._statespace import ss_step
 from pipeline.systems.arx_bias import _noise_options
 from pipeline.systems.base import PhysicsModel, SimResult, System, check_signal
 
@@ -127,18 +128,8 @@ def _closed_loop(r, u_ff, du, v, Ac, Bc, Cc, Dc, Ts, par, fric_mode, cog_on, equ
             y_clean[k] = pos
             y[k] = pos + v[k]
         # controller, no computational delay: u_fb(k) = Cc xc(k) + Dc e(k)
-        e = r[k] - y[k]
-        acc = Dc * e
-        for i in range(nc):
-            acc += Cc[i] * xc[i]
+        acc = ss_step(Ac, Bc, Cc, Dc, xc, xn, r[k] - y[k])
         u_fb[k] = acc
-        for i in range(nc):
-            s = Bc[i] * e
-            for jj in range(nc):
-                s += Ac[i, jj] * xc[jj]
-            xn[i] = s
-        for i in range(nc):
-            xc[i] = xn[i]
         uk = acc + u_ff[k] + du[k]
         u[k] = uk
         if not equation:

@@ -31,6 +31,7 @@ import numpy as np
 from numba import njit
 from scipy.signal import lfilter
 
+from pipeline.systems._statespace import ss_step
 from pipeline.systems.arx_bias import ARXPhysics, _noise_options
 from pipeline.systems.base import SimResult, System, check_signal
 
@@ -65,18 +66,8 @@ def _closed_loop(r, u_ff, du, v, Ac, Bc, Cc, Dc, Ts, par, substeps):
         yk = x[0] - l_y * x[2]
         y_clean[kk] = yk
         y[kk] = yk + v[kk]
-        e = r[kk] - y[kk]                                     # no computational delay
-        acc = Dc * e
-        for i in range(nc):
-            acc += Cc[i] * xc[i]
+        acc = ss_step(Ac, Bc, Cc, Dc, xc, xn, r[kk] - y[kk])     # no computational delay
         u_fb[kk] = acc
-        for i in range(nc):
-            s = Bc[i] * e
-            for jj in range(nc):
-                s += Ac[i, jj] * xc[jj]
-            xn[i] = s
-        for i in range(nc):
-            xc[i] = xn[i]
         uk = acc + u_ff[kk] + du[kk]
         u[kk] = uk
         for _ in range(substeps):                             # RK4, u held (ZOH)

@@ -58,7 +58,8 @@ def main():
     models = {}
     for struct, phys in [("forward", RigidBodyForward(1e-3)), ("invertible", RigidBodyForward(1e-3)),
                          ("inverse", RigidBodyInverse(1e-3))]:
-        m = PGNN(2, 1, 0, structure=struct, physics=phys, hidden=(a.hidden,))
+        m = PGNN(2, 1, 0, structure=struct, physics=phys, hidden=(a.hidden,),
+                 input_transform="raw", out_init="mirrored", out_init_scale=1.0)  # conf/model/pgnn
         fit = identify_pgnn(m, y, u, n_restarts=1, val_fraction=0.0, max_iter=a.max_iter,
                             ftol=0.0, gtol=0.0)
         rr = fit.restarts[0]

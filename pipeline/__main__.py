@@ -1,6 +1,7 @@
 """Hydra entry point: ``python -m pipeline [experiment=NAME] [key=value ...] [-m]``."""
 from __future__ import annotations
 
+import signal
 import sys
 
 import hydra
@@ -18,7 +19,12 @@ def _main(cfg: DictConfig) -> None:
         sys.exit(2)
 
 
+def _terminate(signum, frame) -> None:  # `kill`: unwind like Ctrl-C (runs end FAILED, temps removed)
+    raise SystemExit(128 + signum)
+
+
 def main() -> None:
+    signal.signal(signal.SIGTERM, _terminate)
     _main()
 
 

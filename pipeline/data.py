@@ -58,7 +58,7 @@ class Dataset:
 
 
 def validate_frame(df: pd.DataFrame, source: str) -> None:
-    """Raise a clear error on missing columns, NaN/inf or a non-uniform time grid."""
+    """Raise a clear error on missing columns or NaN/inf values."""
     missing = [c for c in REQUIRED if c not in df.columns]
     if missing:
         raise ValueError(f"{source}: missing column(s) {missing}; a dataset needs {list(REQUIRED)} "

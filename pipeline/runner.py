@@ -168,7 +168,11 @@ def validate(cfg: DictConfig) -> tuple[list[str], Any, dict]:
     try:  # every interpolation resolves (a typo in ${...} fails here, not after hours of work)
         OmegaConf.to_container(cfg, resolve=True)
     except Exception as exc:  # noqa: BLE001 — OmegaConf raises several error types
-        raise ConfigError(f"config does not resolve: {exc}") from exc
+        raise ConfigError(f"config does not resolve: {str(exc).splitlines()[0]}") from exc
+    try:
+        int(cfg.seed)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"seed={cfg.seed!r} is not an integer; use e.g. seed=0") from exc
     system = make_system(cfg) if "system" in cfg and cfg.system is not None else None
     modules = {}
     needed, todo = set(), list(names)
@@ -208,47 +212,62 @@ def _store(tmp: Path, final: Path, result: dict, ctx: StageContext, seconds: flo
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+def plan(cfg: DictConfig, names: list[str], modules: dict) -> dict[str, str]:
+    """Cache key of every needed stage; raise (before any work) if a stage that is not selected
+    has no cached result, naming every such stage."""
+    keys: dict[str, str] = {}
+    missing = []
+    for name, mod in modules.items():
+        keys[name] = stage_key(cfg, name, mod, keys)
+        done = (cache_dir(cfg) / name / keys[name][:20] / "record.json").exists()
+        if name not in names and not done:
+            missing.append(name)
+    if missing:
+        raise ConfigError(f"stage(s) {missing} are needed by {names} but have no cached result for "
+                          f"this config; run them too, e.g. stages=[{','.join(missing + names)}]")
+    return keys
+
+
 def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, dict]:
     """Run the selected stages of one job; returns every stage's result by name."""
     names, system, modules = validate(cfg)
+    keys = plan(cfg, names, modules)
     store = cache_dir(cfg)
     own_run = run is None
     if own_run:
         tags = {"experiment": cfg.experiment_name, "stages": ",".join(names),
+                "config_hash": keys[names[-1]][:20],  # the last stage's key: same hash, same config
                 **{g: choice(cfg, g) for g in TAG_GROUPS if g in cfg}}
         run = tracking.JobRun(str(cfg.experiment_name), str(cfg.run_name), tags,
                               OmegaConf.to_container(cfg, resolve=True))
-        cfg_file = store / "configs" / f"{run.run_id}.yaml"
-        cfg_file.parent.mkdir(parents=True, exist_ok=True)
-        cfg_file.write_text(OmegaConf.to_yaml(cfg, resolve=True))
-        run.log_artifact(cfg_file)  # the resolved config (DESIGN, Tracking)
     results: dict[str, dict] = {}
-    keys: dict[str, str] = {}
     status = "FAILED"
     try:
+        if own_run:
+            cfg_file = store / "configs" / f"{run.run_id}.yaml"
+            cfg_file.parent.mkdir(parents=True, exist_ok=True)
+            cfg_file.write_text(OmegaConf.to_yaml(cfg, resolve=True))
+            run.log_artifact(cfg_file)  # the resolved config (DESIGN, Tracking)
         for name, mod in modules.items():
-            key = stage_key(cfg, name, mod, keys)
-            keys[name] = key
+            key = keys[name]
             final = store / name / key[:20]
             cacheable = getattr(mod, "CACHE", True)
             if cacheable and (final / "record.json").exists():
                 results[name], record = _load(final)
                 hit = True
-            elif name not in names:
-                raise ConfigError(f"stage '{name}' is needed by {names} but has no cached result "
-                                  f"for this config; add it to 'stages' (e.g. stages=[{name},{names[0]}])")
             else:
                 tmp = store / name / f".tmp-{key[:20]}-{os.getpid()}-{time.time_ns()}"
                 tmp.mkdir(parents=True)
-                ctx = StageContext(cfg, name, {u: results[u] for u in mod.UPSTREAM}, tmp, system, key)
-                _seed_everything(int(cfg.seed), name)
-                t0 = time.perf_counter()
                 try:
+                    ctx = StageContext(cfg, name, {u: results[u] for u in mod.UPSTREAM}, tmp,
+                                       system, key)
+                    _seed_everything(int(cfg.seed), name)
+                    t0 = time.perf_counter()
                     result = mod.run(ctx) or {}
+                    seconds = time.perf_counter() - t0
                 except BaseException:
                     shutil.rmtree(tmp, ignore_errors=True)
                     raise
-                seconds = time.perf_counter() - t0
                 if cacheable:
                     _store(tmp, final, result, ctx, seconds)
                 else:

@@ -49,8 +49,9 @@ def experiment_id(name: str) -> str:
     if exp is not None:
         return exp.experiment_id
     location = None
-    if tracking_uri() == default_uri():
-        location = (ROOT / "mlruns" / "artifacts" / name).as_uri()
+    uri = tracking_uri()
+    if uri.startswith("sqlite:///"):  # artifacts beside the database, whatever the working directory
+        location = (Path(uri[len("sqlite:///"):]).parent / "artifacts" / name).as_uri()
     try:
         return c.create_experiment(name, artifact_location=location, tags=EXPERIMENT_KIND)
     except mlflow.exceptions.MlflowException:  # created meanwhile by another process
@@ -145,19 +146,36 @@ try:  # the Hydra callback lives here so that tracking stays in one module
     from hydra.experimental.callback import Callback
 
     class MultirunCallback(Callback):
-        """Parent MLflow run around a Hydra multirun; jobs attach to it (DESIGN)."""
+        """Parent MLflow run around a Hydra multirun; jobs attach to it (DESIGN).
+
+        The parent ends FINISHED when every job finished, FAILED otherwise; if the sweep dies
+        (an exception, Ctrl-C, SIGTERM) an ``atexit`` hook marks it FAILED instead of leaving it
+        RUNNING."""
+
+        def __init__(self) -> None:
+            self.failed = 0
 
         def on_multirun_start(self, config, **kwargs) -> None:
+            import atexit
             c = client()
             exp_id = experiment_id(str(config.experiment_name))
             run = c.create_run(exp_id, run_name=f"{config.experiment_name}-sweep",
                                tags={"git_sha": git_sha(), "experiment": str(config.experiment_name),
                                      "sweep": "parent"})
             os.environ[PARENT_ENV] = run.info.run_id
+            atexit.register(self._close, "FAILED")
+
+        def on_job_end(self, config, job_return, **kwargs) -> None:
+            from hydra.core.utils import JobStatus
+            if job_return is not None and job_return.status != JobStatus.COMPLETED:
+                self.failed += 1
 
         def on_multirun_end(self, config, **kwargs) -> None:
+            self._close("FAILED" if self.failed else "FINISHED")
+
+        def _close(self, status: str) -> None:
             run_id = os.environ.pop(PARENT_ENV, None)
             if run_id:
-                client().set_terminated(run_id, "FINISHED")
+                client().set_terminated(run_id, status)
 except ImportError:  # pragma: no cover
     pass

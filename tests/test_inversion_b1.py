@@ -263,6 +263,7 @@ def test_b1_stages_and_report_section(store, cfg_of, tmp_path):
     newton = runs[runs["tags.invert"] == "newton"].iloc[0]
     assert newton["metrics.invert/v0.15/newton_diverged"] >= 0
     assert newton["metrics.invert/v0.15/sample_seconds_median"] < 1e-3
-    # diagnostics: the 0.15 m/s reference is ~3x faster than the 0.05 m/s training data
-    assert 2.0 < newton["metrics.invert/v0.15/velocity_over_training"] < 3.5
+    # diagnostics: the 0.15 m/s reference is faster than the 0.05 m/s training data (whose
+    # measured max |δy| includes the Δu-driven motion, ~0.08 m/s)
+    assert 1.2 < newton["metrics.invert/v0.15/velocity_over_training"] < 3.5
     assert newton["metrics.invert/nn_r2_unmodelled"] <= 1.0

@@ -142,8 +142,10 @@ def test_measured_data_missing_file_and_nan(store, cfg_of, tmp_path):
 
 
 def test_stage_subset_needs_cached_upstream(store, cfg_of):
-    with pytest.raises(runner.ConfigError, match="no cached result"):
+    with pytest.raises(runner.ConfigError,
+                       match=r"\['generate', 'baseline', 'train', 'invert'\] are needed.*no cached"):
         runner.run_job(cfg_of(*SHORT_TWO_MASS, "stages=[evaluate]"))
+    assert tracking.search_runs("physics_baseline").empty      # failed before any run was opened
     runner.run_job(cfg_of(*SHORT_TWO_MASS, "stages=[generate,baseline]"))
     assert set(_cache_state(store)) == {"generate", "baseline"}
 
@@ -160,3 +162,11 @@ def test_dataset_contract_parquet_and_sidecar(store, cfg_of):
     assert {"t", "r", "u", "y", "u_ff", "u_fb", "f_opt", "y_clean", "v"} <= set(ds.frame.columns)
     # simulated data replay exactly: y = y_clean + v
     np.testing.assert_array_equal(ds["y"], ds["y_clean"] + ds["v"])
+
+
+def test_empty_evaluation_references_and_bad_seed_fail_before_work(store, cfg_of):
+    with pytest.raises(runner.ConfigError, match="evaluate.references is empty"):
+        runner.run_job(cfg_of(*SHORT_TWO_MASS[:2], "evaluate.references=[]"))
+    with pytest.raises(runner.ConfigError, match="seed='abc' is not an integer"):
+        runner.run_job(cfg_of(*SHORT_TWO_MASS, "seed=abc"))
+    assert not (store / "cache").exists()

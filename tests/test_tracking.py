@@ -77,3 +77,18 @@ def test_runs_read_back_through_mlflow_server_rest_api(sweep_store):
     finally:
         server.terminate()
         server.wait(timeout=30)
+
+
+def test_failed_sweep_marks_parent_failed(tmp_path):
+    import mlflow
+    env = {**os.environ, "PIPELINE_CACHE": str(tmp_path / "cache"),
+           "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}", "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-m", "pipeline", "-m", *SHORT_TWO_MASS, "stages=[generate]",
+                          "seed=0,abc", f"hydra.sweep.dir={tmp_path / 'sweep'}"], cwd=ROOT, env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2 and "seed='abc' is not an integer" in out.stderr
+    mlflow.set_tracking_uri(env["MLFLOW_TRACKING_URI"])
+    runs = mlflow.search_runs(experiment_names=["physics_baseline"])
+    parent = runs[runs["tags.sweep"] == "parent"]
+    assert list(parent["status"]) == ["FAILED"]                 # never left RUNNING
+    assert (tmp_path / "artifacts").exists()                   # artifacts beside the database

@@ -9,7 +9,10 @@ from pipeline.runner import ROOT, ConfigError
 
 def _path(cfg) -> Path:
     p = Path(str(cfg.data.path))
-    return p if p.is_absolute() else ROOT / p
+    p = p if p.is_absolute() else ROOT / p
+    if cfg.data.get("format") != "emps" and p.suffix not in (".parquet", ".csv"):
+        p = p.with_suffix(".parquet")  # as pipeline.data.load reads it
+    return p
 
 
 def check(cfg, system) -> None:

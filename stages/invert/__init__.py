@@ -9,16 +9,19 @@ import time
 
 import numpy as np
 
-from pipeline.runner import implementation
+from pipeline.runner import ConfigError, implementation
 from stages._common import check_references, reference_specs
 
 UPSTREAM = ("generate", "baseline", "train")
-DEPENDS = ("invert", "evaluate.references")
+DEPENDS = ("invert", "evaluate.references", "evaluate.noise")  # fhofc scores the bound terms on the measured Y
 VERSION = 1
 KIND_KEY = "invert.kind"
 
 
 def validate(cfg, system) -> None:
+    if not reference_specs(cfg.evaluate.references):
+        raise ConfigError("evaluate.references is empty; give at least one reference to design a "
+                          "feedforward for (see conf/evaluate/*.yaml)")
     check_references(reference_specs(cfg.evaluate.references), system)
     impl = implementation("invert", str(cfg.invert.kind))
     if hasattr(impl, "check"):

@@ -39,14 +39,19 @@ def providers() -> dict[str, object]:
     return out
 
 
-def latest_runs(experiment: str) -> pd.DataFrame:
-    """Latest finished run per run name (sweep parents excluded)."""
+def latest_runs(experiment: str) -> tuple[pd.DataFrame, list[str]]:
+    """Latest finished run per run name (sweep parents excluded), and the run names whose
+    finished runs carry more than one config hash (the report uses the latest; say so)."""
     df = tracking.search_runs(experiment)
     if df.empty:
-        return df
+        return df, []
     if "tags.sweep" in df:
         df = df[df["tags.sweep"] != "parent"]
-    return df.drop_duplicates("tags.mlflow.runName", keep="first").reset_index(drop=True)
+    mixed = []
+    if "tags.config_hash" in df:
+        n = df.groupby("tags.mlflow.runName")["tags.config_hash"].nunique()
+        mixed = sorted(n[n > 1].index)
+    return df.drop_duplicates("tags.mlflow.runName", keep="first").reset_index(drop=True), mixed
 
 
 def _fmt_holds(v) -> str:
@@ -61,7 +66,7 @@ def run(ctx) -> dict:
     provs = providers()
     rows, sections = [], []
     for exp in cfg.report.experiments:
-        runs = latest_runs(str(exp))
+        runs, mixed = latest_runs(str(exp))
         if runs.empty:
             sections.append(f"## {exp}\n\nNo finished runs in the tracking store "
                             f"({tracking.tracking_uri()}); run `make reproduce`.\n")
@@ -69,6 +74,10 @@ def run(ctx) -> dict:
         mod = provs.get(str(exp)) or importlib.import_module("stages.report.generic")
         r, md = mod.section(str(exp), runs, figdir)
         rows += r
+        if mixed:
+            md += (f"\n\n> Note: run name(s) {', '.join(mixed)} have finished runs with different "
+                   "configs in the store; this section uses the latest of each. Run `make reproduce` "
+                   "on a clean store (`make clean`) to report one configuration only.\n")
         sections.append(md)
     table = pd.DataFrame(rows, columns=COLUMNS)
     table["claim"] = table["claim"].fillna("")

@@ -159,7 +159,8 @@ def _sweep_section(tab, rows, figdir) -> list[str]:
         for k in BOUND:
             rows.append(_row(v, k, t[k]))
         # B2a: (15) holds on every run; |ε| ≤ 0.25 tracking for n1 ≥ 8 with γ = 1e-6
-        rows.append(_row(v, "bound_15_holds", t["bound_holds"], "B2a", bool(t["bound_holds"])))
+        bh = None if pd.isna(t["bound_holds"]) else bool(t["bound_holds"])  # a missing metric is not a pass
+        rows.append(_row(v, "bound_15_holds", t["bound_holds"], "B2a", bh))
         if t["n1"] >= 8 and np.isclose(t["gamma"], 1e-6):
             rows.append(_row(v, "abs_epsilon_over_tracking", abs(ratio), "B2a", bool(abs(ratio) <= 0.25)))
     md.append("")

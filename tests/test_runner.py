@@ -6,7 +6,6 @@ import json
 import mlflow
 import numpy as np
 import pytest
-from omegaconf import OmegaConf
 
 from pipeline import runner, tracking
 from tests.conftest import SHORT_TWO_MASS

@@ -698,7 +698,6 @@ def sim_error_criterion(arx0: ArxPGNN, ctrl: DiscreteController, r, u_ex, y, the
     Rs = regularizer_sqrt(lam, nphi) / scale[None, :]
     reg = bool(np.any(Rs != 0))
     P = arx0.n_params
-    nt = yt.shape[0]
 
     def residual(theta):
         yh, _ = simulate_closed_loop(arx0.with_theta(theta), ctrl, r, u_ex)

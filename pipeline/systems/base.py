@@ -50,6 +50,31 @@ def check_signal(name: str, x, n: int | None = None) -> np.ndarray:
     return a
 
 
+def check_limits(r: np.ndarray, Ts: float, r_limit: float, v_limit: float,
+                 r_limit_name: str = "r_limit") -> np.ndarray:
+    """Raise ValueError if |r| > r_limit [m] or the backward-difference velocity |δr| >
+    v_limit [m/s] (the past is at rest at 0, so r must start near 0); return r as float64."""
+    r = check_signal("r", r)
+    k = int(np.argmax(np.abs(r)))
+    if abs(r[k]) > r_limit:
+        raise ValueError(f"reference out of range: |r| = {abs(r[k]):.4g} m at sample {k} > "
+                         f"{r_limit_name} = {r_limit} m; scale the reference down")
+    vel = np.abs(np.diff(r, prepend=0.0)) / Ts
+    k = int(np.argmax(vel))
+    if vel[k] > v_limit:
+        raise ValueError(f"reference too fast: |δr| = {vel[k]:.4g} m/s at sample {k} > "
+                         f"v_limit = {v_limit} m/s; lower v_max or start r at 0 (the past is at rest)")
+    return r
+
+
+def loop_signals(r, u_ff=None, du=None, v=None) -> tuple[np.ndarray, ...]:
+    """(r, u_ff, du, v) as checked float64 arrays of one length; None becomes zeros."""
+    r = check_signal("r", r)
+    n = r.shape[0]
+    return (r,) + tuple(np.zeros(n) if x is None else check_signal(name, x, n)
+                        for name, x in (("u_ff", u_ff), ("du", du), ("v", v)))
+
+
 class PhysicsModel(ABC):
     """Nominal physics model, linear in its parameters (SPEC §3 item 1).
 

@@ -37,7 +37,7 @@ from numba import njit
 from pipeline.identify.least_squares import solve_scaled as least_squares
 from pipeline.systems._statespace import ss_step
 from pipeline.systems.arx_bias import _noise_options
-from pipeline.systems.base import PhysicsModel, SimResult, System, check_signal
+from pipeline.systems.base import PhysicsModel, SimResult, System, check_limits, check_signal, loop_signals
 
 
 # --------------------------------------------------------------------------- controller
@@ -446,27 +446,14 @@ class LinearMotor(System):
 
     def check_reference(self, r) -> None:
         """Raise ValueError if |r| > stroke or |δr| > v_limit (or NaN / not 1-D)."""
-        r = check_signal("r", r)
-        k = int(np.argmax(np.abs(r)))
-        if abs(r[k]) > self.stroke:
-            raise ValueError(f"reference leaves the motor's stroke: |r| = {abs(r[k]):.4g} m at "
-                             f"sample {k} > stroke = {self.stroke} m; scale the reference down")
-        vel = np.abs(np.diff(r, prepend=0.0)) / self.Ts
-        k = int(np.argmax(vel))
-        if vel[k] > self.v_limit:
-            raise ValueError(f"reference too fast: |δr| = {vel[k]:.4g} m/s at sample {k} > "
-                             f"v_limit = {self.v_limit} m/s; lower v_max or check that r starts "
-                             "at 0 (the past is at rest at 0)")
+        check_limits(r, self.Ts, self.stroke, self.v_limit, "stroke")
 
     def simulate(self, r, u_ff=None, du=None, v=None) -> SimResult:
         """Closed loop ``u(k) = C(q)(r(k) - y(k)) + u_ff(k) + du(k)``, y(k) = y_clean(k) + v(k),
         no computational delay, ZOH on u (SPEC §0, §2.2); starts at rest at 0."""
-        r = check_signal("r", r)
+        r, u_ff, du, v = loop_signals(r, u_ff, du, v)
         self.check_reference(r)
         n = r.shape[0]
-        u_ff = np.zeros(n) if u_ff is None else check_signal("u_ff", u_ff, n)
-        du = np.zeros(n) if du is None else check_signal("du", du, n)
-        v = np.zeros(n) if v is None else check_signal("v", v, n)
         par = np.array([self.m, self.f_v, self.f_c, self.f_s, self.v_s, self.eps_v, self.p,
                         self.A1, self.A2, self.phi1, self.phi2])
         Ac, Bc, Cc, Dc = self._ctrl

@@ -33,7 +33,7 @@ from scipy.signal import lfilter
 
 from pipeline.systems._statespace import ss_step
 from pipeline.systems.arx_bias import ARXPhysics, _noise_options
-from pipeline.systems.base import SimResult, System, check_signal
+from pipeline.systems.base import SimResult, System, check_limits, check_signal, loop_signals
 
 
 # --------------------------------------------------------------------------- numba kernel
@@ -258,26 +258,14 @@ class RotTransNMP(System):
 
     def check_reference(self, r) -> None:
         """Raise ValueError if |r| > r_limit or |δr| > v_limit (or NaN / not 1-D)."""
-        r = check_signal("r", r)
-        k = int(np.argmax(np.abs(r)))
-        if abs(r[k]) > self.r_limit:
-            raise ValueError(f"reference out of range: |r| = {abs(r[k]):.4g} m at sample {k} > "
-                             f"r_limit = {self.r_limit} m; scale it down")
-        vel = np.abs(np.diff(r, prepend=0.0)) / self.Ts
-        k = int(np.argmax(vel))
-        if vel[k] > self.v_limit:
-            raise ValueError(f"reference too fast: |δr| = {vel[k]:.4g} m/s at sample {k} > "
-                             f"v_limit = {self.v_limit} m/s; lower v_max or start r at 0")
+        check_limits(r, self.Ts, self.r_limit, self.v_limit)
 
     def simulate(self, r, u_ff=None, du=None, v=None) -> SimResult:
         """Closed loop ``u(k) = C(q)(r(k) - y(k) - v(k)) + u_ff(k) + du(k)``, ZOH on u, no
         computational delay (SPEC §0, §2.3); starts at rest at 0."""
-        r = check_signal("r", r)
+        r, u_ff, du, v = loop_signals(r, u_ff, du, v)
         self.check_reference(r)
         n = r.shape[0]
-        u_ff = np.zeros(n) if u_ff is None else check_signal("u_ff", u_ff, n)
-        du = np.zeros(n) if du is None else check_signal("du", du, n)
-        v = np.zeros(n) if v is None else check_signal("v", v, n)
         par = np.array([self.m, self.l_x, self.l_y, self.J, self.f_v, self.k, self.d, self.l_m,
                         self.c])
         Ac, Bc, Cc, Dc = self._ctrl

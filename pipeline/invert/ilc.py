@@ -196,6 +196,10 @@ class NormOptimalUpdate(ABC):
     w: float
     w_delta: float
 
+    def set_weights(self, w: float, w_delta: float) -> None:
+        """Set the weights [m²/N²] of ‖f‖² and ‖Δf‖² (used at each step; no rebuild needed)."""
+        self.w, self.w_delta = _check_weights(w, w_delta)
+
     @abstractmethod
     def step(self, e: np.ndarray, f: np.ndarray) -> np.ndarray:
         """Return Δf [N] for the measured error e [m] of the input f [N]."""
@@ -456,9 +460,9 @@ def norm_optimal_ilc(run_trial: Callable[[np.ndarray], np.ndarray], model, N: in
             raise ValueError("give the input weight as w (absolute) or w_rel (× σ_max²), not both")
         update = make_update(model, N, w=0.0, w_delta=w_delta, backend=backend, **matrix_free_kw)
         if w_rel is not None:
-            update.w = _check_weights(float(w_rel) * update.sigma_max ** 2, 0.0)[0]
+            update.set_weights(float(w_rel) * update.sigma_max ** 2, update.w_delta)
         elif w is not None:
-            update.w = _check_weights(w, 0.0)[0]
+            update.set_weights(w, update.w_delta)
     else:
         if w is not None or w_rel is not None:
             raise ValueError("give the weights to the prebuilt update (update.w, update.w_delta), "

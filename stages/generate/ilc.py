@@ -36,8 +36,7 @@ def make(cfg, system, ctx) -> Dataset:
         rng = ctx.rng(f"data/{name}")
         update = make_update(model, r.size, backend=str(p.backend))
         s2 = update.sigma_max ** 2  # weights relative to σ_max(G)² (SPEC §2.3)
-        update = make_update(model, r.size, w=float(p.w_rel) * s2, w_delta=float(p.w_delta_rel) * s2,
-                             backend=str(p.backend))
+        update.set_weights(float(p.w_rel) * s2, float(p.w_delta_rel) * s2)
         res = norm_optimal_ilc(system_trial(system, r, rng if p.noise else None), None, r.size,
                                gain=float(p.gain), n_trials=int(p.trials), tol=float(p.tol),
                                update=update, progress=True)

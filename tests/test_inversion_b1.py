@@ -267,3 +267,36 @@ def test_b1_stages_and_report_section(store, cfg_of, tmp_path):
     # measured max |δy| includes the Δu-driven motion, ~0.08 m/s)
     assert 1.2 < newton["metrics.invert/v0.15/velocity_over_training"] < 3.5
     assert newton["metrics.invert/nn_r2_unmodelled"] <= 1.0
+
+
+def test_noise_sweep_report_section(store, tmp_path):
+    # the b1_noise_sweep section reads (structure, σ, method) from the runs' params/tags, puts
+    # every model's mass and every MAE in summary rows, and states the inverse-mass drift it sees
+    import pandas as pd
+
+    from stages.report import claims_b1
+    recs = []
+    for s in ("equation", "output"):
+        for sg in (0.0, 1e-6):
+            for mt in claims_b1.METHODS:
+                m_inv = 20.0 - 1e7 * sg  # inverse LS drifts by -10 kg at σ = 1e-6
+                rec = {"tags.mlflow.runName": f"linear_motor-{s}-sigma{sg}-{mt}-s0", "run_id": f"{s}{sg}{mt}",
+                       "params.system.noise.std": str(sg), "params.system.noise.structure": s,
+                       "params.system.m": "20.0", "params.identify.n_restarts": "3", "tags.invert": mt,
+                       "metrics.train/theta_phy_star/m": m_inv if mt == "direct" else 20.0 + 1e5 * sg,
+                       "metrics.train/theta_phy/m": 19.0 if mt == "analytic" else 20.5,
+                       "metrics.evaluate/v0.05/mae": 1e-6 * (1 + 1e6 * sg * (mt == "direct")),
+                       "metrics.evaluate/v0.15/mae": 2e-6, "metrics.evaluate/v0.20/mae": 3e-6}
+                recs.append(rec)
+    rows, md = claims_b1.section("b1_noise_sweep", pd.DataFrame(recs), tmp_path)
+    mass = [r for r in rows if r["metric"].endswith("/m")]
+    mae = [r for r in rows if r["metric"] == "mae"]
+    assert len(mass) == 2 * 2 * len(claims_b1.MASS) and len(mae) == 2 * 2 * 4 * 3
+    assert all(r["claim_holds"] is None for r in rows)  # a study, not a SPEC §8 claim
+    inv = {r["variant"]: r["value"] for r in mass if r["variant"].endswith("/direct")
+           and r["metric"] == "theta_phy_star/m"}
+    assert inv == {"equation/sigma0/direct": 20.0, "equation/sigma1e-06/direct": 10.0,
+                   "output/sigma0/direct": 20.0, "output/sigma1e-06/direct": 10.0}
+    assert "from 20.00 (σ = 0) to 10.00 kg (σ = 1e-06), i.e. -50.0%" in md
+    assert "within 0.5% of the true mass" in md  # forward LS: 20 + 0.1 at σ = 1e-6
+    assert "best of 3 restarts" in md and (tmp_path / "b1_noise_sweep.png").exists()

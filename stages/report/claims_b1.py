@@ -8,6 +8,7 @@ import numpy as np
 import pandas as pd
 
 from stages.report._figures import copy_figures
+from stages.report._rows import row, run_metrics
 
 EXPERIMENTS = ("b1_arx_bias", "b1_linear_motor", "b1_noise_sweep")
 METHODS = ("physics", "direct", "newton", "analytic")
@@ -15,15 +16,6 @@ LABEL = {"physics": "physics (8)", "direct": "direct inverse (13)-(14)",
          "newton": "Newton k=5 (Alg. 1)", "analytic": "analytic (27)"}
 PAPER_SECONDS = {"direct": 4.18e-7, "newton": 1.28e-4, "analytic": 3.84e-7}  # [B1] Table I
 
-
-def _row(experiment, variant, metric, value, claim="", holds=None, paper=None):
-    return {"experiment": experiment, "claim": claim, "variant": variant, "metric": metric,
-            "value": float(value), "paper_value": paper, "claim_holds": holds}
-
-
-def _metrics(run) -> dict[str, float]:
-    return {c[len("metrics."):]: float(run[c]) for c in run.index
-            if c.startswith("metrics.") and pd.notna(run[c])}
 
 
 def section(experiment: str, runs: pd.DataFrame, figdir: Path):
@@ -37,7 +29,7 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
 # ---------------------------------------------------------------------------------- B1a
 def _arx_bias(experiment, runs, figdir):
     run = runs.iloc[0]
-    m = _metrics(run)
+    m = run_metrics(run)
     rows = []
     sizes = sorted(int(k.split("/N")[1]) for k in m if k.startswith("train/forward_error/N"))
     lines = [f"## {experiment}", "",
@@ -50,17 +42,17 @@ def _arx_bias(experiment, runs, figdir):
     for n in sizes:
         ef, ei = m[f"train/forward_error/N{n}"], m[f"train/inverse_error/N{n}"]
         lines.append(f"| {n} | {ef:.3g} | {ei:.3g} |")
-        rows += [_row(experiment, f"N{n}", "forward_error", ef),
-                 _row(experiment, f"N{n}", "inverse_error", ei)]
+        rows += [row(experiment, f"N{n}", "forward_error", ef),
+                 row(experiment, f"N{n}", "inverse_error", ei)]
     slope = m["train/forward_slope"]
     ratio = m["train/inverse_to_forward"]
     dev = m["train/inverse_bias_deviation"]
     ok = [abs(slope + 0.5) <= 0.1, ratio >= 10.0, dev <= 0.2]
     rows += [
-        _row(experiment, "forward", "loglog_slope", slope, "B1a", ok[0], -0.5),
-        _row(experiment, f"N{sizes[-1]}", "inverse_to_forward_error", ratio, "B1a", ok[1]),
-        _row(experiment, f"N{sizes[-1]}", "inverse_deviation_from_bias18_rel", dev, "B1a", ok[2]),
-        _row(experiment, "asymptotic", "bias18_norm", m["train/bias_norm"]),
+        row(experiment, "forward", "loglog_slope", slope, "B1a", ok[0], -0.5),
+        row(experiment, f"N{sizes[-1]}", "inverse_to_forward_error", ratio, "B1a", ok[1]),
+        row(experiment, f"N{sizes[-1]}", "inverse_deviation_from_bias18_rel", dev, "B1a", ok[2]),
+        row(experiment, "asymptotic", "bias18_norm", m["train/bias_norm"]),
     ]
     lines += ["", f"- forward error slope on log-log: **{slope:.3f}** (claim: -0.5 ± 0.1) — "
               f"{'holds' if ok[0] else 'does not hold'};",
@@ -96,7 +88,7 @@ def _linear_motor(experiment, runs, figdir):
     for _, run in runs.iterrows():
         noise, method = _variant(run)
         if method in METHODS:
-            table[(noise, method)] = _metrics(run)
+            table[(noise, method)] = run_metrics(run)
             ids[(noise, method)] = run["run_id"]
     rows, lines = [], [f"## {experiment}", "",
                        "**Claims B1b, B1c** ([B1] §VI on the simulated linear motor, SPEC §2.2): the "
@@ -125,8 +117,8 @@ def _linear_motor(experiment, runs, figdir):
                          + f" | {'' if peak is None else f'{peak:.3g}'} |")
             for r, v in zip(refs, vals):
                 if v is not None:
-                    rows.append(_row(experiment, f"{noise}/{mt}/{r}", "mae", v))
-                    rows.append(_row(experiment, f"{noise}/{mt}/{r}", "max_abs",
+                    rows.append(row(experiment, f"{noise}/{mt}/{r}", "mae", v))
+                    rows.append(row(experiment, f"{noise}/{mt}/{r}", "max_abs",
                                      m[f"evaluate/{r}/max_abs"]))
         lines.append("")
         claim = "B1b" if noise == "equation" else ""
@@ -139,13 +131,13 @@ def _linear_motor(experiment, runs, figdir):
             for r in refs:
                 ratio = m[f"evaluate/{r}/mae"] / d[f"evaluate/{r}/mae"]
                 holds = bool(ratio <= 0.8) if claim else None
-                rows.append(_row(experiment, f"{noise}/{mt}/{r}", "mae_over_direct", ratio, claim, holds))
+                rows.append(row(experiment, f"{noise}/{mt}/{r}", "mae_over_direct", ratio, claim, holds))
                 if claim:
                     verdicts.append((f"{mt} MAE ≤ 0.8× direct at {r}", holds, ratio))
             if "evaluate/v0.15/max_abs" in m:
                 ratio = m["evaluate/v0.15/max_abs"] / d["evaluate/v0.15/max_abs"]
                 holds = bool(ratio <= 1 / 3) if claim else None
-                rows.append(_row(experiment, f"{noise}/{mt}/v0.15", "peak_over_direct", ratio, claim,
+                rows.append(row(experiment, f"{noise}/{mt}/v0.15", "peak_over_direct", ratio, claim,
                                  holds, 1 / 3))
                 if claim:
                     verdicts.append((f"{mt} peak ≤ 1/3 direct at v0.15", holds, ratio))
@@ -156,7 +148,7 @@ def _linear_motor(experiment, runs, figdir):
             for r in refs:
                 ratio = m[f"evaluate/{r}/mae"] / p[f"evaluate/{r}/mae"]
                 holds = bool(ratio < 1.0) if claim else None
-                rows.append(_row(experiment, f"{noise}/{mt}/{r}", "mae_over_physics", ratio, claim, holds))
+                rows.append(row(experiment, f"{noise}/{mt}/{r}", "mae_over_physics", ratio, claim, holds))
                 if claim:
                     verdicts.append((f"{mt} MAE < physics at {r}", holds, ratio))
         # B1c: per-sample cost (median over the samples of the 0.15 m/s reference)
@@ -171,11 +163,11 @@ def _linear_motor(experiment, runs, figdir):
                 lines.append(f"| {LABEL[mt]} | {v:.3g} | {PAPER_SECONDS[mt]:.3g} |")
                 if mt == "newton":
                     holds = bool(v <= PAPER_SECONDS["newton"])
-                    rows.append(_row(experiment, "equation/newton/v0.15", "sample_seconds_median", v,
+                    rows.append(row(experiment, "equation/newton/v0.15", "sample_seconds_median", v,
                                      "B1c", holds, PAPER_SECONDS["newton"]))
                     verdicts.append(("Newton k=5 per-sample cost ≤ 1.28e-4 s (target 1e-5 s)", holds, v))
                 else:
-                    rows.append(_row(experiment, f"equation/{mt}/v0.15", "sample_seconds_median", v,
+                    rows.append(row(experiment, f"equation/{mt}/v0.15", "sample_seconds_median", v,
                                      paper=PAPER_SECONDS[mt]))
             lines.append("")
         diag = []
@@ -264,7 +256,7 @@ def _sweep_table(runs) -> tuple[dict, dict]:
         noise, method = _variant(run)
         sigma = run.get("params.system.noise.std")
         if method in METHODS and sigma is not None and pd.notna(sigma):
-            table[(noise, float(sigma), method)] = _metrics(run)
+            table[(noise, float(sigma), method)] = run_metrics(run)
             ids[(noise, float(sigma), method)] = run["run_id"]
     return table, ids
 
@@ -294,7 +286,7 @@ def _noise_sweep(experiment, runs, figdir):
                 v = table.get((s, sg, job), {}).get(key)
                 vals.append("" if v is None else f"{v:.3f}")
                 if v is not None:
-                    rows.append(_row(experiment, f"{s}/sigma{sg:g}/{job}", key.replace("train/", ""), v))
+                    rows.append(row(experiment, f"{s}/sigma{sg:g}/{job}", key.replace("train/", ""), v))
             lines.append(f"| {s} | {sg:g} | " + " | ".join(vals) + " |")
     refs = [r for r in SWEEP_REFS if any(f"evaluate/{r}/mae" in m for m in table.values())]
     lines += ["", "MAE of e = r - y [m] on the noise-free evaluation runs (every v_max is in "
@@ -312,7 +304,7 @@ def _noise_sweep(experiment, runs, figdir):
             for mt in METHODS:
                 for k, v in table.get((s, sg, mt), {}).items():
                     if k.startswith("evaluate/") and k.endswith("/mae"):
-                        rows.append(_row(experiment, f"{s}/sigma{sg:g}/{mt}/{k.split('/')[1]}", "mae", v))
+                        rows.append(row(experiment, f"{s}/sigma{sg:g}/{mt}/{k.split('/')[1]}", "mae", v))
     lines.append("")
     lines += _sweep_findings(table, sigmas, structures, m_true)
     lines += _headline_check(table)
@@ -358,7 +350,7 @@ def _headline_check(table) -> list[str]:
         here = table.get((noise, 1e-6, mt))
         if mt not in METHODS or here is None:
             continue
-        a, b = here.get("evaluate/v0.15/mae"), _metrics(run).get("evaluate/v0.15/mae")
+        a, b = here.get("evaluate/v0.15/mae"), run_metrics(run).get("evaluate/v0.15/mae")
         if a is not None and b is not None:
             out.append(f"{noise}/{mt} {a:.3g} vs {b:.3g}")
     if not out:

@@ -9,6 +9,7 @@ also unit tests).  Figures: [B2] Fig. 4 (errors vs n1) and Fig. 5 (error per tri
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -16,15 +17,14 @@ import pandas as pd
 
 from pipeline import tracking
 from stages.report._figures import copy_figures
+from stages.report._rows import row
 
 EXPERIMENTS = ("b2_rot_trans",)
 REF = "R"                           # the evaluation reference of the experiment
 BOUND = ("identification_error", "inversion_error", "tracking_error", "epsilon", "model_error")
 
 
-def _row(variant, metric, value, claim="", holds=None, paper=None):
-    return {"experiment": EXPERIMENTS[0], "claim": claim, "variant": variant, "metric": metric,
-            "value": float(value), "paper_value": paper, "claim_holds": holds}
+_row = functools.partial(row, EXPERIMENTS[0])
 
 
 def _n1(run) -> int:

@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 
 from stages.report._figures import copy_figures
+from stages.report._rows import row, run_metrics
 
 EXPERIMENTS = ("k_two_mass",)
 STRIBECK = "d0.03_v0.05"               # the Stribeck-dominated held-out reference (SPEC §2.1)
@@ -21,15 +22,6 @@ VARIANTS = {"rational": ("rational", "none"), "pgnn_orthogonal": ("pgnn_shared_a
             "pgnn_none": ("pgnn_shared_ar", "none")}
 SPREAD_FLOOR = 1e-3                    # K2: count references where the unregularised spread ≥ this
 
-
-def _row(experiment, variant, metric, value, claim="", holds=None, paper=None):
-    return {"experiment": experiment, "claim": claim, "variant": variant, "metric": metric,
-            "value": float(value), "paper_value": paper, "claim_holds": holds}
-
-
-def _metrics(run) -> dict[str, float]:
-    return {c[len("metrics."):]: float(run[c]) for c in run.index
-            if c.startswith("metrics.") and pd.notna(run[c])}
 
 
 def _find(runs: pd.DataFrame) -> dict[str, pd.Series]:
@@ -58,7 +50,7 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
     if missing:
         lines.append(f"Missing runs: {missing}; run `python -m pipeline experiment={experiment}`.")
         return [], "\n".join(lines) + "\n"
-    m = {k: _metrics(v) for k, v in found.items()}
+    m = {k: run_metrics(v) for k, v in found.items()}
     rows: list[dict] = []
     refs = sorted({k.split("/")[1] for k in m["rational"] if k.startswith("evaluate/")
                    and k.endswith("/sq_norm2")})
@@ -80,13 +72,13 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
         lines.append(f"| {ref} | {er:.4g} | {ep:.4g} | {en:.4g} | {ratio:.3g} |")
         below = ep < er
         k1_ok.append(below)
-        rows += [_row(experiment, f"rational/{ref}", "sq_norm2", er, paper=PAPER_E2["rational"]),
-                 _row(experiment, f"pgnn_none/{ref}", "sq_norm2", en),
-                 _row(experiment, f"pgnn_orthogonal/{ref}", "sq_norm2", ep, "K1", below,
+        rows += [row(experiment, f"rational/{ref}", "sq_norm2", er, paper=PAPER_E2["rational"]),
+                 row(experiment, f"pgnn_none/{ref}", "sq_norm2", en),
+                 row(experiment, f"pgnn_orthogonal/{ref}", "sq_norm2", ep, "K1", below,
                       PAPER_E2["pgnn_orthogonal"])]
         if ref == STRIBECK:
             k1_ok.append(ratio >= 100)
-            rows.append(_row(experiment, f"rational_over_pgnn/{ref}", "sq_norm2_ratio", ratio, "K1",
+            rows.append(row(experiment, f"rational_over_pgnn/{ref}", "sq_norm2_ratio", ratio, "K1",
                              ratio >= 100))
     lines += ["", f"K1 {_yes(all(k1_ok))} (paper: one validation reference, 5.925 vs 0.0104 m², "
               "ratio 570).", ""]
@@ -115,20 +107,20 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
         if counted:
             ratios.append(ratio)
         lines.append(f"| {ref} | {sn:.3g} | {so:.3g} | {ratio:.3g}{'' if counted else ' (not counted)'} |")
-        rows += [_row(experiment, f"pgnn_none/{ref}", "spread_f_M", sn),
-                 _row(experiment, f"pgnn_orthogonal/{ref}", "spread_f_M", so)]
+        rows += [row(experiment, f"pgnn_none/{ref}", "spread_f_M", sn),
+                 row(experiment, f"pgnn_orthogonal/{ref}", "spread_f_M", so)]
     min_ratio = min(ratios) if ratios else np.nan
     spread_ok = bool(ratios) and min_ratio >= 10
     share = mo["train/share_C_in_model"]
     share_ok = share <= 0.05
-    rows += [_row(experiment, "none_over_orthogonal/min_over_counted_refs", "spread_f_M_ratio", min_ratio,
+    rows += [row(experiment, "none_over_orthogonal/min_over_counted_refs", "spread_f_M_ratio", min_ratio,
                   "K2", spread_ok),
-             _row(experiment, "pgnn_orthogonal", "share_C_in_model", share, "K2", share_ok),
-             _row(experiment, "pgnn_none", "share_C_in_model", mn["train/share_C_in_model"]),
-             _row(experiment, "pgnn_orthogonal", "K1_holds", float(all(k1_ok)), "K2", all(k1_ok))]
+             row(experiment, "pgnn_orthogonal", "share_C_in_model", share, "K2", share_ok),
+             row(experiment, "pgnn_none", "share_C_in_model", mn["train/share_C_in_model"]),
+             row(experiment, "pgnn_orthogonal", "K1_holds", float(all(k1_ok)), "K2", all(k1_ok))]
     for key in ("pgnn_orthogonal", "pgnn_none"):
         for q in ("ratio_C_M", "corr_M_C"):
-            rows.append(_row(experiment, key, q, m[key][f"train/{q}"]))
+            rows.append(row(experiment, key, q, m[key][f"train/{q}"]))
     theta_keys = [k for k in sorted(mo) if k.startswith("train/theta/")]
     theta_rows = ["| θ | " + " | ".join(k.split("/")[2] for k in theta_keys) + " |"]
     theta_rows.append("| --- |" + " --- |" * (len(theta_rows[0].split("|")) - 3))
@@ -163,12 +155,12 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
         cont = mk.get("train/oe_check/sk_continued_J", np.nan)
         lines.append(f"| {key} | {last:.5g} | {mini:.5g} | {rep:.5g} | {after:.5g} | {imp:.2%} | {cont:.5g} |")
         claim = "K3" if key != "pgnn_none" else ""
-        rows += [_row(experiment, key, "J_OE_last_over_min", last / mini, claim,
+        rows += [row(experiment, key, "J_OE_last_over_min", last / mini, claim,
                       (last <= 1.001 * mini) if claim else None),
-                 _row(experiment, key, "J_OE_reported", rep),
-                 _row(experiment, key, "oe_check_J_after", after),
-                 _row(experiment, key, "sk_continued_J_OE", cont),
-                 _row(experiment, key, "oe_check_improvement", imp, claim, (imp < 0.05) if claim else None)]
+                 row(experiment, key, "J_OE_reported", rep),
+                 row(experiment, key, "oe_check_J_after", after),
+                 row(experiment, key, "sk_continued_J_OE", cont),
+                 row(experiment, key, "oe_check_improvement", imp, claim, (imp < 0.05) if claim else None)]
     lines.append("")
     for key in ("rational", "pgnn_orthogonal", "pgnn_none"):
         mk = m[key]
@@ -209,12 +201,12 @@ def _lambda_sweep(experiment: str, runs: pd.DataFrame, rows: list) -> list[str]:
            "| λ | J_OE [N²] | ‖U1ᵀWg‖/‖Wg‖ | spread f_M (all training) | direct LM improvement | "
            f"‖e‖² on {STRIBECK} [m²] |", "| --- | --- | --- | --- | --- | --- |"]
     for _, run in sel.iterrows():
-        mm = _metrics(run)
+        mm = run_metrics(run)
         lam = run["lam"]
         vals = [mm.get(k, np.nan) for k in ("train/J_OE", "train/share_C_in_model", "train/spread_f_M/all",
                                             "train/oe_check/improvement", f"evaluate/{STRIBECK}/sq_norm2")]
         out.append(f"| {lam:g} | {vals[0]:.4g} | {vals[1]:.3g} | {vals[2]:.3g} | {vals[3]:.1%} | {vals[4]:.3g} |")
         for metric, v in zip(("J_OE", "share_C_in_model", "spread_f_M_all", "oe_check_improvement",
                               f"sq_norm2_{STRIBECK}"), vals):
-            rows.append(_row(experiment, f"pgnn_orthogonal_lam{lam:g}", metric, v))
+            rows.append(row(experiment, f"pgnn_orthogonal_lam{lam:g}", metric, v))
     return out + [""]

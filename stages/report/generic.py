@@ -7,14 +7,10 @@ from pathlib import Path
 import pandas as pd
 
 from stages.report._figures import copy_figures
+from stages.report._rows import row, run_metrics
 
 EXPERIMENTS = ("physics_baseline",)
 EVAL_METRICS = ("mae", "max_abs", "rms", "sq_norm2", "ff_error_rel")
-
-
-def _row(experiment, variant, metric, value):
-    return {"experiment": experiment, "claim": "", "variant": variant, "metric": metric,
-            "value": float(value), "paper_value": None, "claim_holds": None}
 
 
 def section(experiment: str, runs: pd.DataFrame, figdir: Path):
@@ -24,8 +20,7 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
                        "(noise-free evaluation runs), and ILC where configured.", ""]
     for _, run in runs.sort_values("tags.mlflow.runName").iterrows():
         variant = run["tags.mlflow.runName"]
-        m = {c[len("metrics."):]: run[c] for c in runs.columns
-             if c.startswith("metrics.") and pd.notna(run[c])}
+        m = run_metrics(run)
         lines += [f"### {variant}", ""]
         params = {k.split("/", 1)[1]: v for k, v in sorted(m.items())
                   if k.startswith("baseline/") and not k.startswith("baseline/rel_error")}
@@ -33,7 +28,7 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
             lines += ["| parameter | " + " | ".join(params) + " |",
                       "| --- |" + " --- |" * len(params),
                       "| estimate | " + " | ".join(f"{v:.5g}" for v in params.values()) + " |", ""]
-            rows += [_row(experiment, variant, f"baseline/{k}", v) for k, v in params.items()]
+            rows += [row(experiment, variant, f"baseline/{k}", v) for k, v in params.items()]
         refs = sorted({k.split("/")[1] for k in m if k.startswith("evaluate/")})
         if refs:
             present = [x for x in EVAL_METRICS if any(f"evaluate/{r}/{x}" in m for r in refs)]
@@ -42,7 +37,7 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
             for r in refs:
                 vals = [m.get(f"evaluate/{r}/{x}") for x in present]
                 lines.append(f"| {r} | " + " | ".join("" if v is None else f"{v:.4g}" for v in vals) + " |")
-                rows += [_row(experiment, f"{variant}/{r}", x, v) for x, v in zip(present, vals)
+                rows += [row(experiment, f"{variant}/{r}", x, v) for x, v in zip(present, vals)
                          if v is not None]
             lines.append("")
         ilc = {k.split("/")[2]: v for k, v in m.items()
@@ -50,7 +45,7 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
         for ref, v in ilc.items():
             lines.append(f"ILC on `{ref}`: final rms error {v:.3g} m "
                          f"(per-trial curve: metric `generate/ilc/{ref}/rms`).")
-            rows.append(_row(experiment, f"{variant}/{ref}", "ilc_final_rms", v))
+            rows.append(row(experiment, f"{variant}/{ref}", "ilc_final_rms", v))
         for fig in copy_figures(run["run_id"], figdir, f"{experiment}-{variant}"):
             lines += ["", f"![{Path(fig).stem}]({fig})"]
         lines.append("")

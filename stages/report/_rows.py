@@ -1,0 +1,16 @@
+"""The summary.csv row and a run's metrics, shared by every section provider (DESIGN contracts)."""
+from __future__ import annotations
+
+import pandas as pd
+
+
+def row(experiment, variant, metric, value, claim="", holds=None, paper=None) -> dict:
+    """One summary.csv row; ``claim`` a SPEC §8 id with ``holds`` True/False, else "" and None."""
+    return {"experiment": experiment, "claim": claim, "variant": variant, "metric": metric,
+            "value": float(value), "paper_value": paper, "claim_holds": holds}
+
+
+def run_metrics(run: pd.Series) -> dict[str, float]:
+    """``{<stage>/<name>: value}`` of the run's logged metrics (missing ones left out)."""
+    return {c[len("metrics."):]: float(run[c]) for c in run.index
+            if c.startswith("metrics.") and pd.notna(run[c])}

@@ -277,6 +277,8 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, 
                 record = json.loads((final / "record.json").read_text())
                 hit = False
             _log_stage(run, name, record, final, hit)
+            print(f"[{cfg.run_name}] {name}: " + ("cached" if hit else f"{record['seconds']:.1f} s"),
+                  file=sys.stderr, flush=True)  # one line per stage: a log file shows progress too
             if not cacheable:
                 shutil.rmtree(final, ignore_errors=True)
         status = "FINISHED"

@@ -25,3 +25,28 @@ def tracking_metrics(r: np.ndarray, y: np.ndarray, f_hat: np.ndarray | None = No
         out["ff_error"] = d
         out["ff_error_rel"] = d / max(float(np.linalg.norm(f_hat)), np.finfo(float).tiny)
     return out
+
+
+PHASES = ("accel", "constvel", "standstill")
+
+
+def motion_phases(r: np.ndarray, rel_tol: float = 1e-6) -> dict[str, np.ndarray]:
+    """Masks of the samples where the reference accelerates (|Δ²r| > tol: jerk and acceleration
+    segments of a third-order profile), moves at constant velocity (|Δr| > tol, Δ²r ≈ 0) and
+    stands still (both ≈ 0). Central differences; tol = ``rel_tol`` × the signal's maximum, so
+    the rounding of a piecewise-polynomial reference (~1e-16 relative) never counts as motion."""
+    r = np.asarray(r, dtype=np.float64)
+    if r.ndim != 1 or r.size < 3:
+        raise ValueError(f"r must be 1-D with at least 3 samples, got shape {r.shape}")
+    d1 = np.gradient(r)
+    d2 = np.gradient(d1)
+    acc = np.abs(d2) > rel_tol * max(float(np.max(np.abs(d2))), np.finfo(float).tiny)
+    mov = np.abs(d1) > rel_tol * max(float(np.max(np.abs(d1))), np.finfo(float).tiny)
+    return {"accel": acc, "constvel": mov & ~acc, "standstill": ~mov & ~acc}
+
+
+def phase_peaks(r: np.ndarray, y: np.ndarray) -> dict[str, float]:
+    """``max_abs_<phase>``: the peak |r - y| within each :func:`motion_phases` phase (0 where the
+    reference has no such samples): where a feedforward's peak error comes from."""
+    e = np.abs(np.asarray(r, dtype=np.float64) - np.asarray(y, dtype=np.float64))
+    return {f"max_abs_{k}": float(e[m].max()) if m.any() else 0.0 for k, m in motion_phases(r).items()}

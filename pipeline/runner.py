@@ -95,6 +95,7 @@ class StageContext:
     tags: dict = field(default_factory=dict)
     figures: list = field(default_factory=list)
     datasets: list = field(default_factory=list)
+    artifacts: list = field(default_factory=list)
 
     def rng(self, purpose: str) -> np.random.Generator:
         """A generator seeded by (cfg.seed, purpose): same config, same draws (SPEC §0)."""
@@ -114,6 +115,11 @@ class StageContext:
         plt.close(fig)
         self.figures.append(filename)
         return path
+
+    def artifact(self, filename: str) -> Path:
+        """A file to write that is logged to the run as artifact ``<stage>/<filename>``."""
+        self.artifacts.append(filename)
+        return self.path(f"artifacts/{filename}")
 
     def path(self, filename: str) -> Path:
         """A file inside the stage's (atomic) output directory."""
@@ -199,7 +205,7 @@ def _load(stage_dir: Path) -> tuple[dict, dict]:
 
 def _record(ctx: StageContext, seconds: float) -> dict:
     return {"metrics": ctx.metrics, "tags": ctx.tags, "figures": ctx.figures,
-            "datasets": ctx.datasets, "seconds": seconds}
+            "datasets": ctx.datasets, "artifacts": ctx.artifacts, "seconds": seconds}
 
 
 def _store(tmp: Path, final: Path, result: dict, ctx: StageContext, seconds: float) -> None:
@@ -302,6 +308,8 @@ def _log_stage(run, name: str, record: dict, stage_dir: Path, hit: bool) -> None
     run.set_tags({**record["tags"], f"cache.{name}": "hit" if hit else "miss"})
     for fig in record["figures"]:
         run.log_artifact(stage_dir / "figures" / fig, "figures")
+    for rel in record.get("artifacts", []):
+        run.log_artifact(stage_dir / "artifacts" / rel, name)
     for rel, ds_name, context in record.get("datasets", []):
         import pandas as pd
         path = stage_dir / rel

@@ -75,3 +75,28 @@ def test_scaled_least_squares_matches_lstsq_and_flags_rank_deficiency():
     Phi[:, 2] = 2.0 * Phi[:, 1]
     with pytest.raises(ValueError, match="rank deficient"):
         solve_scaled(Phi, z)
+
+
+def test_motion_phases_match_the_designed_segment_times():
+    # out-and-back of two third-order moves (SPEC §1): the accelerating samples are the 4 t_j + 2 t_a
+    # of each move, the constant-velocity ones its t_v, the rest standstill; central differences
+    # may move each of the 8 phase boundaries by at most 2 samples
+    from pipeline.metrics import motion_phases, phase_peaks
+    from pipeline.references import move_times, out_and_back
+    Ts = 1e-3
+    r = out_and_back(0.1, 0.1, 4.0, 1000.0, Ts).r
+    mt = move_times(0.1, 0.1, 4.0, 1000.0)
+    m = motion_phases(r)
+    designed = {"accel": 2 * (4 * mt.t_j + 2 * mt.t_a) / Ts, "constvel": 2 * mt.t_v / Ts}
+    designed["standstill"] = r.size - designed["accel"] - designed["constvel"]
+    for k, n in designed.items():
+        assert abs(m[k].sum() - n) <= 2 * 8, (k, m[k].sum(), n)
+    assert sum(m[k].astype(int) for k in m).max() == 1  # a partition
+    # the peak per phase: a known error placed in the middle of one segment of each phase
+    e = np.zeros_like(r)
+    for k, val in (("accel", 2.0), ("constvel", 3.0), ("standstill", 1.0)):
+        idx = np.flatnonzero(m[k])
+        e[idx[len(idx) // 2]] = val
+    assert phase_peaks(r, r - e) == {"max_abs_accel": 2.0, "max_abs_constvel": 3.0, "max_abs_standstill": 1.0}
+    with pytest.raises(ValueError, match="at least 3 samples"):
+        motion_phases(np.zeros(2))

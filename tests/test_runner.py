@@ -102,6 +102,12 @@ def test_run_logs_params_tags_metrics_figures_config_dataset(store, cfg_of):
     assert any(p.endswith(".yaml") for p in arts)         # resolved config
     assert "figures/tracking_error.png" in figs
     assert len(r.inputs.dataset_inputs) == 1
+    # the evaluate stage's error signals, as an artifact other runs' figures can be drawn from
+    local = mlflow.artifacts.download_artifacts(run_id=r.info.run_id, artifact_path="evaluate/errors.npz",
+                                                dst_path=str(store / "dl"))
+    z = np.load(local)
+    assert z["held/e"].shape == z["held/r"].shape
+    assert np.max(np.abs(z["held/e"])) == pytest.approx(r.data.metrics["evaluate/held/max_abs"], rel=1e-15)
     exp = c.get_experiment(r.info.experiment_id)
     assert exp.tags["mlflow.experimentKind"] == "custom_model_development"
 

@@ -260,6 +260,7 @@ def test_b1_stages_and_report_section(store, cfg_of, tmp_path):
     claims = {r["claim"] for r in rows if r["claim_holds"] is not None}
     assert {"B1b", "B1c"} <= claims
     assert "Newton k=5" in md and (tmp_path / "b1_linear_motor-equation-mae.png").exists()
+    assert (tmp_path / "b1_linear_motor-equation-fig3.png").exists()  # from the runs' errors.npz
     newton = runs[runs["tags.invert"] == "newton"].iloc[0]
     assert newton["metrics.invert/v0.15/newton_diverged"] >= 0
     assert newton["metrics.invert/v0.15/sample_seconds_median"] < 1e-3
@@ -286,7 +287,8 @@ def test_noise_sweep_report_section(store, tmp_path):
                        "metrics.train/theta_phy_star/m": m_inv if mt == "direct" else 20.0 + 1e5 * sg,
                        "metrics.train/theta_phy/m": 19.0 if mt == "analytic" else 20.5,
                        "metrics.evaluate/v0.05/mae": 1e-6 * (1 + 1e6 * sg * (mt == "direct")),
-                       "metrics.evaluate/v0.15/mae": 2e-6, "metrics.evaluate/v0.20/mae": 3e-6}
+                       "metrics.evaluate/v0.15/mae": 2e-6, "metrics.evaluate/v0.20/mae": 3e-6,
+                       "metrics.evaluate/v0.15/max_abs": 4e-5 if mt == "direct" else 1e-5}
                 recs.append(rec)
     rows, md = claims_b1.section("b1_noise_sweep", pd.DataFrame(recs), tmp_path)
     mass = [r for r in rows if r["metric"].endswith("/m")]
@@ -300,3 +302,23 @@ def test_noise_sweep_report_section(store, tmp_path):
     assert "from 20.00 (σ = 0) to 10.00 kg (σ = 1e-06), i.e. -50.0%" in md
     assert "within 0.5% of the true mass" in md  # forward LS: 20 + 0.1 at σ = 1e-6
     assert "best of 3 restarts" in md and (tmp_path / "b1_noise_sweep.png").exists()
+    assert "Newton / direct peak error at 0.15 m/s: 0.25 at σ = 0, 0.25 at σ = 1e-06." in md
+
+
+def test_peak_diagnosis_names_the_phase_that_fails():
+    # B1b's peak condition: the per-phase peaks say where the indirect PGNNs lose (here at
+    # constant velocity, while they are ≤ 0.35× the direct inverse's where it accelerates)
+    from stages.report import claims_b1
+    peaks = {"direct": (8e-5, 7e-5, 7.5e-5), "newton": (2.6e-5, 4.4e-5, 2.7e-5),
+             "analytic": (2.8e-5, 3.5e-5, 2.6e-5), "physics": (3e-5, 7e-5, 3e-5)}
+    table = {("equation", mt): {f"evaluate/v0.15/max_abs_{k}": v for k, v in zip(claims_b1.PHASE_LABEL, p)}
+             | {"train/theta_phy/m": 17.7 if mt == "direct" else 20.1} for mt, p in peaks.items()}
+    rows = []
+    md = "\n".join(claims_b1._peak_diagnosis(table, rows, "b1_linear_motor"))
+    assert "lose the peak condition at constant velocity" in md and "(17.70 kg against the forward" in md
+    assert "the ratio is at most 0.35" in md
+    ratio = {(r["variant"], r["metric"]): r["value"] for r in rows}
+    assert ratio[("equation/newton/v0.15", "peak_over_direct_constvel")] == pytest.approx(4.4 / 7)
+    table[("equation", "newton")]["evaluate/v0.15/max_abs_accel"] = 9e-5  # now worst where it accelerates
+    md = "\n".join(claims_b1._peak_diagnosis(table, [], "b1_linear_motor"))
+    assert "lose the peak condition" not in md and "Newton k=5 (Alg. 1) accelerating" in md

@@ -28,3 +28,17 @@ def copy_figures(run_id: str, figdir: Path, prefix: str) -> list[str]:
             shutil.copyfile(local, figdir / name)
             out.append(f"figures/{name}")
     return out
+
+
+def load_errors(run_id: str) -> dict | None:
+    """The run's ``evaluate/errors.npz`` (Ts, and ``<ref>/r``, ``<ref>/e``) as a dict of arrays, or
+    None if the run has none (runs made before the evaluate stage logged it)."""
+    import numpy as np
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            local = mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path="evaluate/errors.npz",
+                                                        dst_path=tmp)
+        except Exception:  # noqa: BLE001 — MLflow raises several types for a missing artifact
+            return None
+        with np.load(local) as z:
+            return {k: z[k] for k in z.files}

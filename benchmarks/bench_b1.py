@@ -10,7 +10,7 @@ Prints
   inversions: each sample is one call of the numba per-sample kernel from Python (call
   overhead included, what a sample-by-sample loop pays), plus the whole-trajectory time / N.
 
-Usage: ``OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_b1.py [--n 120000] [--max-iter 100]``
+Usage: ``OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_b1.py [--n 120000] [--max-iter 200]``
 """
 from __future__ import annotations
 
@@ -45,7 +45,8 @@ def motor_data(n: int, seed: int = 0):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=120_000, help="training samples")
-    ap.add_argument("--max-iter", type=int, default=100, help="LM iterations of the timed restart")
+    ap.add_argument("--max-iter", type=int, default=200,
+                    help="LM iterations of the timed restart (conf/identify/narx.yaml: 200)")
     ap.add_argument("--hidden", type=int, default=16)
     a = ap.parse_args()
     sys.stdout.reconfigure(line_buffering=True)

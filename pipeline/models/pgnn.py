@@ -237,7 +237,7 @@ class PhysicsModelFeatures(PhysicsFeatures):
         return self.pm.physical(np.asarray(theta, dtype=float))
 
 
-def physics_features_for(physics_model, structure: str, n_a: int, n_b: int,
+def physics_features_for(physics_model, structure: str, n_a: int, n_b: int, n_k: int = 0,
                          input_is_model_input: bool = False) -> PhysicsFeatures:
     """The PGNN physics map of a plant's nominal physics model for a regressor layout.
 
@@ -255,12 +255,19 @@ def physics_features_for(physics_model, structure: str, n_a: int, n_b: int,
     inverse = structure == "inverse"
     averaged = getattr(physics_model, "averaged_input", False)
     if name == "LinearMotorPhysics" and (input_is_model_input or not averaged):
+        # [B1] (32) is δ²y(t) = (u(t-1) - f_v δy(t-1) - f_c sign δy(t-1))/m: two output lags, one
+        # input lag, no pure delay; a regressor that cannot hold it is a config error
+        if n_k != 0 or n_a < 2 or n_b < 1:
+            raise ValueError(f"the linear motor's physics model [B1] (32) needs n_a >= 2, n_b >= 1 and "
+                             f"n_k = 0 in the PGNN regressor, got n_a={n_a}, n_b={n_b}, n_k={n_k}: set "
+                             "model.n_a=2 model.n_b=1 model.n_k=0")
         Ts = physics_model.Ts
         return RigidBodyInverse(Ts) if inverse else RigidBodyForward(Ts, n_a)
     if name == "ARXPhysics":
-        if (physics_model.n_a, physics_model.n_b) != (n_a, n_b):
-            raise ValueError(f"ARX physics has n_a={physics_model.n_a}, n_b={physics_model.n_b}; the "
-                             f"PGNN regressor n_a={n_a}, n_b={n_b}: make them equal")
+        if (physics_model.n_a, physics_model.n_b, physics_model.n_k) != (n_a, n_b, n_k):
+            raise ValueError(f"ARX physics has n_a={physics_model.n_a}, n_b={physics_model.n_b}, "
+                             f"n_k={physics_model.n_k}; the PGNN regressor n_a={n_a}, n_b={n_b}, "
+                             f"n_k={n_k}: make them equal")
         names = None if inverse else physics_model.param_names
         return LinearFeatures(n_a + n_b, names)
     return PhysicsModelFeatures(physics_model, inverse)

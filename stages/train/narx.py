@@ -61,7 +61,7 @@ def build_model(cfg, system) -> PGNN:
     structure = m.pop("structure")
     phys = None
     if m.get("use_physics", True):
-        phys = physics_features_for(system.physics, structure, m["n_a"], m["n_b"],
+        phys = physics_features_for(system.physics, structure, m["n_a"], m["n_b"], m.get("n_k", 0),
                                     input_is_model_input=uses_model_input(system))
     m["hidden"] = tuple(m.get("hidden") or ())
     return PGNN(structure=structure, physics=phys, seed=int(cfg.seed), **m)

@@ -375,6 +375,19 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
                                           0, "closed_form", 0.0, th))
         return fit
 
+    restarts, fit.best = best_of_restarts(model, residual, jacobian, n_restarts, seed, val_fn=val_fn,
+                                          max_iter=max_iter, ftol=ftol, gtol=gtol, mu0=mu0,
+                                          patience=patience, progress=progress, on_iteration=on_iteration)
+    fit.restarts.extend(restarts)
+    return fit
+
+
+def best_of_restarts(model: PGNN, residual, jacobian, n_restarts: int, seed: int, *, val_fn=None,
+                     progress=None, on_iteration=None, **lm_options) -> tuple[list[RestartResult], int]:
+    """LM from ``n_restarts`` random NN initialisations ([B1] §VI: best of 10): restart i is
+    seeded by SeedSequence([seed, i]), θ_phy starts where the model holds it; the lowest training
+    cost is loaded into ``model``. Returns every restart and the index of the best."""
+    out = []
     restarts = range(n_restarts)
     if progress is not None:
         restarts = progress(restarts)
@@ -384,14 +397,12 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
         t0 = time.perf_counter()
         cb = None if on_iteration is None else (lambda it, th, c, i=i: on_iteration(i, it, c))
         res: LMResult = levenberg_marquardt(residual, model.parameter_vector(), jacobian=jacobian,
-                                            max_iter=max_iter, ftol=ftol, gtol=gtol, mu0=mu0,
-                                            val_cost=val_fn, patience=patience, callback=cb)
-        fit.restarts.append(RestartResult(s_i, res.cost, res.val_cost, res.history,
-                                          res.val_history, res.n_iter, res.message,
-                                          time.perf_counter() - t0, res.theta))
-    fit.best = int(np.argmin([r.cost for r in fit.restarts]))
-    model.load_parameter_vector(fit.restarts[fit.best].theta)
-    return fit
+                                            val_cost=val_fn, callback=cb, **lm_options)
+        out.append(RestartResult(s_i, res.cost, res.val_cost, res.history, res.val_history, res.n_iter,
+                                 res.message, time.perf_counter() - t0, res.theta))
+    best = int(np.argmin([r.cost for r in out]))
+    model.load_parameter_vector(out[best].theta)
+    return out, best
 
 
 # --------------------------------------------------------------------------------------------

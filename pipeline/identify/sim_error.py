@@ -26,7 +26,6 @@ part of [B2] (16)'s Λ = [I, 0].
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -775,7 +774,7 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
     import torch
 
     from pipeline.identify.lm import levenberg_marquardt
-    from pipeline.identify.narx import RestartResult, forward_regressor, physics_least_squares
+    from pipeline.identify.narx import best_of_restarts, forward_regressor, physics_least_squares
 
     y = np.asarray(y, float)
     r = np.asarray(r, float)
@@ -836,22 +835,9 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
 
     res_t = lambda th: torch.from_numpy(residual(th.numpy()))     # noqa: E731
     jac_t = lambda th: torch.from_numpy(jacobian(th.numpy()))     # noqa: E731
-    restarts_out = []
-    iters = range(n_restarts if model.use_nn else 1)
-    if progress is not None:
-        iters = progress(iters)
-    for i in iters:
-        s_i = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
-        model.reset_parameters(s_i)
-        t0 = time.perf_counter()
-        cb = None if on_iteration is None else (lambda it, th, c, i=i: on_iteration(i, it, c))
-        out = levenberg_marquardt(res_t, model.parameter_vector(), jacobian=jac_t, max_iter=max_iter,
-                                  ftol=ftol, gtol=gtol, mu0=mu0, val_cost=val_fn, patience=patience,
-                                  callback=cb)
-        restarts_out.append(RestartResult(s_i, out.cost, out.val_cost, out.history, out.val_history,
-                                          out.n_iter, out.message, time.perf_counter() - t0, out.theta))
-    best = int(np.argmin([rr.cost for rr in restarts_out]))
-    model.load_parameter_vector(restarts_out[best].theta)
+    restarts_out, best = best_of_restarts(model, res_t, jac_t, n_restarts if model.use_nn else 1, seed,
+                                          val_fn=val_fn, max_iter=max_iter, ftol=ftol, gtol=gtol, mu0=mu0,
+                                          patience=patience, progress=progress, on_iteration=on_iteration)
     arx = ArxPGNN.from_pgnn(model, y_range)
     y_hat, _ = simulate_closed_loop(arx, ctrl, r, u_ex)
     ident = float(np.linalg.norm(y - y_hat) / math.sqrt(N))

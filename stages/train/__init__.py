@@ -22,3 +22,15 @@ def validate(cfg, system) -> None:
 
 def run(ctx) -> dict:
     return implementation("train", str(ctx.cfg.identify.kind)).fit(ctx)
+
+
+def log_restarts(ctx, restarts) -> None:
+    """The loss curve (and validation curve) of every LM restart, and its cost, time and iterations."""
+    for i, rr in enumerate(restarts):
+        for step, c in enumerate(rr.history):
+            ctx.metric(f"loss/restart{i}", c, step=step)
+        for step, c in enumerate(rr.val_history):
+            ctx.metric(f"val_loss/restart{i}", c, step=step)
+        ctx.metric("restart_cost", rr.cost, step=i)
+        ctx.metric("restart_seconds", rr.seconds, step=i)
+        ctx.metric("restart_iterations", rr.n_iter, step=i)

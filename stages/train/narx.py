@@ -20,6 +20,7 @@ from omegaconf import OmegaConf
 from pipeline.identify.narx import identify_pgnn
 from pipeline.models.pgnn import PGNN, physics_features_for
 from pipeline.runner import ConfigError
+from stages.train import log_restarts
 
 STRUCTURES = ("forward", "inverse", "invertible")
 
@@ -87,14 +88,7 @@ def fit(ctx) -> dict:
                          gtol=float(ident.gtol), mu0=float(ident.mu0),
                          patience=int(ident.patience),
                          progress=lambda it: ctx.progress(it, desc="LM restarts"))
-    for i, rr in enumerate(fit_.restarts):
-        for step, c in enumerate(rr.history):
-            ctx.metric(f"loss/restart{i}", c, step=step)
-        for step, c in enumerate(rr.val_history):
-            ctx.metric(f"val_loss/restart{i}", c, step=step)
-        ctx.metric("restart_cost", rr.cost, step=i)
-        ctx.metric("restart_seconds", rr.seconds, step=i)
-        ctx.metric("restart_iterations", rr.n_iter, step=i)
+    log_restarts(ctx, fit_.restarts)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)
     if best.val_cost is not None:

@@ -19,6 +19,7 @@ from omegaconf import OmegaConf
 from pipeline.identify.sim_error import DiscreteController, closed_loop_exogenous, identify_sim_error
 from pipeline.models.pgnn import PGNN, LinearFeatures
 from pipeline.runner import ConfigError
+from stages.train import log_restarts
 from pipeline.systems.arx_bias import ARXPhysics
 
 THETA_STAR = ("arx", "sim_error")
@@ -88,12 +89,7 @@ def fit(ctx) -> dict:
                               ftol=float(ident.ftol), gtol=float(ident.gtol), mu0=float(ident.mu0),
                               patience=int(ident.patience), linear_max_iter=int(ident.linear_max_iter),
                               progress=lambda it: ctx.progress(it, desc="LM restarts"))
-    for i, rr in enumerate(fit_.restarts):
-        for step, c in enumerate(rr.history):
-            ctx.metric(f"loss/restart{i}", c, step=step)
-        ctx.metric("restart_cost", rr.cost, step=i)
-        ctx.metric("restart_seconds", rr.seconds, step=i)
-        ctx.metric("restart_iterations", rr.n_iter, step=i)
+    log_restarts(ctx, fit_.restarts)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)
     ctx.metric("seconds", best.seconds)

@@ -175,3 +175,22 @@ def test_empty_evaluation_references_and_bad_seed_fail_before_work(store, cfg_of
     with pytest.raises(runner.ConfigError, match="seed='abc' is not an integer"):
         runner.run_job(cfg_of(*SHORT_TWO_MASS, "seed=abc"))
     assert not (store / "cache").exists()
+
+
+def test_report_stage_writes_report_summary_and_only_current_figures(store, cfg_of):
+    runner.run_job(cfg_of(*SHORT_TWO_MASS))
+    results = store / "results"
+    (results / "figures").mkdir(parents=True)
+    (results / "figures" / "stale.png").write_bytes(b"old")  # from an earlier report
+    runner.run_job(cfg_of("stages=[report]", "experiment_name=report", f"paths.results={results}",
+                          "report.experiments=[physics_baseline,never_run]"))
+    import pandas as pd
+    table = pd.read_csv(results / "summary.csv")
+    run = tracking.search_runs("physics_baseline").iloc[0]
+    mae = table[(table["variant"] == "two_mass_stribeck-physics-s0/held") & (table["metric"] == "mae")]
+    assert float(mae["value"].iloc[0]) == run["metrics.evaluate/held/mae"]
+    md = (results / "REPORT.md").read_text()
+    assert "## physics_baseline" in md and "## never_run\n\nNo finished runs" in md
+    figs = {p.name for p in (results / "figures").iterdir()}
+    assert "stale.png" not in figs and any(f.endswith("tracking_error.png") for f in figs)
+    assert [p.name for p in results.iterdir() if p.name.startswith(".")] == []  # no temp leftovers

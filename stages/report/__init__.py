@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import shutil
 from pathlib import Path
 
 import pandas as pd
@@ -61,8 +62,9 @@ def _fmt_holds(v) -> str:
 def run(ctx) -> dict:
     cfg = ctx.cfg
     results = Path(cfg.paths.results) if cfg.paths.get("results") else ROOT / "results"
-    figdir = results / "figures"
-    figdir.mkdir(parents=True, exist_ok=True)
+    figdir = results / f".figures-tmp-{os.getpid()}"  # swapped in at the end: no stale or partial figures
+    shutil.rmtree(figdir, ignore_errors=True)
+    figdir.mkdir(parents=True)
     provs = providers()
     rows, sections, shas = [], [], set()
     for exp in cfg.report.experiments:
@@ -98,6 +100,11 @@ def run(ctx) -> dict:
             head.append(f"| {c} | {e} | {'yes' if (g['claim_holds'] == 'true').all() else 'no'} |")
         head.append("")
     _write(results / "REPORT.md", lambda p: p.write_text("\n".join(head + sections) + "\n"))
+    old = results / f".figures-old-{os.getpid()}"
+    if (results / "figures").exists():
+        os.rename(results / "figures", old)
+    os.rename(figdir, results / "figures")
+    shutil.rmtree(old, ignore_errors=True)
     ctx.metric("n_rows", len(table))
     return {}
 

@@ -45,6 +45,15 @@ def motion_phases(r: np.ndarray, rel_tol: float = 1e-6) -> dict[str, np.ndarray]
     return {"accel": acc, "constvel": mov & ~acc, "standstill": ~mov & ~acc}
 
 
+def phase_ff_errors(r: np.ndarray, f_hat: np.ndarray, f: np.ndarray) -> dict[str, float]:
+    """``ff_rms_<phase>`` [N]: the rms of the feedforward's force error f - f̂ (f̂ the exact optimal
+    input) within each :func:`motion_phases` phase of r (0 where there is none): whether a
+    feedforward errs where the reference accelerates (mass) or where it moves steadily (friction)."""
+    d = np.asarray(f, dtype=np.float64) - np.asarray(f_hat, dtype=np.float64)
+    return {f"ff_rms_{k}": float(np.sqrt(np.mean(d[m] ** 2))) if m.any() else 0.0
+            for k, m in motion_phases(r).items()}
+
+
 def phase_peaks(r: np.ndarray, y: np.ndarray) -> dict[str, float]:
     """``max_abs_<phase>``: the peak |r - y| within each :func:`motion_phases` phase (0 where the
     reference has no such samples): where a feedforward's peak error comes from."""

@@ -3,7 +3,8 @@
 ``evaluate.noise``: false = noise-free evaluation runs (B1b); true = the plant's noise model,
 seeded by the config.  Metrics ``evaluate/<reference>/<metric>`` (mae, max_abs, norm2,
 sq_norm2, rms, ff_error where the optimal input is known; the peak per motion phase
-max_abs_accel|constvel|standstill); a figure of the tracking errors, and artifact
+max_abs_accel|constvel|standstill, and with a known optimal input the feedforward's force error
+per phase ff_rms_<phase>); a figure of the tracking errors, and artifact
 ``evaluate/errors.npz`` (t, and r and e per reference) for figures across runs.
 """
 from __future__ import annotations
@@ -11,11 +12,11 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline import plots
-from pipeline.metrics import phase_peaks, tracking_metrics
+from pipeline.metrics import phase_ff_errors, phase_peaks, tracking_metrics
 
 UPSTREAM = ("invert",)
 DEPENDS = ("system", "evaluate", "seed")
-VERSION = 2   # 2: per-phase peaks, errors.npz artifact
+VERSION = 3   # 2: per-phase peaks, errors.npz artifact; 3: per-phase feedforward force error
 
 
 def optimal_input(system, r):
@@ -37,6 +38,8 @@ def run(ctx) -> dict:
         f_opt = optimal_input(system, r)
         m = tracking_metrics(r, sim.y_clean, f_opt, u_ff if f_opt is not None else None)
         m |= phase_peaks(r, sim.y_clean)
+        if f_opt is not None:
+            m |= phase_ff_errors(r, f_opt, u_ff)
         for k, val in m.items():
             ctx.metric(f"{name}/{k}", val)
         t = np.arange(r.size) * system.Ts

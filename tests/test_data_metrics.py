@@ -98,5 +98,10 @@ def test_motion_phases_match_the_designed_segment_times():
         idx = np.flatnonzero(m[k])
         e[idx[len(idx) // 2]] = val
     assert phase_peaks(r, r - e) == {"max_abs_accel": 2.0, "max_abs_constvel": 3.0, "max_abs_standstill": 1.0}
+    # force error per phase: 3 N wherever the reference accelerates, 0 elsewhere
+    from pipeline.metrics import phase_ff_errors
+    f_hat = np.sin(np.arange(r.size))
+    err = phase_ff_errors(r, f_hat, f_hat + 3.0 * m["accel"])
+    assert err == {"ff_rms_accel": 3.0, "ff_rms_constvel": 0.0, "ff_rms_standstill": 0.0}
     with pytest.raises(ValueError, match="at least 3 samples"):
         motion_phases(np.zeros(2))

@@ -216,46 +216,56 @@ PHASE_LABEL = {"accel": "accelerating", "constvel": "constant velocity", "stands
 
 
 def _peak_diagnosis(table, rows, experiment) -> list[str]:
-    """Where the peak errors at 0.15 m/s are (per motion phase, evaluate/<ref>/max_abs_<phase>),
-    and what the noise sweep says about them: the reason is read from the numbers."""
+    """Why the peak condition fails, read from the runs: the peak error per motion phase at
+    0.15 m/s (evaluate/<ref>/max_abs_<phase>) and the feedforward's force error against the exact
+    optimal input per phase (evaluate/<ref>/ff_rms_<phase>, the equation plant's inverse)."""
     ref = "v0.15"
-    d = table.get(("equation", "direct"), {})
-    if f"evaluate/{ref}/max_abs_accel" not in d:
-        return ["(No per-phase peaks in these runs: rerun `make reproduce` to get them.)"]
+    get = lambda mt, key: table.get(("equation", mt), {}).get(key)  # noqa: E731
+    if get("direct", f"evaluate/{ref}/max_abs_accel") is None:
+        return ["(No per-phase metrics in these runs: rerun `make reproduce` to get them.)"]
+    have = [mt for mt in METHODS if ("equation", mt) in table]
     out = ["| peak error at 0.15 m/s [m] | " + " | ".join(PHASE_LABEL.values()) + " |",
            "| --- |" + " --- |" * len(PHASE_LABEL)]
-    ratios = {}
-    for mt in METHODS:
-        m = table.get(("equation", mt))
-        if m is None:
-            continue
-        out.append(f"| {LABEL[mt]} | " + " | ".join(f"{m[f'evaluate/{ref}/max_abs_{k}']:.3g}" for k in PHASE_LABEL)
-                   + " |")
+    for mt in have:
+        out.append(f"| {LABEL[mt]} | " + " | ".join(f"{get(mt, f'evaluate/{ref}/max_abs_{k}'):.3g}"
+                                                   for k in PHASE_LABEL) + " |")
         if mt in ("newton", "analytic"):
-            ratios[mt] = {k: m[f"evaluate/{ref}/max_abs_{k}"] / d[f"evaluate/{ref}/max_abs_{k}"] for k in PHASE_LABEL}
-            for k, v in ratios[mt].items():
+            for k in PHASE_LABEL:
+                v = get(mt, f"evaluate/{ref}/max_abs_{k}") / get("direct", f"evaluate/{ref}/max_abs_{k}")
                 rows.append(row(experiment, f"equation/{mt}/{ref}", f"peak_over_direct_{k}", v))
     out.append("")
-    if not ratios:
+    ff = {(mt, r, k): get(mt, f"evaluate/{r}/ff_rms_{k}") for mt in have for r in ("v0.05", ref)
+          for k in ("accel", "constvel")}
+    if any(v is None for v in ff.values()):
         return out
-    worst = {mt: max(r, key=r.get) for mt, r in ratios.items()}
-    out.append("Peak ratio to the direct inverse per phase: " + "; ".join(
-        f"{LABEL[mt]}: " + ", ".join(f"{PHASE_LABEL[k]} {v:.2f}" for k, v in r.items()) for mt, r in ratios.items())
+    out += ["Feedforward force error u_ff - f̂ against the exact optimal input f̂ (rms per phase) [N]:", "",
+            "| method | accelerating 0.05 m/s | constant velocity 0.05 m/s | accelerating 0.15 m/s | "
+            "constant velocity 0.15 m/s |", "| --- | --- | --- | --- | --- |"]
+    for mt in have:
+        out.append(f"| {LABEL[mt]} | " + " | ".join(f"{ff[(mt, r, k)]:.2f}" for r in ("v0.05", ref)
+                                                   for k in ("accel", "constvel")) + " |")
+    out.append("")
+    if not all(mt in have for mt in ("direct", "newton")):
+        return out
+    acc = ff[("direct", ref, "accel")] / ff[("newton", ref, "accel")]
+    cv_in, cv_out = ff[("newton", "v0.05", "constvel")], ff[("newton", ref, "constvel")]
+    speed = get("newton", f"invert/{ref}/velocity_over_training")
+    m_f, m_d = get("newton", "train/theta_phy/m"), get("direct", "train/theta_phy/m")
+    out.append(
+        f"Where the reference accelerates, the direct PGNN's force error is {acc:.1f}× Newton's"
+        + (f" (its mass is noise-biased: {m_d:.2f} kg against the forward PGNN's {m_f:.2f} kg)" if m_d and m_f else "")
+        + f". At constant velocity Newton's force error grows from {cv_in:.2f} N at 0.05 m/s to {cv_out:.2f} N "
+        f"at 0.15 m/s (direct {ff[('direct', ref, 'constvel')]:.2f} N, physics-only "
+        f"{ff.get(('physics', ref, 'constvel')) or float('nan'):.2f} N)"
+        + (f"; the 0.15 m/s reference is {speed:.2f}× the fastest training velocity ([B1] Definition 6)"
+           if speed else "")
         + ".")
-    m_f = table.get(("equation", "newton"), {}).get("train/theta_phy/m")
-    m_d = d.get("train/theta_phy/m")
-    if all(w == "constvel" for w in worst.values()):
-        acc = max(r["accel"] for r in ratios.values())
-        out.append("The indirect PGNNs lose the peak condition at constant velocity, where the inertial "
-                   "force is zero and the direct PGNN's noise-biased mass"
-                   + (f" ({m_d:.2f} kg against the forward PGNN's {m_f:.2f} kg)" if m_d and m_f else "")
-                   + " does not act; there every PGNN is left with the velocity- and position-dependent "
-                   "force (Stribeck friction, cogging) that its NN does not capture, which the "
-                   "inversion method cannot remove. In the accelerating phases, where the mass bias acts, "
-                   f"the ratio is at most {acc:.2f}.")
-    else:
-        out.append("The worst phase per method: " + ", ".join(f"{LABEL[mt]} {PHASE_LABEL[w]}"
-                                                             for mt, w in worst.items()) + ".")
+    if acc >= 2.0 and cv_out >= 2.0 * cv_in:  # the mass advantage is there, and so is extrapolation
+        out.append("Each method's peak follows an acceleration phase (shaded in the figure): the loop "
+                   "answers the force error that steps in as the move starts. With the mass right, what "
+                   "is left for the indirect PGNNs is the velocity-dependent force that every PGNN "
+                   "extrapolates alike above the training speeds, so their peak is not 3× below the "
+                   f"direct's although their accelerating-phase force error is {acc:.1f}× smaller.")
     return out
 
 

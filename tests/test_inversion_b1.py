@@ -270,7 +270,7 @@ def test_b1_stages_and_report_section(store, cfg_of, tmp_path):
     assert newton["metrics.invert/nn_r2_unmodelled"] <= 1.0
 
 
-def test_noise_sweep_report_section(store, tmp_path):
+def test_noise_sweep_report_section(store, tmp_path, monkeypatch):
     # the b1_noise_sweep section reads (structure, σ, method) from the runs' params/tags, puts
     # every model's mass and every MAE in summary rows, and states the inverse-mass drift it sees
     import pandas as pd
@@ -299,10 +299,21 @@ def test_noise_sweep_report_section(store, tmp_path):
            and r["metric"] == "theta_phy_star/m"}
     assert inv == {"equation/sigma0/direct": 20.0, "equation/sigma1e-06/direct": 10.0,
                    "output/sigma0/direct": 20.0, "output/sigma1e-06/direct": 10.0}
-    assert "from 20.00 (σ = 0) to 10.00 kg (σ = 1e-06), i.e. -50.0%" in md
+    assert "from 20.00 (σ = 0) to 10.00 kg (σ = 1e-06), -50.0% off the true mass" in md
     assert "within 0.5% of the true mass" in md  # forward LS: 20 + 0.1 at σ = 1e-6
     assert "best of 3 restarts" in md and (tmp_path / "b1_noise_sweep.png").exists()
     assert "Newton / direct peak error at 0.15 m/s: 0.25 at σ = 0, 0.25 at σ = 1e-06." in md
+    # method and σ from run names when tags/params are missing (sweep names carry sigma<σ>)
+    run = pd.Series({"tags.mlflow.runName": "linear_motor-output-sigma1e-08-analytic-s0"})
+    assert claims_b1._variant(run) == ("output", "analytic")
+    # the headline comparison reads the headline's σ and restarts from its params
+    head = pd.DataFrame([{"tags.mlflow.runName": "linear_motor-equation-newton-s0", "tags.invert": "newton",
+                          "params.system.noise.structure": "equation", "params.system.noise.std": "1e-06",
+                          "params.identify.n_restarts": "10", "metrics.evaluate/v0.15/mae": 1.6e-6}])
+    monkeypatch.setattr("stages.report.latest_runs", lambda name: (head, []))
+    _, md = claims_b1.section("b1_noise_sweep", pd.DataFrame(recs), tmp_path)
+    assert "σ = 1e-06, this sweep vs the `b1_linear_motor` headline (best of 10): equation/newton 2e-06 " \
+           "vs 1.6e-06. They differ by up to 25%" in md
 
 
 def test_peak_diagnosis_reads_the_cause_from_the_phase_metrics():
@@ -320,13 +331,22 @@ def test_peak_diagnosis_reads_the_cause_from_the_phase_metrics():
         m |= {"train/theta_phy/m": 17.7 if mt == "direct" else 20.1, "invert/v0.15/velocity_over_training": 1.6}
         table[("equation", mt)] = m
     rows = []
-    md = "\n".join(claims_b1._peak_diagnosis(table, rows, "b1_linear_motor"))
-    assert "the direct PGNN's force error is 3.0× Newton's (its mass is noise-biased: 17.70 kg" in md
-    assert "grows from 0.90 N at 0.05 m/s to 4.10 N at 0.15 m/s" in md and "1.60× the fastest" in md
+    kw = dict(m_true=20.0, lags={"direct": 0.0, "newton": 0.016, "analytic": 0.012})
+    md = "\n".join(claims_b1._peak_diagnosis(table, rows, "b1_linear_motor", **kw))
+    assert "force error is 3.0× Newton k=5 (Alg. 1)'s, 3.0× analytic (27)'s (its mass 17.70 kg, the " \
+           "forward PGNN's 20.10 kg, true 20 kg)" in md
+    assert "by 4.6× (Newton k=5 (Alg. 1), to 4.10 N)" in md and "1.60× the fastest" in md
+    assert "comes 0 ms (physics" not in md and "16 ms (Newton k=5 (Alg. 1))" in md
     assert "extrapolates alike above the training speeds" in md
     ratio = {(r["variant"], r["metric"]): r["value"] for r in rows}
     assert ratio[("equation/newton/v0.15", "peak_over_direct_constvel")] == pytest.approx(4.4 / 7)
-    # no conclusion the numbers do not carry: no clear accelerating-phase advantage
-    table[("equation", "newton")]["evaluate/v0.15/ff_rms_accel"] = 6.0
-    md = "\n".join(claims_b1._peak_diagnosis(table, [], "b1_linear_motor"))
-    assert "1.5× Newton's" in md and "extrapolates alike" not in md
+    # no conclusion the numbers do not carry: each condition on its own withholds it
+    for change in ({"lags": {"newton": 0.2}}, {"m_true": 25.0}):
+        md = "\n".join(claims_b1._peak_diagnosis(table, [], "b1_linear_motor", **(kw | change)))
+        assert "extrapolates alike" not in md
+    table[("equation", "newton")]["evaluate/v0.15/ff_rms_accel"] = 6.0   # no clear mass advantage
+    md = "\n".join(claims_b1._peak_diagnosis(table, [], "b1_linear_motor", **kw))
+    assert "1.5× Newton k=5 (Alg. 1)'s" in md and "extrapolates alike" not in md
+    del table[("equation", "analytic")]["evaluate/v0.15/max_abs_accel"]   # a run from evaluate v1
+    md = "\n".join(claims_b1._peak_diagnosis(table, [], "b1_linear_motor", **kw))
+    assert "analytic (27) |" not in md

@@ -194,3 +194,19 @@ def test_report_stage_writes_report_summary_and_only_current_figures(store, cfg_
     figs = {p.name for p in (results / "figures").iterdir()}
     assert "stale.png" not in figs and any(f.endswith("tracking_error.png") for f in figs)
     assert [p.name for p in results.iterdir() if p.name.startswith(".")] == []  # no temp leftovers
+
+
+def test_report_stage_failure_leaves_the_old_results(store, cfg_of, monkeypatch):
+    results = store / "results"
+    (results / "figures").mkdir(parents=True)
+    (results / "figures" / "kept.png").write_bytes(b"old")
+    runner.run_job(cfg_of(*SHORT_TWO_MASS))
+
+    def broken(*args):
+        raise RuntimeError("provider failed")
+    monkeypatch.setattr("stages.report.generic.section", broken)
+    with pytest.raises(RuntimeError, match="provider failed"):
+        runner.run_job(cfg_of("stages=[report]", "experiment_name=report", f"paths.results={results}",
+                              "report.experiments=[physics_baseline]"))
+    assert sorted(p.name for p in results.iterdir()) == ["figures"]   # no temp dirs, no partial files
+    assert [p.name for p in (results / "figures").iterdir()] == ["kept.png"]

@@ -280,8 +280,8 @@ def _peak_diagnosis(table, rows, experiment, failing=("newton", "analytic"), m_t
     if (all(acc[mt] >= 2.0 and grow[mt] >= 2.0 and 0.7 <= alike[mt] <= 1.5 for mt in ind) and mass_right
             and lags and max(lags.values()) <= 0.05):
         out.append(f"So: the loop's peak error answers the force error that steps in as each move starts. "
-                   f"{names} have the mass within 2% and lose where the reference accelerates "
-                   "≥ 2× less force than the direct PGNN; what they keep is the velocity-dependent force "
+                   f"{names} have the mass within 2% and, where the reference accelerates, a force "
+                   "error ≥ 2× smaller than the direct PGNN's; what they keep is the velocity-dependent force "
                    "that every PGNN extrapolates alike above the training speeds (within ±50% of the "
                    "direct's at constant velocity), which no inversion removes, so their peak is not 3× "
                    "below the direct's.")

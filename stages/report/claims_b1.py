@@ -423,7 +423,7 @@ def _noise_sweep(experiment, runs, figdir):
                     vals.append("" if v is None else f"{v:.3g}")
             lines.append(f"| {s} | {sg:g} | " + " | ".join(vals) + " |")
             for mt in METHODS:
-                for k, v in table.get((s, sg, mt), {}).items():
+                for k, v in sorted(table.get((s, sg, mt), {}).items()):  # stable row order
                     if k.startswith("evaluate/") and k.rsplit("/", 1)[1] in ("mae", "max_abs"):
                         rows.append(row(experiment, f"{s}/sigma{sg:g}/{mt}/{k.split('/')[1]}",
                                         k.rsplit("/", 1)[1], v))

@@ -13,14 +13,14 @@ import mlflow  # noqa: E402
 from pipeline import tracking  # noqa: E402
 
 
-def copy_figures(run_id: str, figdir: Path, prefix: str) -> list[str]:
-    """Copy every ``figures/*.png`` of the run to ``figdir/<prefix>-<name>``; return the paths
-    relative to REPORT.md (``figures/...``)."""
+def copy_figures(run_id: str, figdir: Path, prefix: str, only: tuple[str, ...] = ()) -> list[str]:
+    """Copy the run's ``figures/*.png`` (those whose name contains one of ``only``, if given) to
+    ``figdir/<prefix>-<name>``; return the paths relative to REPORT.md (``figures/...``)."""
     c = tracking.client()
     out = []
     with tempfile.TemporaryDirectory() as tmp:
         for art in c.list_artifacts(run_id, "figures"):
-            if not art.path.endswith(".png"):
+            if not art.path.endswith(".png") or (only and not any(s in art.path for s in only)):
                 continue
             local = mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=art.path,
                                                         dst_path=tmp)

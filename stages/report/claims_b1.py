@@ -197,9 +197,8 @@ def _linear_motor(experiment, runs, figdir):
         lines += [f"![tracking error at 0.15 m/s, every method]({fig})", ""]
     for key in (("equation", "direct"), ("equation", "newton"), ("equation", "analytic")):
         if key in ids:
-            for fig in copy_figures(ids[key], figdir, f"{experiment}-{key[0]}-{key[1]}"):
-                if "loss" in fig:
-                    lines += [f"![{Path(fig).stem}]({fig})", ""]
+            for fig in copy_figures(ids[key], figdir, f"{experiment}-{key[0]}-{key[1]}", only=("loss",)):
+                lines += [f"![{Path(fig).stem}]({fig})", ""]
     if verdicts:
         failed = [v for v in verdicts if not v[1]]
         lines += [f"B1b/B1c conditions (`equation` noise): {len(verdicts) - len(failed)} of "

@@ -183,10 +183,9 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
     lines.append("")
 
     for key in ("rational", "pgnn_orthogonal", "pgnn_none"):
-        figs = copy_figures(found[key]["run_id"], figdir, f"{experiment}-{key}")
-        for fig in figs:
-            if any(s in fig for s in ("f_M_f_C", "sk_J_OE", "tracking_error")):
-                lines += [f"![{key} {Path(fig).stem}]({fig})", ""]
+        for fig in copy_figures(found[key]["run_id"], figdir, f"{experiment}-{key}",
+                                only=("f_M_f_C", "sk_J_OE", "tracking_error")):
+            lines += [f"![{key} {Path(fig).stem}]({fig})", ""]
     return rows, "\n".join(lines) + "\n"
 
 

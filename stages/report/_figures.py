@@ -1,6 +1,7 @@
 """Copy a run's figure artifacts from MLflow into results/figures/."""
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 import tempfile
@@ -30,6 +31,7 @@ def copy_figures(run_id: str, figdir: Path, prefix: str, only: tuple[str, ...] =
     return out
 
 
+@functools.lru_cache(maxsize=64)  # the Fig. 3 plot and the peak lags read the same runs
 def load_errors(run_id: str) -> dict | None:
     """The run's ``evaluate/errors.npz`` (Ts, and ``<ref>/r``, ``<ref>/e``) as a dict of arrays, or
     None if the run has none (runs made before the evaluate stage logged it)."""

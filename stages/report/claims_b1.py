@@ -206,12 +206,10 @@ def _linear_motor(experiment, runs, figdir):
         if failed:
             lines += ["Failed: " + "; ".join(f"{t} (value {x:.3g})" for t, _, x in failed) + ".", ""]
             if any("peak" in t for t, _, _ in failed):
-                m_true = pd.to_numeric(runs.get("params.system.m", pd.Series(dtype=float)), errors="coerce")
                 lines += _peak_diagnosis(table, rows, experiment,
                                          failing=[mt for mt in METHODS if any(t.startswith(f"{mt} peak")
                                                                              for t, _, _ in failed)],
-                                         m_true=float(m_true.dropna().iloc[0]) if m_true.notna().any()
-                                         else float("nan"), lags=_peak_lags(ids))
+                                         m_true=_first_param(runs, "system.m"), lags=_peak_lags(ids))
         lines.append("")
     return rows, "\n".join(lines) + "\n"
 
@@ -368,33 +366,36 @@ MASS = (("forward LS θ*_phy (7)", "newton", "train/theta_phy_star/m"),
 SWEEP_REFS = ("v0.05", "v0.15")  # in the tables and figure: the training speed and [B1] Fig. 3's
 
 
-def _sweep_table(runs) -> tuple[dict, dict]:
-    """{(structure, σ, method): metrics} and {(structure, σ, method): run_id}."""
-    table, ids = {}, {}
+def _first_param(runs: pd.DataFrame, key: str) -> float:
+    """The first numeric value of param ``key`` over the runs (NaN if none has it)."""
+    v = pd.to_numeric(runs.get(f"params.{key}", pd.Series(dtype=float)), errors="coerce").dropna()
+    return float(v.iloc[0]) if len(v) else float("nan")
+
+
+def _sweep_table(runs) -> dict:
+    """{(structure, σ, method): metrics}."""
+    table = {}
     for _, run in runs.iterrows():
         noise, method = _variant(run)
         sigma = run.get("params.system.noise.std")
         if method in METHODS and sigma is not None and pd.notna(sigma):
             table[(noise, float(sigma), method)] = run_metrics(run)
-            ids[(noise, float(sigma), method)] = run["run_id"]
-    return table, ids
+    return table
 
 
 def _noise_sweep(experiment, runs, figdir):
-    table, _ = _sweep_table(runs)
+    table = _sweep_table(runs)
     sigmas = sorted({k[1] for k in table})
     structures = [s for s in ("equation", "output") if any(k[0] == s for k in table)]
-    m_true = pd.to_numeric(runs.get("params.system.m", pd.Series(dtype=float)), errors="coerce").dropna()
-    m_true = float(m_true.iloc[0]) if len(m_true) else float("nan")
-    n_restarts = pd.to_numeric(runs.get("params.identify.n_restarts", pd.Series(dtype=float)),
-                               errors="coerce").dropna()
+    m_true = _first_param(runs, "system.m")
+    n_restarts = _first_param(runs, "identify.n_restarts")
     rows = []
     lines = [f"## {experiment}", "",
              "**Noise study** ([B1] §II-C, Prop. 4.1, Remark 4.2 on the simulated linear motor, SPEC §2.2): "
              "the `b1_linear_motor` set-up with the training-data noise swept, for both noise "
              "structures: `equation` (NARX noise σ_v, forward identification consistent) and `output` "
              f"(measurement noise σ_y). True mass m = {m_true:g} kg. PGNNs: best of "
-             f"{int(n_restarts.iloc[0]) if len(n_restarts) else '?'} restarts (the headline uses 10; the "
+             f"{n_restarts:.0f} restarts (the headline uses 10; the "
              "restart seeds are the first ones of those 10). Evaluation runs are noise-free.", "",
              "Estimated mass [kg]:", "",
              "| noise | σ [m] | " + " | ".join(lbl for lbl, _, _ in MASS) + " |",

@@ -17,7 +17,11 @@ import numpy as np
 import pandas as pd
 
 REQUIRED = ("t", "r", "u", "y")
-OPTIONAL = ("u_ff", "u_fb", "f_opt", "y_clean", "v", "segment")
+OPTIONAL = ("u_ff", "u_fb", "f_opt", "y_clean", "v", "segment", "d")
+#: measured data: |value| above this is not a plausible SI signal (a corrupted or mis-scaled file)
+MAX_ABS = 1e12
+#: relative tolerance on the uniformity of a time column and on sample-time agreement
+TS_RTOL = 1e-3
 
 
 @dataclass
@@ -58,19 +62,69 @@ class Dataset:
 
 
 def validate_frame(df: pd.DataFrame, source: str) -> None:
-    """Raise a clear error on missing columns or NaN/inf values."""
+    """Raise a clear error on missing or non-numeric columns, NaN/inf or implausible values."""
     missing = [c for c in REQUIRED if c not in df.columns]
     if missing:
         raise ValueError(f"{source}: missing column(s) {missing}; a dataset needs {list(REQUIRED)} "
                          f"(optional {list(OPTIONAL)})")
+    if len(df) < 2:
+        raise ValueError(f"{source}: {len(df)} row(s); a dataset needs at least 2 samples")
     for c in df.columns:
         if c == "segment":
             continue
+        if not pd.api.types.is_numeric_dtype(df[c]) or pd.api.types.is_bool_dtype(df[c]):
+            bad = pd.to_numeric(df[c], errors="coerce").isna() & df[c].notna()
+            first = df[c][bad].iloc[0] if bad.any() else df[c].iloc[0]
+            raise ValueError(f"{source}: column '{c}' is not numeric (e.g. {first!r} at row "
+                             f"{int(np.flatnonzero(bad.to_numpy())[0]) if bad.any() else 0}); give numbers in SI "
+                             "units (no text, units or thousands separators in the cells)")
         a = df[c].to_numpy(dtype=np.float64)
         bad = ~np.isfinite(a)
         if bad.any():
             raise ValueError(f"{source}: column '{c}' has {int(bad.sum())} NaN/inf value(s), first at "
                              f"row {int(np.flatnonzero(bad)[0])}; clean or cut those samples first")
+        big = np.abs(a) > MAX_ABS
+        if big.any():
+            k = int(np.flatnonzero(big)[0])
+            raise ValueError(f"{source}: column '{c}' has |value| = {abs(a[k]):.3g} at row {k} (> {MAX_ABS:g}); "
+                             "not a plausible SI signal: check the file's units and scaling")
+
+
+def sample_time(t, Ts_sidecar, source: str, rtol: float = TS_RTOL) -> float:
+    """The sample time of a record [s] from its time column ``t`` and/or sidecar ``Ts``.
+
+    ``t`` must be increasing and uniform to ``rtol`` (relative spread of its steps), the sidecar
+    positive and equal to t's step (to ``rtol``).  Raises ValueError naming the problem and the fix.
+    """
+    if Ts_sidecar is not None:
+        try:
+            Ts_sidecar = float(Ts_sidecar)
+        except (TypeError, ValueError):
+            raise ValueError(f"{source}: sidecar 'Ts' = {Ts_sidecar!r} is not a number; give the sample "
+                             "time in s") from None
+        if not (np.isfinite(Ts_sidecar) and Ts_sidecar > 0):
+            raise ValueError(f"{source}: sidecar 'Ts' = {Ts_sidecar!r} is not a positive sample time; give "
+                             "the sample time in s")
+    if t is None:
+        if Ts_sidecar is None:
+            raise ValueError(f"{source}: no 't' column and no sidecar 'Ts'; add a time column [s] or a "
+                             "JSON sidecar with {\"Ts\": <sample time in s>}")
+        return Ts_sidecar
+    t = np.asarray(t, dtype=np.float64)
+    dt = np.diff(t)
+    if np.any(dt <= 0):
+        k = int(np.flatnonzero(dt <= 0)[0])
+        raise ValueError(f"{source}: column 't' is not increasing (t[{k + 1}] = {t[k + 1]!r} <= t[{k}] = "
+                         f"{t[k]!r}); sort the samples by time and drop repeated ones")
+    med = float(np.median(dt))
+    spread = float(np.max(np.abs(dt - med)) / med)
+    if spread > rtol:
+        raise ValueError(f"{source}: column 't' is not uniformly sampled (steps {dt.min():.6g} to {dt.max():.6g} "
+                         f"s, spread {spread:.2g} > {rtol:g}); resample the record to a uniform grid first")
+    if Ts_sidecar is not None and abs(Ts_sidecar - med) > rtol * med:
+        raise ValueError(f"{source}: the sidecar says Ts = {Ts_sidecar:g} s but column 't' steps {med:.6g} s; "
+                         "make them agree")
+    return med
 
 
 def _atomic_write(path: Path, write) -> None:
@@ -94,37 +148,53 @@ def save(ds: Dataset, path: str | Path) -> Path:
 
 
 def load(path: str | Path) -> Dataset:
-    """Read a Parquet dataset (+ sidecar); clear errors for a missing file or bad data."""
+    """Read a Parquet or CSV dataset (+ JSON sidecar); clear errors for a missing file or bad data.
+    The sample time comes from the sidecar's ``Ts`` and/or the ``t`` column, checked by
+    :func:`sample_time`."""
     path = Path(path)
     if path.suffix not in (".parquet", ".csv"):
         path = path.with_suffix(".parquet")
     if not path.exists():
         raise FileNotFoundError(f"data file {path} does not exist; check data.path (absolute, or "
                                 "relative to the repo root) or generate it with stages=[generate]")
-    frame = pd.read_parquet(path) if path.suffix == ".parquet" else pd.read_csv(path)
+    try:
+        frame = pd.read_parquet(path) if path.suffix == ".parquet" else pd.read_csv(path)
+    except pd.errors.EmptyDataError:
+        raise ValueError(f"{path}: the file is empty; a dataset needs columns {list(REQUIRED)}") from None
     side = path.with_suffix(".json")
     meta = json.loads(side.read_text()) if side.exists() else {}
-    meta.setdefault("source", str(path))
-    if "Ts" not in meta:
-        t = frame["t"].to_numpy() if "t" in frame else None
-        if t is None or len(t) < 2:
-            raise ValueError(f"{path}: no sidecar with 'Ts' and no usable 't' column; add {side.name} "
-                             "with {\"Ts\": <sample time in s>}")
-        meta["Ts"] = float(np.median(np.diff(t)))
+    meta["source"] = str(path)
+    validate_frame(frame, str(path))
+    meta["Ts"] = sample_time(frame["t"].to_numpy(np.float64) if "t" in frame else None, meta.get("Ts"),
+                             str(path))
     return Dataset(frame, meta)
 
 
+#: the EMPS controller constants stored in its .mat files (checked against the system config)
+EMPS_CONSTANTS = ("gtau", "kp", "kv")
+
+
 def load_emps(folder: str | Path, which: str = "DATA_EMPS") -> Dataset:
-    """The EMPS benchmark (SPEC §2.5): force τ = gtau·vir as u, position qm as y, qg as r."""
+    """The EMPS benchmark (SPEC §2.5; Janot, Gautier, Brunot 2019): force τ = gtau·vir [N] as u,
+    position qm [m] as y, reference qg [m] as r, and the test file's force pulses ``pulses_N``
+    [V, added to vir after the saturation] as the measured disturbance d (zero in the training
+    file).  The file's gtau, kp, kv go to the metadata (the system config is checked against them)."""
     from scipy.io import loadmat
     path = Path(folder) / f"{which}.mat"
     if not path.exists():
         raise FileNotFoundError(f"EMPS file {path} not found; point data.path to the folder holding "
                                 "DATA_EMPS.mat and DATA_EMPS_PULSES.mat (e.g. ../shared/data/emps)")
     m = loadmat(path)
+    need = ("t", "qm", "qg", "vir") + EMPS_CONSTANTS
+    missing = [k for k in need if k not in m]
+    if missing:
+        raise ValueError(f"{path}: variable(s) {missing} missing; an EMPS file holds {list(need)}")
     col = {k: np.asarray(m[k], dtype=np.float64).ravel() for k in ("t", "qm", "qg", "vir")}
-    gtau = float(np.asarray(m["gtau"]).ravel()[0])
-    frame = pd.DataFrame({"t": col["t"] - col["t"][0], "r": col["qg"], "u": gtau * col["vir"],
-                          "y": col["qm"]})
-    return Dataset(frame, {"system": "emps", "Ts": float(np.median(np.diff(col["t"]))),
-                           "source": str(path), "gtau": gtau})
+    const = {k: float(np.asarray(m[k]).ravel()[0]) for k in EMPS_CONSTANTS}
+    d = np.asarray(m["pulses_N"], dtype=np.float64).ravel() if "pulses_N" in m else np.zeros_like(col["t"])
+    frame = pd.DataFrame({"t": col["t"] - col["t"][0], "r": col["qg"], "u": const["gtau"] * col["vir"],
+                          "y": col["qm"], "d": d})
+    validate_frame(frame, str(path))
+    Ts = sample_time(col["t"], None, str(path))
+    return Dataset(frame, {"system": "emps", "Ts": Ts, "source": str(path), **const,
+                           "script_step": float(col["t"][9] - col["t"][8])})

@@ -23,13 +23,14 @@ def signals(t: np.ndarray, series: dict[str, np.ndarray], ylabel: str, title: st
     return fig
 
 
-def tracking_errors(runs: dict[str, tuple[np.ndarray, np.ndarray]], title: str = ""):
+def tracking_errors(runs: dict[str, tuple[np.ndarray, np.ndarray]], title: str = "",
+                    ylabel: str = "e = r - y [m]"):
     """Tracking error e = r - y per method/reference ([B1] Fig. 3): ``{label: (t, e)}``."""
     fig, ax = plt.subplots(figsize=(7, 3.2))
     for label, (t, e) in runs.items():
         ax.plot(t, e, lw=1, label=label)
     ax.set_xlabel("t [s]")
-    ax.set_ylabel("e = r - y [m]")
+    ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)

@@ -31,11 +31,21 @@ def build_reference(spec: dict, Ts: float) -> np.ndarray:
         raise ConfigError(f"reference '{spec.get('name')}': {exc}") from exc
 
 
-def check_references(specs: list[dict], system) -> dict[str, np.ndarray]:
-    """Build every reference and check it against the plant's limits, before any work."""
+def check_references(specs: list[dict], system, cfg=None) -> dict[str, np.ndarray]:
+    """Build every reference and check it against the plant's limits, before any work.
+
+    A reference of kind ``measured`` is the reference column r of a recorded file
+    (``file``, read from ``data.path`` like the training data, checked like it; needs ``cfg``)."""
     out = {}
     for s in specs:
-        r = build_reference(s, system.Ts)
+        if s.get("kind") == "measured":
+            if cfg is None or str(cfg.data.get("kind")) != "measured":
+                raise ConfigError(f"reference '{s['name']}' is of kind 'measured' (a recorded file): it needs "
+                                  "data=measured with data.path pointing at the records")
+            from stages.generate.measured import reference
+            r = reference(cfg, s, system)["r"]
+        else:
+            r = build_reference(s, system.Ts)
         try:
             system.check_reference(r)
         except ValueError as exc:

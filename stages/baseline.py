@@ -1,28 +1,63 @@
-"""baseline: least-squares identification of the plant's nominal physics model (SPEC §3, §5)."""
+"""baseline: least-squares identification of the plant's nominal physics model (SPEC §3, §5).
+
+Simulated plants: column-scaled LS of the one-step model.  Measured systems
+(:class:`pipeline.systems.measured.Recording`): the filtered inverse-model LS of the EMPS
+benchmark (``system.idim``), with the relative deviation from the published parameters where
+the system config gives them.  Physical parameters that must be positive (masses, stiffnesses,
+friction, damping) and come out negative are a warning: run tag ``physics_warning`` (the report
+shows it) and a Python warning, because the physics model does not fit the data.
+"""
 from __future__ import annotations
+
+import warnings
 
 from pipeline.identify.least_squares import fit_physics
 from pipeline.runner import ConfigError
+from pipeline.systems.measured import Recording
 
 UPSTREAM = ("generate",)
 DEPENDS = ("system",)
 VERSION = 1
+#: physical parameters that cannot be negative (masses, stiffnesses, friction and damping)
+POSITIVE = ("m", "M", "m1", "m2", "k", "k1", "k2", "c", "d2", "f_v", "F_v", "f_c", "F_c")
+
+
+def nonphysical(physical: dict) -> list[str]:
+    """Names (with values) of parameters that must be positive but are not."""
+    return [f"{k}={v:.4g}" for k, v in physical.items() if k in POSITIVE and not v > 0]
 
 
 def run(ctx) -> dict:
     ds = ctx.inputs["generate"]["dataset"]
-    physics = ctx.system.physics
+    system = ctx.system
+    physics = system.physics
     try:
-        theta = fit_physics(physics, ({c: seg[c].to_numpy() for c in ("y", "u", "r")}
-                                      for seg in ds.segments()))
+        if isinstance(system, Recording):
+            if len(list(ds.segments())) != 1:
+                raise ValueError("a measured record is one segment; give one file per data.file")
+            theta = system.fit_physics(ds["y"], ds["u"])
+        else:
+            theta = fit_physics(physics, ({c: seg[c].to_numpy() for c in ("y", "u", "r")}
+                                          for seg in ds.segments()))
     except ValueError as exc:
-        raise ConfigError(f"physics baseline of '{ctx.system.name}': {exc}") from exc
+        raise ConfigError(f"physics baseline of '{system.name}': {exc}") from exc
     physical = physics.physical(theta)
     for k, v in physical.items():
         ctx.metric(k, v)
-    truth = getattr(ctx.system, "true_physical", None)
+    bad = nonphysical(physical)
+    if bad:
+        msg = (f"the physics model of '{system.name}' does not fit these data: {', '.join(bad)} "
+               "(must be positive); check the system choice, signs and units")
+        ctx.tag("physics_warning", msg)
+        warnings.warn(msg, stacklevel=1)
+    truth = getattr(system, "true_physical", None)
     if callable(truth):  # where the simulator knows its parameters, report the estimation error
         for k, v in truth().items():
             if k in physical and v != 0:
                 ctx.metric(f"rel_error/{k}", abs(physical[k] - v) / abs(v))
+    published = getattr(system, "published", None)
+    if published:       # measured systems: deviation from the published reference model
+        for k, v in published.items():
+            if k in physical and v != 0:
+                ctx.metric(f"rel_error_published/{k}", (physical[k] - v) / abs(v))
     return {"theta": theta, "physical": physical}

@@ -6,6 +6,19 @@ sq_norm2, rms, ff_error where the optimal input is known; the peak per motion ph
 max_abs_accel|constvel|standstill, and with a known optimal input the feedforward's force error
 per phase ff_rms_<phase>); a figure of the tracking errors, and artifact
 ``evaluate/errors.npz`` (t, and r and e per reference) for figures across runs.
+
+Measured systems (:class:`pipeline.systems.measured.Recording`) have no plant to run: every
+reference is a recorded file (kind ``measured``), and the identified model is replayed inside the
+known controller with the recorded reference and disturbance (``pipeline.identify.measured_loop``)
+in both timing conventions, ``data`` and ``published``: metrics ``<ref>/<convention>/
+force_rel_error | position_rel_error | rmse_mm``; the published reference model, where the system
+gives it, as ``<ref>/published_model/<convention>/…``; and the feedforward's *model-predicted*
+tracking (the identified model in the loop with u_ff added, tag ``feedforward_scoring``) as
+``<ref>/model_based/mae|max_abs|rms`` beside the recorded tracking without feedforward
+``<ref>/recorded/…``; ``<ref>/data/force_rel_error_tail`` scores the last
+``evaluate.validation_tail`` of the record (on the training file: the validation block the
+trainings held out, where hyper-parameters are chosen).  A measured-data model scored on a simulator is refused unless
+``evaluate.allow_simulator=true``, which tags the run ``evaluated_on``.
 """
 from __future__ import annotations
 
@@ -13,6 +26,8 @@ import numpy as np
 
 from pipeline import plots
 from pipeline.metrics import phase_ff_errors, phase_peaks, tracking_metrics
+from pipeline.runner import ConfigError
+from pipeline.systems.measured import Recording
 
 UPSTREAM = ("invert",)
 DEPENDS = ("system", "evaluate", "seed")
@@ -27,9 +42,29 @@ def optimal_input(system, r):
         return None
 
 
+def validate(cfg, system) -> None:
+    from stages._common import reference_specs
+    measured_data = str(cfg.data.get("kind")) == "measured"
+    if isinstance(system, Recording):
+        bad = [s["name"] for s in reference_specs(cfg.evaluate.references) if s.get("kind") != "measured"]
+        if bad:
+            raise ConfigError(f"system '{system.name}' is a recording: it has no plant to run reference(s) {bad}; "
+                              "give evaluate references of kind 'measured' naming a recorded file "
+                              "(e.g. evaluate=emps)")
+    elif measured_data and not cfg.evaluate.get("allow_simulator", False):
+        raise ConfigError(f"the model is identified on measured data ({cfg.data.get('path')}) but system "
+                          f"'{system.name}' is a simulator: scoring it there says nothing about the machine the "
+                          "data came from. Use the measured system (e.g. system=emps evaluate=emps), or set "
+                          "evaluate.allow_simulator=true to do it on purpose (the run is tagged)")
+
+
 def run(ctx) -> dict:
     inv = ctx.inputs["invert"]
     system = ctx.system
+    if isinstance(system, Recording):
+        return _run_measured(ctx)
+    if str(ctx.cfg.data.get("kind")) == "measured":
+        ctx.tag("evaluated_on", f"simulator '{system.name}', not the plant the data came from")
     out, errors = {}, {}
     for name, r in inv["r"].items():
         u_ff = inv["u_ff"][name]
@@ -55,3 +90,63 @@ def run(ctx) -> dict:
     ctx.figure(plots.signals(t, {"u_ff": inv["u_ff"][first], "u": out[first]["u"]}, "input [N]",
                              f"{first}: feedforward and total input"), "feedforward.png")
     return {"per_reference": out}
+
+
+# ------------------------------------------------------------------------------------------
+# measured systems: replay in the recorded loop
+# ------------------------------------------------------------------------------------------
+def _run_measured(ctx) -> dict:
+    from pipeline.identify.measured_loop import CONVENTIONS, LoopModel, LoopSignals, loop_errors, simulate_loop
+    from pipeline.systems.measured import RigidBodyPhysics
+    from stages._common import reference_specs
+    from stages.generate.measured import reference
+    inv, system, cfg = ctx.inputs["invert"], ctx.system, ctx.cfg
+    loop, ctrl = inv["loop"], system.ctrl
+    tail = float(cfg.evaluate.get("validation_tail", 0.2))
+    published = None
+    if system.published_theta() is not None:   # the authors' model in their discretisation (direct input)
+        pub_physics = RigidBodyPhysics(system.Ts, averaged_input=False, offset=system.physics.has_offset)
+        published = LoopModel.physics_only(pub_physics, system.published_theta())
+    ctx.tag("feedforward_scoring", "model-based: the identified model in the recorded loop, not the machine")
+    out, errors, force = {}, {}, {}
+    for spec in reference_specs(cfg.evaluate.references):
+        name = spec["name"]
+        ds = reference(cfg, spec, system)
+        y, tau, r = ds["y"], ds["u"], ds["r"]
+        d = ds["d"] if "d" in ds.frame else np.zeros_like(y)
+        sig = LoopSignals(r, d, float(y[0]), ds["t"])
+        m = {}
+        for conv in CONVENTIONS:
+            y_hat, tau_hat, _ = simulate_loop(loop, ctrl, sig, conv)
+            m |= {f"{conv}/{k}": v for k, v in loop_errors(y, tau, y_hat, tau_hat).items()}
+            if conv == "data":
+                force[name] = (ds["t"], tau - tau_hat)
+                k0 = int(round((1.0 - tail) * y.size))   # the validation tail of a training record
+                m["data/force_rel_error_tail"] = float(100 * np.linalg.norm(tau[k0:] - tau_hat[k0:])
+                                                       / np.linalg.norm(tau[k0:]))
+            if published is not None:
+                yp, tp, _ = simulate_loop(published, ctrl, sig, conv)
+                m |= {f"published_model/{conv}/{k}": v for k, v in loop_errors(y, tau, yp, tp).items()}
+        u_ff = inv["u_ff"][name]
+        sig_ff = LoopSignals(r, d, float(y[0]), ds["t"], u_ff)
+        y_ff, _, _ = simulate_loop(loop, ctrl, sig_ff, "data")
+        m |= {f"model_based/{k}": v for k, v in _tracking(r, y_ff).items()}
+        m |= {f"recorded/{k}": v for k, v in _tracking(r, y).items()}
+        for k, val in m.items():
+            ctx.metric(f"{name}/{k}", val)
+        errors[name] = (ds["t"], r - y_ff)
+        out[name] = {"y_hat": y_ff, "u_ff": u_ff, **m}
+    ctx.figure(plots.tracking_errors(force, f"{system.name}: recorded force - model force in the loop "
+                                            "(data timing)", "τ - τ̂ [N]"), "force_error.png")
+    ctx.figure(plots.tracking_errors(errors, f"{system.name}: {cfg.invert.name} feedforward, "
+                                             "model-predicted tracking error"), "tracking_error.png")
+    np.savez_compressed(ctx.artifact("errors.npz"), Ts=system.Ts,
+                        **{f"{k}/{x}": v for k, (t, e) in errors.items()
+                           for x, v in (("r", inv["r"][k]), ("e", e), ("force_error", force[k][1]))})
+    return {"per_reference": out}
+
+
+def _tracking(r, y) -> dict[str, float]:
+    e = np.asarray(r) - np.asarray(y)
+    return {"mae": float(np.mean(np.abs(e))), "max_abs": float(np.max(np.abs(e))),
+            "rms": float(np.sqrt(np.mean(e ** 2)))}

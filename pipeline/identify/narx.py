@@ -289,7 +289,8 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
                   val_fraction: float = 0.2, max_iter: int = 100, ftol: float = 1e-10,
                   gtol: float = 1e-10, mu0: float = 1e-3, patience: int = 5,
                   progress: Callable | None = None,
-                  on_iteration: Callable[[int, int, float], None] | None = None) -> NarxFit:
+                  on_iteration: Callable[[int, int, float], None] | None = None,
+                  theta_star=None) -> NarxFit:
     """Identify ``model`` from data with the criterion its structure implies.
 
     ``structure='forward'`` → [B1] (12); ``'inverse'`` → [B1] (14); ``'invertible'`` → [B1]
@@ -316,6 +317,9 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
         Wraps the restart iterable (e.g. ``ctx.progress``).
     on_iteration : callable, optional
         ``on_iteration(restart, it, cost)`` after every accepted LM step.
+    theta_star : array, optional
+        θ*_phy, the regulariser centre and start of θ_phy; default the physics-only least
+        squares [B1] (7) on the same rows (a measured system passes its filtered baseline).
 
     Returns
     -------
@@ -336,10 +340,13 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
     if not sigma > 0:
         raise ValueError("the predicted signal is constant on the training rows; nothing to fit")
 
-    theta_star = None
     if model.use_physics:
-        theta_star = physics_least_squares(model, train.phi, train.target)  # [B1] (7)
+        if theta_star is None:
+            theta_star = physics_least_squares(model, train.phi, train.target)  # [B1] (7)
+        theta_star = np.asarray(theta_star, dtype=np.float64).reshape(-1)
         model.set_physics_estimate(theta_star)
+    else:
+        theta_star = None
     if model.use_nn:
         model.fit_normalisation(phi)
         with torch.no_grad():

@@ -270,6 +270,8 @@ def physics_features_for(physics_model, structure: str, n_a: int, n_b: int, n_k:
                              f"n_k={n_k}: make them equal")
         names = None if inverse else physics_model.param_names
         return LinearFeatures(n_a + n_b, names)
+    if input_is_model_input and averaged and hasattr(physics_model, "with_direct_input"):
+        physics_model = physics_model.with_direct_input()   # the data's input is already w = ū
     return PhysicsModelFeatures(physics_model, inverse)
 
 

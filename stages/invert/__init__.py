@@ -2,6 +2,9 @@
 
 Implementations: ``stages/invert/<kind>.py`` exposing ``feedforward(ctx, name, r) -> u_ff`` (one
 reference) and optionally ``check(cfg, system)``.  The references are ``evaluate.references``.
+On a measured system the controller is a 2-DOF cascade whose velocity loop feeds back q̇, not
+the error: the applied feedforward is the model inverse minus the force the controller outputs
+when the axis follows the reference exactly (``CascadeController.force_on_reference``).
 """
 from __future__ import annotations
 
@@ -10,6 +13,7 @@ import time
 import numpy as np
 
 from pipeline.runner import ConfigError, implementation
+from pipeline.systems.measured import Recording
 from stages._common import check_references, reference_specs
 
 UPSTREAM = ("generate", "baseline", "train")
@@ -22,7 +26,7 @@ def validate(cfg, system) -> None:
     if not reference_specs(cfg.evaluate.references):
         raise ConfigError("evaluate.references is empty; give at least one reference to design a "
                           "feedforward for (see conf/evaluate/*.yaml)")
-    check_references(reference_specs(cfg.evaluate.references), system)
+    check_references(reference_specs(cfg.evaluate.references), system, cfg)
     impl = implementation("invert", str(cfg.invert.kind))
     if hasattr(impl, "check"):
         impl.check(cfg, system)
@@ -30,7 +34,7 @@ def validate(cfg, system) -> None:
 
 def run(ctx) -> dict:
     impl = implementation("invert", str(ctx.cfg.invert.kind))
-    refs = check_references(reference_specs(ctx.cfg.evaluate.references), ctx.system)
+    refs = check_references(reference_specs(ctx.cfg.evaluate.references), ctx.system, ctx.cfg)
     u_ff = {}
     for name, r in ctx.progress(refs.items(), desc="feedforward", total=len(refs)):
         t0 = time.perf_counter()
@@ -40,5 +44,26 @@ def run(ctx) -> dict:
             raise ValueError(f"invert.kind={ctx.cfg.invert.kind} returned a feedforward of shape "
                              f"{f.shape} with {int((~np.isfinite(f)).sum())} non-finite values for "
                              f"reference '{name}' (expected {r.shape}, all finite)")
+        if isinstance(ctx.system, Recording):   # the 2-DOF cascade: cancel its output on q = r
+            f = f - ctx.system.ctrl.force_on_reference(r, ctx.system.Ts)
         u_ff[name] = f
-    return {"u_ff": u_ff, "r": refs}
+    out = {"u_ff": u_ff, "r": refs}
+    if isinstance(ctx.system, Recording):   # evaluate replays the identified model in the recorded loop
+        out["loop"] = loop_model(ctx)
+    return out
+
+
+def loop_model(ctx):
+    """The identified model of a measured system as a loop model: the trained PGNN (simulation
+    error or a forward/invertible NARX PGNN) or, without one, the physics baseline."""
+    from pipeline.identify.measured_loop import LoopModel
+    train = ctx.inputs["train"]
+    if train.get("loop") is not None:
+        return train["loop"]
+    model = train.get("model")
+    if model is not None:
+        try:
+            return LoopModel.from_pgnn(model, bool(train.get("model_input")))
+        except ValueError as exc:
+            raise ConfigError(f"the trained model cannot be replayed in the recorded loop: {exc}") from exc
+    return LoopModel.physics_only(ctx.system.physics, ctx.inputs["baseline"]["theta"])

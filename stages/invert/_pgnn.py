@@ -12,9 +12,10 @@ from pipeline.runner import ConfigError
 
 def check_structure(cfg, kind: str, allowed: tuple[str, ...]) -> None:
     """The identified model must have a layout the inversion can use."""
-    if str(cfg.identify.kind) != "narx":
-        raise ConfigError(f"invert.kind={kind} inverts a PGNN identified by identify.kind=narx, "
-                          f"got identify.kind={cfg.identify.kind}")
+    measured = str(cfg.data.get("kind")) == "measured" and str(cfg.identify.kind) == "sim_error"
+    if str(cfg.identify.kind) != "narx" and not measured:
+        raise ConfigError(f"invert.kind={kind} inverts a PGNN identified by identify.kind=narx (or, on "
+                          f"measured data, sim_error), got identify.kind={cfg.identify.kind}")
     s = cfg.model.get("structure")
     if s not in allowed:
         raise ConfigError(f"invert.kind={kind} needs model.structure in {allowed}, got {s!r}; "

@@ -8,6 +8,10 @@ physics_features_for``).  If the plant's physics model takes a transformed input
 PGNN is identified on (y, w) and the inversions turn w back into u with
 ``physics.applied_input``.
 
+On a measured system (:class:`pipeline.systems.measured.Recording`) θ*_phy is the physics
+baseline (the filtered inverse-model least squares): the one-step LS on a quantised position
+record is dominated by the encoder step.
+
 Logged: the loss curve of every restart (``train/loss/restart<i>`` per accepted LM step, and
 ``train/val_loss/restart<i>``), the best restart's cost and seconds, θ*_phy and θ̂_phy as
 physical parameters.
@@ -20,6 +24,7 @@ from omegaconf import OmegaConf
 from pipeline.identify.narx import identify_pgnn
 from pipeline.models.pgnn import PGNN, physics_features_for
 from pipeline.runner import ConfigError
+from pipeline.systems.measured import Recording
 from stages.train import log_restarts
 
 STRUCTURES = ("forward", "inverse", "invertible")
@@ -87,7 +92,8 @@ def fit(ctx) -> dict:
                          max_iter=int(ident.max_iter), ftol=float(ident.ftol),
                          gtol=float(ident.gtol), mu0=float(ident.mu0),
                          patience=int(ident.patience),
-                         progress=lambda it: ctx.progress(it, desc="LM restarts"))
+                         progress=lambda it: ctx.progress(it, desc="LM restarts"),
+                         theta_star=ctx.inputs["baseline"]["theta"] if isinstance(system, Recording) else None)
     log_restarts(ctx, fit_.restarts)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)

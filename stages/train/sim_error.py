@@ -10,6 +10,13 @@ Logged: the LM loss curve (``train/loss/restart<i>``), the identification error
 ‖Y^d - Ŷ^d‖/sqrt(N_d) (``train/identification_error``, [B2] (15)), seconds, θ*_phy, θ̂_phy.
 Returns the module, its array export (``arx``) and the identification signals Y^d, Ŷ^d
 (the bound terms of the invert stage need them).
+
+On a measured system (:class:`pipeline.systems.measured.Recording`) the model is the rigid-body
+PGNN of ``pipeline.identify.measured_loop`` (``model.structure`` forward or invertible, one tanh
+layer), simulated inside the known cascade controller with the recorded disturbance, fitted on
+the recorded controller force over the first 1 - ``identify.val_fraction`` of the record
+(the rest is validation, logged as ``train/val_force_rel_error``), regularised toward the physics
+baseline θ*_phy.
 """
 from __future__ import annotations
 
@@ -21,11 +28,14 @@ from pipeline.models.pgnn import PGNN, LinearFeatures
 from pipeline.runner import ConfigError
 from stages.train import log_restarts
 from pipeline.systems.arx_bias import ARXPhysics
+from pipeline.systems.measured import Recording
 
 THETA_STAR = ("arx", "sim_error")
 
 
 def check(cfg, system) -> None:
+    if isinstance(system, Recording):
+        return _check_measured(cfg, system)
     m = cfg.model
     if m.get("structure") != "forward":
         raise ConfigError(f"identify.kind=sim_error simulates a forward PGNN; model.structure="
@@ -70,6 +80,8 @@ def build_model(cfg, system) -> PGNN:
 
 def fit(ctx) -> dict:
     cfg, system = ctx.cfg, ctx.system
+    if isinstance(system, Recording):
+        return _fit_measured(ctx)
     ds = ctx.inputs["generate"]["dataset"]
     segs = list(ds.segments())
     if len(segs) != 1:
@@ -125,5 +137,97 @@ def _figure(fit_, r, y, Ts):
     a1.set_xlabel("t [s]")
     a1.set_ylabel("Y^d - Ŷ^d [m]")
     a1.set_title(f"identification error, rms {fit_.identification_error:.3g} m", fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+# ------------------------------------------------------------------------------------------
+# measured systems: the rigid-body PGNN in the recorded loop
+# ------------------------------------------------------------------------------------------
+def _check_measured(cfg, system) -> None:
+    m = cfg.model
+    if m.get("structure") not in ("forward", "invertible"):
+        raise ConfigError(f"identify.kind=sim_error on a measured system simulates a forward PGNN; "
+                          f"model.structure={m.get('structure')!r}: use forward or invertible")
+    hidden = list(m.get("hidden") or [])
+    if len(hidden) > 1 or m.get("activation", "tanh") != "tanh":
+        raise ConfigError(f"identify.kind=sim_error needs at most one tanh hidden layer, got hidden={hidden}, "
+                          f"activation={m.get('activation')!r}")
+    if not m.get("use_physics", True):
+        raise ConfigError("identify.kind=sim_error needs the physics part (model.use_physics=true)")
+    if int(m.n_a) < 2 or int(m.n_b) < 1 or int(m.get("n_k", 0)) != 0:
+        raise ConfigError(f"the rigid-body loop model needs n_a >= 2, n_b >= 1, n_k = 0; got n_a={m.n_a}, "
+                          f"n_b={m.n_b}, n_k={m.get('n_k')}")
+    ident = cfg.identify
+    if int(ident.n_restarts) < 1 or int(ident.max_iter) < 0:
+        raise ConfigError(f"identify.n_restarts={ident.n_restarts} (>= 1) / max_iter={ident.max_iter} (>= 0)")
+    if not 0.0 <= float(ident.val_fraction) < 0.5:
+        raise ConfigError(f"identify.val_fraction={ident.val_fraction}; give a value in [0, 0.5)")
+
+
+def _fit_measured(ctx) -> dict:
+    import torch
+    from pipeline.identify.measured_loop import LoopSignals, identify_loop_sim_error, simulate_loop
+    from pipeline.identify.narx import build_regression
+    from stages.train.narx import build_model as build_narx_model
+    cfg, system = ctx.cfg, ctx.system
+    ds = ctx.inputs["generate"]["dataset"]
+    y, u = ds["y"], ds["u"]
+    d = ds["d"] if "d" in ds.frame else np.zeros_like(y)
+    model = build_narx_model(cfg, system)           # w = ū input map, rigid-body physics
+    theta_star = np.asarray(ctx.inputs["baseline"]["theta"], dtype=np.float64)
+    model.set_physics_estimate(theta_star)
+    w = system.physics.model_input(u)
+    if model.use_nn:                                # NN input normalisation and output scale
+        reg = build_regression(model, y, w)
+        phi = torch.as_tensor(reg.phi)
+        model.fit_normalisation(phi)
+        with torch.no_grad():
+            s = float((torch.as_tensor(reg.target) - model.physics_part(phi)).std())
+        model.out_scale.fill_(s if s > 0 else 1.0)
+    sig = LoopSignals(ds["r"], d, float(y[0]), ds["t"])
+    ident = cfg.identify
+    n_train = int(round((1.0 - float(ident.val_fraction)) * y.size))
+    lam = float(cfg.regularizer.get("lam", 0.0))
+    fit_ = identify_loop_sim_error(model, bool(system.physics.averaged_input), system.ctrl, sig, u, lam=lam,
+                                   n_train=n_train, n_restarts=int(ident.n_restarts), seed=int(cfg.seed),
+                                   max_iter=int(ident.max_iter), ftol=float(ident.ftol), gtol=float(ident.gtol),
+                                   mu0=float(ident.mu0), progress=lambda it: ctx.progress(it, desc="LM restarts"))
+    log_restarts(ctx, fit_.restarts)
+    best = fit_.restarts[fit_.best]
+    ctx.metric("cost", best.cost)
+    ctx.metric("seconds", best.seconds)
+    ctx.metric("iterations", best.n_iter)
+    ctx.metric("n_params", model.n_params)
+    if fit_.val_force_rel_error is not None:
+        ctx.metric("val_force_rel_error", fit_.val_force_rel_error)
+    ctx.tag("lm_stop", best.message)
+    physical = system.physics.physical(fit_.loop.theta_phy)
+    for k, v in physical.items():
+        ctx.metric(f"theta_phy/{k}", v)
+    for k, v in system.physics.physical(theta_star).items():
+        ctx.metric(f"theta_phy_star/{k}", v)
+    y_hat, tau_hat, _ = simulate_loop(fit_.loop, system.ctrl, sig)
+    ctx.figure(_figure_measured(fit_, ds["t"], u, tau_hat, n_train), "identification.png")
+    model.eval()
+    return {"model": model, "model_input": True, "loop": fit_.loop, "theta_phy_star": theta_star,
+            "physical": physical, "val_force_rel_error": fit_.val_force_rel_error}
+
+
+def _figure_measured(fit_, t, tau, tau_hat, n_train):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, (a0, a1) = plt.subplots(2, 1, figsize=(7, 5))
+    for i, rr in enumerate(fit_.restarts):
+        a0.semilogy(rr.history, lw=2.0 if i == fit_.best else 0.8)
+    a0.set_xlabel("accepted LM step")
+    a0.set_ylabel("normalised cost")
+    a0.set_title(f"closed-loop simulation error on the recorded force, n1 = {fit_.loop.n1} "
+                 f"(stop: {fit_.restarts[fit_.best].message})", fontsize=9)
+    a1.plot(t, tau - tau_hat, lw=0.5)
+    a1.axvline(t[n_train - 1], color="k", ls=":", lw=0.8)
+    a1.set_xlabel("t [s] (dotted: start of the validation block)")
+    a1.set_ylabel("τ - τ̂ [N]")
     fig.tight_layout()
     return fig

@@ -1,0 +1,385 @@
+"""An identified one-step model inside the known controller of a measured system (SPEC §2.5).
+
+The model is a forward PGNN with rigid-body physics (:class:`pipeline.systems.measured.
+RigidBodyPhysics`, direct input on w) and at most one tanh hidden layer ([B1] (10), [B2] (9))::
+
+    ŷ(k) = 2y(k-1) - y(k-2) + Ts² (θ0 w(k-1) - θ1 δy(k-1) - θ2 sign δy(k-1) - θ3)
+           + s_out (W2 tanh(W1 x(k) + b1) + b2),       x(k) = P φ(k) + c,
+    φ(k) = [y(k-1) … y(k-n_a), w(k-1) … w(k-n_b)],   w = ū = (u(k) + u(k-1))/2 or u,
+
+closed around the cascade controller of :class:`pipeline.systems.measured.CascadeController`::
+
+    c(k) = sat(kv (kp (r(k) - ŷ(k)) - (ŷ(k) - ŷ(k-2)) / (2 Ts)) + u_ff(k) / gtau)
+    u(k) = gtau (c(k - D) + d(k))                   applied force [N]
+    τ̂(k) = gtau (c(k) + d(k))                       the drive's force, compared with the record
+
+with d the measured disturbance [V] (EMPS test file: ``pulses_N``, after the saturation) and
+u_ff [N] a force feedforward added to the command before the drive's limit (after it, the
+saturated velocity feedback could not be cancelled, see ``CascadeController.force_on_reference``).
+Two timing conventions (EMPS README, issue 9):
+
+- ``data`` (default): D = 0, as recorded (vir[k] is the law on qm[k] of the same sample);
+- ``published``: the benchmark authors' simulation script: D = 1 (one-sample delay on the
+  controller output, not on the pulses) and the reference and disturbance read at the script's
+  time base k·h, h = t(10) - t(9), by linear interpolation in the data's time column.
+
+One numba kernel simulates the loop and, on request, the exact forward sensitivities of ŷ
+and τ̂ to every parameter (the Jacobian of the closed-loop simulation error, [B2] (16)).
+Parameter order = the PGNN module's: [θ_phy, W1 (row-major), b1, W2, b2].
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numba
+import numpy as np
+
+CONVENTIONS = ("data", "published")
+
+
+@dataclass
+class LoopModel:
+    """A rigid-body PGNN as float64 arrays (see the module docstring)."""
+
+    Ts: float
+    n_a: int
+    n_b: int
+    averaged: bool
+    theta_phy: np.ndarray
+    W1: np.ndarray = None
+    b1: np.ndarray = None
+    W2: np.ndarray = None
+    b2: float = 0.0
+    P: np.ndarray = None
+    c: np.ndarray = None
+    out_scale: float = 1.0
+
+    def __post_init__(self):
+        if self.n_a < 2 or self.n_b < 1:
+            raise ValueError(f"the rigid-body loop model needs n_a >= 2 and n_b >= 1, got n_a={self.n_a}, "
+                             f"n_b={self.n_b}")
+        self.theta_phy = np.ascontiguousarray(self.theta_phy, dtype=np.float64).reshape(-1)
+        if self.theta_phy.shape not in ((3,), (4,)):
+            raise ValueError(f"theta_phy must be [1/M, F_v/M, F_c/M(, OF/M)], got shape {self.theta_phy.shape}")
+        nphi = self.n_a + self.n_b
+        self.P = np.eye(nphi) if self.P is None else np.ascontiguousarray(self.P, dtype=np.float64)
+        nx = self.P.shape[0]
+        self.c = np.zeros(nx) if self.c is None else np.ascontiguousarray(self.c, dtype=np.float64)
+        self.W1 = np.zeros((0, nx)) if self.W1 is None else np.ascontiguousarray(self.W1, np.float64).reshape(-1, nx)
+        n1 = self.W1.shape[0]
+        self.b1 = np.zeros(n1) if self.b1 is None else np.ascontiguousarray(self.b1, np.float64).reshape(-1)
+        self.W2 = np.zeros(n1) if self.W2 is None else np.ascontiguousarray(self.W2, np.float64).reshape(-1)
+        self.b2 = float(self.b2)
+
+    @classmethod
+    def from_pgnn(cls, model, averaged: bool) -> "LoopModel":
+        """Export a forward PGNN with rigid-body physics (``RigidBodyPhysics`` on w) and zero or
+        one tanh hidden layer; ``averaged``: the model input w is ū (the data's u is averaged)."""
+        if model.structure not in ("forward", "invertible") or not model.use_physics:
+            raise ValueError(f"closed-loop simulation needs a forward PGNN with physics, got structure="
+                             f"{model.structure!r}, use_physics={model.use_physics}")
+        if model.use_nn and not (len(model.hidden) == 1 and model.activation == "tanh"):
+            raise ValueError(f"the loop model has one tanh hidden layer, got hidden={model.hidden}, "
+                             f"activation={model.activation!r}")
+        Ts = float(getattr(model.physics, "pm", model.physics).Ts)
+        kw = {}
+        if model.use_nn:
+            l1, l2 = model.layers
+            kw = dict(W1=l1.weight.detach().numpy().copy(), b1=l1.bias.detach().numpy().copy(),
+                      W2=l2.weight.detach().numpy()[0].copy(), b2=float(l2.bias.detach()[0]),
+                      P=model.nn_P.numpy().copy(), c=model.nn_c.numpy().copy(), out_scale=float(model.out_scale))
+        return cls(Ts, model.n_a, model.n_b, bool(averaged), model.theta_phy.detach().numpy().copy(), **kw)
+
+    @classmethod
+    def physics_only(cls, physics, theta) -> "LoopModel":
+        """The physics model alone (``RigidBodyPhysics``; w = ū if it averages its input)."""
+        return cls(physics.Ts, 2, 1, bool(physics.averaged_input), np.asarray(theta, dtype=np.float64))
+
+    @property
+    def n1(self) -> int:
+        return self.W1.shape[0]
+
+    @property
+    def n_params(self) -> int:
+        return self.theta_phy.size + (self.n1 * (self.P.shape[0] + 2) + 1 if self.n1 else 0)
+
+    def theta(self) -> np.ndarray:
+        if not self.n1:
+            return self.theta_phy.copy()
+        return np.concatenate([self.theta_phy, self.W1.ravel(), self.b1, self.W2, [self.b2]])
+
+    def with_theta(self, theta) -> "LoopModel":
+        theta = np.asarray(theta, dtype=np.float64).reshape(-1)
+        if theta.shape != (self.n_params,):
+            raise ValueError(f"theta must have {self.n_params} entries, got {theta.shape}")
+        p, n1, nx = self.theta_phy.size, self.n1, self.P.shape[0]
+        if not n1:
+            return replace(self, theta_phy=theta.copy())
+        i = p + n1 * nx
+        return replace(self, theta_phy=theta[:p].copy(), W1=theta[p:i].reshape(n1, nx).copy(),
+                       b1=theta[i:i + n1].copy(), W2=theta[i + n1:i + 2 * n1].copy(), b2=float(theta[-1]))
+
+
+@numba.njit(cache=True)
+def _loop(r, d, uff, y0, n_a, n_b, averaged, th, W1, b1, W2, b2, P, c, so, Ts, kp, kv, gtau, vsat, D, sens):
+    N = r.size
+    n1, nx = W1.shape[0], P.shape[0]
+    nphi = n_a + n_b
+    nth = th.size
+    NP = nth + (n1 * (nx + 2) + 1 if n1 > 0 else 0)
+    y = np.empty(N)
+    u = np.zeros(N)        # applied force
+    w = np.zeros(N)        # model input
+    cc = np.zeros(N)       # controller output before the disturbance [V]
+    tau = np.empty(N)      # controller force compared with the record
+    M = N if sens else 1
+    Sy = np.zeros((M, NP))
+    Sc = np.zeros((M, NP))
+    Sw = np.zeros((M, NP))
+    phi = np.zeros(nphi)
+    dfdphi = np.zeros(nphi)
+    x = np.zeros(nx)
+    h = np.zeros(n1)
+    dgain = kv / (2.0 * Ts)
+    for k in range(N):
+        if k == 0:
+            y[0] = y0
+        else:
+            for i in range(n_a):
+                phi[i] = y[k - 1 - i] if k - 1 - i >= 0 else y0
+            for j in range(n_b):
+                phi[n_a + j] = w[k - 1 - j] if k - 1 - j >= 0 else 0.0
+            y1, y2, w1 = phi[0], phi[1], phi[n_a]
+            v = (y1 - y2) / Ts
+            s = 1.0 if v > 0 else (-1.0 if v < 0 else 0.0)
+            f = 2.0 * y1 - y2 + Ts * Ts * (th[0] * w1 - th[1] * v - th[2] * s)
+            if nth > 3:
+                f -= Ts * Ts * th[3]
+            for i in range(nphi):
+                dfdphi[i] = 0.0
+            dfdphi[0] = 2.0 - Ts * th[1]
+            dfdphi[1] = -1.0 + Ts * th[1]
+            dfdphi[n_a] += Ts * Ts * th[0]
+            if n1 > 0:
+                for a in range(nx):
+                    acc = c[a]
+                    for i in range(nphi):
+                        acc += P[a, i] * phi[i]
+                    x[a] = acc
+                o = b2
+                for m in range(n1):
+                    z = b1[m]
+                    for a in range(nx):
+                        z += W1[m, a] * x[a]
+                    h[m] = math.tanh(z)
+                    o += W2[m] * h[m]
+                    g = so * W2[m] * (1.0 - h[m] * h[m])
+                    for i in range(nphi):
+                        col = 0.0
+                        for a in range(nx):
+                            col += W1[m, a] * P[a, i]
+                        dfdphi[i] += g * col
+                f += so * o
+            y[k] = f
+            if sens:
+                # ∂f/∂θ (direct) then the chain through the past outputs and inputs
+                Sy[k, 0] = Ts * Ts * w1
+                Sy[k, 1] = -Ts * Ts * v
+                Sy[k, 2] = -Ts * Ts * s
+                if nth > 3:
+                    Sy[k, 3] = -Ts * Ts
+                if n1 > 0:
+                    p0 = nth
+                    for m in range(n1):
+                        g = so * W2[m] * (1.0 - h[m] * h[m])
+                        for a in range(nx):
+                            Sy[k, p0 + m * nx + a] = g * x[a]
+                        Sy[k, p0 + n1 * nx + m] = g
+                        Sy[k, p0 + n1 * nx + n1 + m] = so * h[m]
+                    Sy[k, NP - 1] = so
+                for i in range(n_a):
+                    if k - 1 - i >= 1 and dfdphi[i] != 0.0:
+                        for p in range(NP):
+                            Sy[k, p] += dfdphi[i] * Sy[k - 1 - i, p]
+                for j in range(n_b):
+                    if k - 1 - j >= 0 and dfdphi[n_a + j] != 0.0:
+                        for p in range(NP):
+                            Sy[k, p] += dfdphi[n_a + j] * Sw[k - 1 - j, p]
+        # controller (no computational delay) and the applied force
+        yk2 = y[k - 2] if k >= 2 else y0
+        raw = kv * (kp * (r[k] - y[k]) - (y[k] - yk2) / (2.0 * Ts)) + uff[k] / gtau
+        sat = 1.0
+        if raw > vsat:
+            raw, sat = vsat, 0.0
+        elif raw < -vsat:
+            raw, sat = -vsat, 0.0
+        cc[k] = raw
+        tau[k] = gtau * (raw + d[k])
+        cd = cc[k - D] if k - D >= 0 else 0.0
+        u[k] = gtau * (cd + d[k])
+        if averaged:
+            w[k] = 0.5 * (u[k] + (u[k - 1] if k >= 1 else 0.0))
+        else:
+            w[k] = u[k]
+        if sens:
+            if sat != 0.0:
+                for p in range(NP):
+                    Sc[k, p] = -(kv * kp + dgain) * Sy[k, p]
+                    if k >= 2:
+                        Sc[k, p] += dgain * Sy[k - 2, p]
+            for p in range(NP):
+                su = gtau * Sc[k - D, p] if k - D >= 0 else 0.0
+                if averaged:
+                    sp = 0.0
+                    if k >= 1:
+                        sp = gtau * Sc[k - 1 - D, p] if k - 1 - D >= 0 else 0.0
+                    Sw[k, p] = 0.5 * (su + sp)
+                else:
+                    Sw[k, p] = su
+    return y, tau, u, Sy, Sc
+
+
+@dataclass
+class LoopSignals:
+    """Inputs of one closed-loop run: reference r [m], disturbance d [V], feedforward u_ff [N],
+    the initial position y0 [m] and, for the published convention, the data's time column t [s]."""
+
+    r: np.ndarray
+    d: np.ndarray
+    y0: float
+    t: np.ndarray | None = None
+    u_ff: np.ndarray | None = None
+
+
+def _convention(sig: LoopSignals, convention: str, Ts: float) -> tuple[np.ndarray, np.ndarray, int]:
+    if convention not in CONVENTIONS:
+        raise ValueError(f"convention={convention!r}; choose one of {CONVENTIONS}")
+    if convention == "data":
+        return sig.r, sig.d, 0
+    if sig.t is None or sig.t.size < 10:
+        raise ValueError("the published convention needs the data's time column t (>= 10 samples)")
+    h = float(sig.t[9] - sig.t[8])                       # the script's step t(10) - t(9)
+    ts = sig.t[0] + np.arange(sig.r.size) * h
+    return np.interp(ts, sig.t, sig.r), np.interp(ts, sig.t, sig.d), 1
+
+
+def simulate_loop(model: LoopModel, ctrl, sig: LoopSignals, convention: str = "data", sens: bool = False):
+    """Closed-loop simulation of ``model`` inside ``ctrl`` (module docstring).
+
+    Returns (ŷ [m], τ̂ [N], u [N] applied force) and, with ``sens``, the sensitivities
+    (∂ŷ/∂θ [N, P], ∂τ̂/∂θ [N, P])."""
+    r, d, D = _convention(sig, convention, model.Ts)
+    r = np.ascontiguousarray(r, dtype=np.float64)
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    uff = np.zeros_like(r) if sig.u_ff is None else np.ascontiguousarray(sig.u_ff, dtype=np.float64)
+    if not (d.shape == r.shape == uff.shape):
+        raise ValueError(f"r, d and u_ff must have one length, got {r.shape}, {d.shape}, {uff.shape}")
+    y, tau, u, Sy, Sc = _loop(r, d, uff, float(sig.y0), model.n_a, model.n_b, model.averaged, model.theta_phy,
+                              model.W1, model.b1, model.W2, model.b2, model.P, model.c, model.out_scale,
+                              model.Ts, ctrl.kp, ctrl.kv, ctrl.gtau, ctrl.v_sat, D, sens)
+    if sens:
+        return y, tau, u, Sy, Sc * ctrl.gtau
+    return y, tau, u
+
+
+def loop_errors(y_meas, tau_meas, y_hat, tau_hat, n_init: int = 20) -> dict[str, float]:
+    """Scores of a closed-loop simulation against the record (EMPS README):
+
+    - ``force_rel_error`` [%] = 100 ‖τ - τ̂‖ / ‖τ‖ (all samples);
+    - ``position_rel_error`` [%] = 100 ‖q - q̂‖ / ‖q‖;
+    - ``rmse_mm`` [mm]: rms(q - q̂) over samples ``n_init``… (benchmark convention: the first 20
+      samples only initialise).
+    """
+    y_meas, tau_meas = np.asarray(y_meas), np.asarray(tau_meas)
+    return {"force_rel_error": float(100 * np.linalg.norm(tau_meas - tau_hat) / np.linalg.norm(tau_meas)),
+            "position_rel_error": float(100 * np.linalg.norm(y_meas - y_hat) / np.linalg.norm(y_meas)),
+            "rmse_mm": float(1e3 * np.sqrt(np.mean((y_meas[n_init:] - y_hat[n_init:]) ** 2)))}
+
+
+# --------------------------------------------------------------------------------------
+# closed-loop simulation-error identification ([B2] (16) on the measured loop)
+# --------------------------------------------------------------------------------------
+@dataclass
+class LoopFit:
+    """Result of :func:`identify_loop_sim_error` (the PGNN module holds the kept parameters)."""
+
+    loop: LoopModel                # the identified model as arrays
+    theta_phy_star: np.ndarray     # regulariser centre θ*_phy
+    sigma: float                   # std of the measured force on the training samples [N]
+    n_train: int
+    val_force_rel_error: float | None   # on the samples after n_train [%] (None without validation)
+    restarts: list = field(default_factory=list)   # pipeline.identify.narx.RestartResult per start
+    best: int = 0
+
+    @property
+    def cost(self) -> float:
+        return self.restarts[self.best].cost
+
+
+def identify_loop_sim_error(model, averaged: bool, ctrl, sig: LoopSignals, tau_meas, *, lam: float = 0.0,
+                            n_train: int | None = None, n_restarts: int = 3, seed: int = 0,
+                            progress=None, **lm_options) -> LoopFit:
+    """Closed-loop simulation-error identification of a rigid-body PGNN on a measured loop,
+
+        V(θ) = ‖(τ - τ̂(θ)) / (σ_τ sqrt(N_t))‖² + ‖R (θ_phy - θ*_phy)/|θ*_phy|‖²,   RᵀR = Λ,
+
+    [B2] (16) with the loop's measured force τ as the output (τ̂ follows ŷ through the known
+    controller, so this is the simulation error the EMPS benchmark scores) and the SPEC §5
+    normalisation; θ*_phy is where ``model`` holds θ_phy (the physics baseline).  The whole
+    record is simulated from rest; the first ``n_train`` samples enter V, the rest is the
+    validation block (its force error is logged, never used to stop).  LM
+    (:func:`pipeline.identify.lm.levenberg_marquardt`, ``lm_options``) with the exact Jacobian
+    from the loop's forward sensitivities, best of ``n_restarts`` NN initialisations
+    (:func:`pipeline.identify.narx.best_of_restarts`).  ``model`` (a forward PGNN whose NN
+    normalisation and output scale are set) is modified in place.
+    """
+    import torch
+    from pipeline.identify.narx import best_of_restarts, regularizer_sqrt
+    tau_meas = np.asarray(tau_meas, dtype=np.float64)
+    N = tau_meas.size
+    nt = N if n_train is None else int(n_train)
+    sigma = float(np.std(tau_meas[:nt]))
+    if not sigma > 0:
+        raise ValueError("the measured force is constant on the training samples; nothing to identify")
+    cn = 1.0 / (sigma * math.sqrt(nt))
+    loop0 = LoopModel.from_pgnn(model, averaged)
+    ts = loop0.theta_phy.copy()
+    npy = ts.size
+    scale = np.where(np.abs(ts) > 0, np.abs(ts), 1.0)
+    Rs = regularizer_sqrt(lam, npy) / scale[None, :]
+    reg = bool(np.any(Rs != 0))
+    cache: dict = {}
+
+    def run(theta):
+        key = theta.tobytes()
+        if key not in cache:
+            cache.clear()
+            cache[key] = simulate_loop(loop0.with_theta(theta), ctrl, sig, "data", sens=True)
+        return cache[key]
+
+    def residual(th):
+        theta = th.numpy()
+        _, tau, *_ = run(theta)
+        e = (tau_meas[:nt] - tau[:nt]) * cn
+        if not np.all(np.isfinite(e)):
+            e = np.full_like(e, 1e150)        # a diverged simulation: LM rejects the step
+        return torch.from_numpy(np.concatenate([e, Rs @ (theta[:npy] - ts)]) if reg else e)
+
+    def jacobian(th):
+        *_, St = run(th.numpy())
+        J = -St[:nt] * cn
+        if reg:
+            Jr = np.zeros((npy, J.shape[1]))
+            Jr[:, :npy] = Rs
+            J = np.concatenate([J, Jr])
+        return torch.from_numpy(np.where(np.isfinite(J), J, 0.0))
+
+    restarts, best = best_of_restarts(model, residual, jacobian, n_restarts if model.use_nn else 1, seed,
+                                      progress=progress, **lm_options)
+    loop = LoopModel.from_pgnn(model, averaged)
+    val = None
+    if nt < N:
+        _, tau, _ = simulate_loop(loop, ctrl, sig, "data")
+        val = float(100 * np.linalg.norm(tau_meas[nt:] - tau[nt:]) / np.linalg.norm(tau_meas[nt:]))
+    return LoopFit(loop, ts, sigma, nt, val, restarts, best)

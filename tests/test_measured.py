@@ -1,0 +1,278 @@
+"""Measured systems (SPEC §2.5, issue 9): the EMPS recording, its loop, its checks.
+
+The real files are read from ``../shared/data/emps`` (skipped with the reason when absent).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline import data, runner
+from pipeline.identify.measured_loop import LoopModel, LoopSignals, identify_loop_sim_error, loop_errors, simulate_loop
+from pipeline.systems.measured import CascadeController, Recording, RigidBodyPhysics
+
+EMPS = Path(__file__).resolve().parents[2] / "shared" / "data" / "emps"
+needs_emps = pytest.mark.skipif(not (EMPS / "DATA_EMPS.mat").exists(),
+                                reason="../shared/data/emps (the EMPS benchmark files) is not beside the repo")
+CTRL = dict(kp=160.18, kv=243.45, gtau=35.150652)
+PUBLISHED = dict(M=95.1089, F_v=203.5034, F_c=20.3935, OF=-3.1648)
+
+
+def _emps_system(physics_input="averaged"):
+    return Recording("emps", 1e-3, CTRL, physics_input=physics_input, published=PUBLISHED,
+                     idim=dict(cutoff_hz=50.0, order=4, decimation=10, trim=50))
+
+
+def _signals(ds):
+    d = ds["d"] if "d" in ds.frame else np.zeros(len(ds))
+    return LoopSignals(ds["r"], d, float(ds["y"][0]), ds["t"])
+
+
+# ------------------------------------------------------------------------------ real data
+@needs_emps
+def test_physics_baseline_within_2_percent_of_published():
+    ds = data.load_emps(EMPS, "DATA_EMPS")
+    s = _emps_system()
+    phys = s.physics.physical(s.fit_physics(ds["y"], ds["u"]))
+    for k, v in PUBLISHED.items():       # issue 9 acceptance: within 2 % (measured: 0.03-0.2 %)
+        assert abs(phys[k] - v) <= 0.02 * abs(v), (k, phys[k], v)
+
+
+@needs_emps
+def test_published_model_reproduces_published_figures_in_their_convention():
+    """EMPS README: 8.94 % test force error, 0.0138 % / 0.0080 % position errors in the authors'
+    convention (issue 9 tolerances 0.5 / 0.001 points); in the data's own timing the force error is lower."""
+    s = _emps_system()
+    model = LoopModel.physics_only(RigidBodyPhysics(1e-3, averaged_input=False), s.published_theta())
+    got = {}
+    for f in ("DATA_EMPS", "DATA_EMPS_PULSES"):
+        ds = data.load_emps(EMPS, f)
+        for conv in ("published", "data"):
+            y, tau, _ = simulate_loop(model, s.ctrl, _signals(ds), conv)
+            got[f, conv] = loop_errors(ds["y"], ds["u"], y, tau)
+    assert abs(got["DATA_EMPS_PULSES", "published"]["force_rel_error"] - 8.94) <= 0.5
+    assert abs(got["DATA_EMPS", "published"]["position_rel_error"] - 0.0138) <= 0.001
+    assert abs(got["DATA_EMPS_PULSES", "published"]["position_rel_error"] - 0.0080) <= 0.001
+    assert got["DATA_EMPS_PULSES", "data"]["force_rel_error"] < got["DATA_EMPS_PULSES", "published"]["force_rel_error"] - 1
+
+
+@needs_emps
+def test_controller_law_is_the_recording_and_a_sign_error_is_caught():
+    from stages.generate.measured import check_record
+    ds = data.load_emps(EMPS, "DATA_EMPS")
+    s = _emps_system()
+    # the recorded vir is the law on qm of the same sample (no delay): 0.2 % rms residual
+    assert s.ctrl.residual(ds["r"], ds["y"], ds["u"], ds["d"], 1e-3) < 0.005
+    check_record(ds, s, "DATA_EMPS")
+    flipped = data.Dataset(ds.frame.assign(u=-ds.frame["u"]), ds.meta)
+    with pytest.raises(ValueError, match="DATA_EMPS.*not the configured controller's output.*signs and units"):
+        check_record(flipped, s, "DATA_EMPS")
+    with pytest.raises(ValueError, match="kp = 160.18 differs from system.controller.kp"):
+        check_record(ds, Recording("emps", 1e-3, dict(CTRL, kp=100.0)), "DATA_EMPS")
+
+
+@needs_emps
+def test_emps_pipeline_job_scores_on_the_test_file(store, cfg_of):
+    """The physics experiment end to end: re-identified parameters, the replay on the test file
+    in both conventions, and the model-based feedforward (no plant is ever simulated)."""
+    from pipeline import tracking
+    runner.run_job(cfg_of("experiment=emps_physics"))
+    run = tracking.search_runs("emps").iloc[0]
+    assert abs(run["metrics.baseline/rel_error_published/M"]) < 0.02
+    assert abs(run["metrics.evaluate/test/published_model/published/force_rel_error"] - 8.94) < 0.5
+    assert run["metrics.evaluate/test/data/force_rel_error"] < run["metrics.evaluate/test/published/force_rel_error"]
+    # the model's own feedforward (with the cascade's velocity feedback cancelled) tracks its own
+    # loop on the disturbance-free training reference far below the recorded error
+    assert run["metrics.evaluate/train/model_based/mae"] < 1e-2 * run["metrics.evaluate/train/recorded/mae"]
+    assert run["tags.feedforward_scoring"].startswith("model-based")
+
+
+# ------------------------------------------------------------------------------ the loop kernel
+def _toy_loop(n=1500, seed=0):
+    """A reference like EMPS (smooth moves) and the physics loop model of the published values."""
+    t = np.arange(n) * 1e-3
+    r = 0.02 * (1 - np.cos(2 * np.pi * t / 1.5)) + 0.002 * (1 - np.cos(2 * np.pi * 3 * t))  # from rest, inside ±10 V
+    s = _emps_system()
+    return s, LoopSignals(r, np.zeros(n), 0.0, t)
+
+
+def test_loop_sensitivities_match_finite_differences():
+    s, sig = _toy_loop()
+    th = s.published_theta().copy()
+    th[2] = 0.0                                  # no Coulomb term: the loop is smooth in θ
+    rng = np.random.default_rng(0)
+    m = LoopModel(1e-3, 2, 2, True, th, W1=rng.normal(size=(3, 4)), b1=rng.normal(size=3),
+                  W2=rng.normal(size=3), b2=0.1, P=np.diag([10.0, 1e4, 0.02, 0.02]), out_scale=1e-7)
+    theta = m.theta()
+    _, tau, _, _, St = simulate_loop(m, s.ctrl, sig, sens=True)
+    for p in range(theta.size):
+        h = 1e-4 * max(abs(theta[p]), 1e-3)
+        tp, tm = theta.copy(), theta.copy()
+        tp[p] += h
+        tm[p] -= h
+        fd = (simulate_loop(m.with_theta(tp), s.ctrl, sig)[1] - simulate_loop(m.with_theta(tm), s.ctrl, sig)[1]) / (2 * h)
+        # central differences: O(h²) truncation (1e-4 relative) plus rounding of τ (~1e-13 |τ| per
+        # sample, divided by h); a wrong chain term errs by O(1)
+        assert np.linalg.norm(fd - St[:, p]) <= 1e-4 * np.linalg.norm(fd) + 1e-12 * np.linalg.norm(tau) / h, p
+
+
+def test_sim_error_fit_recovers_the_loop_it_recorded():
+    """Record τ from the physics loop with known θ, start from a 10 %-off θ*, no regulariser:
+    the closed-loop simulation-error LM returns θ to 1e-6 relative."""
+    import torch
+    from pipeline.models.pgnn import PGNN, physics_features_for
+    s, sig = _toy_loop(3000)
+    true = s.published_theta()
+    _, tau, _ = simulate_loop(LoopModel.physics_only(s.physics, true), s.ctrl, sig)
+    model = PGNN(2, 1, 0, structure="invertible", physics=physics_features_for(s.physics, "forward", 2, 1, 0, True),
+                 hidden=(), use_nn=False)
+    with torch.no_grad():
+        model.theta_phy.copy_(torch.as_tensor(true * np.array([1.1, 0.9, 1.1, 0.9])))
+    fit = identify_loop_sim_error(model, True, s.ctrl, sig, tau, lam=0.0, max_iter=100, ftol=1e-14, gtol=1e-14)
+    assert fit.restarts[fit.best].message in ("ftol", "gtol", "zero_cost", "mu_max")   # converged stops (lm.py)
+    np.testing.assert_allclose(fit.loop.theta_phy, true, rtol=1e-6)
+
+
+@pytest.mark.parametrize("physics_input, bound", [("direct", 1e-9), ("averaged", 1e-2)])
+def test_feedforward_cancels_the_cascade_and_tracks_the_models_loop(physics_input, bound):
+    """u_ff = model inverse - the controller's force on q = r: the model in its loop then tracks r.
+    Exactly (to rounding) with the direct input; with the averaged (ZOH) input the inverse
+    u_ff(t) = (w(t) + w(t+1))/2 is the bounded one-sample-preview approximation of SPEC §2.2."""
+    s, sig = _toy_loop()
+    s = _emps_system(physics_input)
+    th = s.published_theta()
+    model = LoopModel.physics_only(s.physics, th)
+    uff = s.physics.feedforward(th, sig.r) - s.ctrl.force_on_reference(sig.r, 1e-3)
+    y, _, _ = simulate_loop(model, s.ctrl, LoopSignals(sig.r, sig.d, 0.0, sig.t, uff))
+    y0, _, _ = simulate_loop(model, s.ctrl, sig)
+    e, e0 = np.abs(sig.r - y)[:-2], np.abs(sig.r - y0)[:-2]   # the last samples lack r(N+1)
+    assert e.max() < bound * e0.max()
+
+
+def test_published_convention_delays_the_controller_by_one_sample():
+    """Data timing applies the controller's force in the same sample; the published convention
+    one sample later (the disturbance is not delayed)."""
+    s, sig = _toy_loop(400)
+    sig.d = np.where(np.arange(400) % 100 < 50, 0.0, 5.0)
+    m = LoopModel.physics_only(s.physics, s.published_theta())
+    _, tau_d, u_d = simulate_loop(m, s.ctrl, sig, "data")
+    _, tau_p, u_p = simulate_loop(m, s.ctrl, sig, "published")
+    np.testing.assert_array_equal(u_d, tau_d)
+    g = s.ctrl.gtau
+    np.testing.assert_allclose(u_p[1:] - g * sig.d[1:], tau_p[:-1] - g * sig.d[:-1], rtol=0, atol=1e-9)
+
+
+# ------------------------------------------------------------------------------ bad input
+def _csv(tmp_path, name="rec", n=2000, dt=1e-3, **change):
+    """A CSV record of the toy loop (the physics model in the EMPS cascade): t, r, u, y."""
+    s, sig = _toy_loop(n)
+    y, tau, _ = simulate_loop(LoopModel.physics_only(s.physics, s.published_theta()), s.ctrl, sig)
+    df = pd.DataFrame({"t": np.arange(n) * dt, "r": sig.r, "u": tau, "y": y})
+    for k, v in change.items():
+        df[k] = v
+    path = tmp_path / f"{name}.csv"
+    df.to_csv(path, index=False)
+    return path
+
+
+def _measured_overrides(path):
+    return ["system=measured", "system.controller.kp=160.18", "system.controller.kv=243.45",
+            "system.controller.gtau=35.150652", "data=measured", f"data.path={path.parent}", f"data.file={path.name}",
+            "evaluate=emps", f"evaluate.references=[{{name:test,kind:measured,file:{path.name}}}]",
+            "model=physics", "identify=none", "invert=physics", "experiment_name=user"]
+
+
+def test_user_csv_round_trips_load_identify_evaluate(store, cfg_of, tmp_path):
+    """A user's CSV (recorded by the physics model in the cascade, force in N so gtau = 1)
+    through load -> identify -> evaluate: the replay of the identified model matches the record."""
+    from pipeline import tracking
+    path = _csv(tmp_path)
+    cfg = cfg_of(*_measured_overrides(path))
+    runner.run_job(cfg)
+    run = tracking.search_runs("user").iloc[0]
+    assert run["metrics.evaluate/test/data/force_rel_error"] < 1.0   # the model class holds the record
+
+
+@pytest.mark.parametrize("case, match", [
+    ("dt10ms", r"rec\.csv: the data are sampled at Ts = 0\.01 s but system 'measured' has Ts = 0\.001 s; set system\.Ts"),
+    ("decreasing", r"rec\.csv: column 't' is not increasing.*sort the samples"),
+    ("nonuniform", r"rec\.csv: column 't' is not uniformly sampled.*resample"),
+    ("sidecar0", r"rec\.csv: sidecar 'Ts' = 0\.0 is not a positive sample time"),
+    ("string", r"rec\.csv: column 'y' is not numeric.*SI units"),
+    ("nan", r"rec\.csv: column 'u' has 1 NaN/inf"),
+    ("huge", r"rec\.csv: column 'y' has \|value\| = 1e\+300.*units and scaling"),
+    ("sign", r"rec\.csv: the recorded force u is not the configured controller's output.*signs and units"),
+])
+def test_bad_measured_input_fails_before_work(store, cfg_of, tmp_path, case, match):
+    n = 2000
+    kw = {}
+    if case == "dt10ms":
+        path = _csv(tmp_path, dt=1e-2)
+    else:
+        path = _csv(tmp_path)
+        df = pd.read_csv(path)
+        if case == "decreasing":
+            df.loc[10, "t"] = df.loc[5, "t"]
+        elif case == "nonuniform":
+            df["t"] = df["t"] * (1 + 0.01 * (np.arange(n) > n // 2))
+        elif case == "sidecar0":
+            (tmp_path / "rec.json").write_text(json.dumps({"Ts": 0.0}))
+        elif case == "string":
+            df["y"] = df["y"].astype(object)
+            df.loc[3, "y"] = "12 mm"
+        elif case == "nan":
+            df.loc[7, "u"] = np.nan
+        elif case == "huge":
+            df.loc[7, "y"] = 1e300
+        elif case == "sign":
+            df["u"] = -df["u"]
+        df.to_csv(path, index=False, **kw)
+    with pytest.raises(runner.ConfigError, match=match):
+        runner.run_job(cfg_of(*_measured_overrides(path)))
+    assert not (store / "cache").exists() or not any((store / "cache").glob("*/*"))
+
+
+def test_empty_and_missing_files_are_named(store, cfg_of, tmp_path):
+    (tmp_path / "empty.csv").write_text("")
+    with pytest.raises(runner.ConfigError, match=r"empty\.csv: the file is empty"):
+        runner.run_job(cfg_of(*_measured_overrides(tmp_path / "empty.csv")))
+    with pytest.raises(runner.ConfigError, match=r"none\.csv does not exist"):
+        runner.run_job(cfg_of(*_measured_overrides(tmp_path / "none.csv")))
+
+
+@needs_emps
+def test_measured_model_on_a_simulator_is_refused_or_tagged(store, cfg_of):
+    ov = ["data=measured", "data.format=emps", f"data.path={EMPS}", "data.file=DATA_EMPS", "evaluate=b1_vmax",
+          "experiment_name=misuse"]
+    with pytest.raises(runner.ConfigError, match="identified on measured data.*simulator.*allow_simulator=true"):
+        runner.run_job(cfg_of(*ov))
+    # the EMPS record is not the simulated linear motor's loop: its sample time agrees, so only the
+    # explicit choice lets it through, and the run says so
+    from pipeline import tracking
+    runner.run_job(cfg_of(*ov, "+evaluate.allow_simulator=true"))
+    run = tracking.search_runs("misuse").iloc[0]
+    assert "not the plant the data came from" in run["tags.evaluated_on"]
+
+
+@needs_emps
+def test_physics_that_cannot_fit_the_data_is_flagged(store, cfg_of):
+    """The two-mass physics on the EMPS record: non-physical parameters become a warning tag."""
+    from pipeline import tracking
+    ov = ["system=two_mass_stribeck", "data=measured", "data.format=emps", f"data.path={EMPS}", "data.file=DATA_EMPS",
+          "stages=[generate,baseline]", "experiment_name=wrongphys"]
+    with pytest.warns(UserWarning, match="does not fit these data"):
+        runner.run_job(cfg_of(*ov))
+    run = tracking.search_runs("wrongphys").iloc[0]
+    assert "must be positive" in run["tags.physics_warning"]
+
+
+def test_recording_has_no_plant():
+    s = _emps_system()
+    with pytest.raises(RuntimeError, match="recording of a real machine: it has no true plant"):
+        s.simulate(np.zeros(10))
+    with pytest.raises(ValueError, match="controller.kp"):
+        CascadeController(kp=-1.0, kv=1.0, gtau=1.0)

@@ -124,7 +124,7 @@ def sample_time(t, Ts_sidecar, source: str, rtol: float = TS_RTOL) -> float:
     if Ts_sidecar is not None and abs(Ts_sidecar - med) > rtol * med:
         raise ValueError(f"{source}: the sidecar says Ts = {Ts_sidecar:g} s but column 't' steps {med:.6g} s; "
                          "make them agree")
-    return med
+    return med if Ts_sidecar is None else Ts_sidecar   # the sidecar's exact value when it agrees
 
 
 def _atomic_write(path: Path, write) -> None:

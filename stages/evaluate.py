@@ -10,7 +10,8 @@ per phase ff_rms_<phase>); a figure of the tracking errors, and artifact
 Measured systems (:class:`pipeline.systems.measured.Recording`) have no plant to run: every
 reference is a recorded file (kind ``measured``), and the identified model is replayed inside the
 known controller with the recorded reference and disturbance (``pipeline.identify.measured_loop``)
-in both timing conventions, ``data`` and ``published``: metrics ``<ref>/<convention>/
+in both timing conventions, ``data`` and ``published`` (``evaluate.convention`` picks the one of the
+figures and of the feedforward tracking; both are always logged): metrics ``<ref>/<convention>/
 force_rel_error | position_rel_error | rmse_mm``; the published reference model, where the system
 gives it, as ``<ref>/published_model/<convention>/…``; and the feedforward's *model-predicted*
 tracking (the identified model in the loop with u_ff added, tag ``feedforward_scoring``) as
@@ -46,6 +47,11 @@ def validate(cfg, system) -> None:
     from stages._common import reference_specs
     measured_data = str(cfg.data.get("kind")) == "measured"
     if isinstance(system, Recording):
+        from pipeline.identify.measured_loop import CONVENTIONS
+        conv = cfg.evaluate.get("convention", "data")
+        if conv not in CONVENTIONS:
+            raise ConfigError(f"evaluate.convention={conv!r}; choose one of {CONVENTIONS} (data: as recorded, "
+                              "published: the EMPS authors' script, unit delay and time base t(10) - t(9))")
         bad = [s["name"] for s in reference_specs(cfg.evaluate.references) if s.get("kind") != "measured"]
         if bad:
             raise ConfigError(f"system '{system.name}' is a recording: it has no plant to run reference(s) {bad}; "
@@ -103,6 +109,7 @@ def _run_measured(ctx) -> dict:
     inv, system, cfg = ctx.inputs["invert"], ctx.system, ctx.cfg
     loop, ctrl = inv["loop"], system.ctrl
     tail = float(cfg.evaluate.get("validation_tail", 0.2))
+    main = str(cfg.evaluate.get("convention", "data"))   # of the figures and the feedforward tracking
     published = None
     if system.published_theta() is not None:   # the authors' model in their discretisation (direct input)
         pub_physics = RigidBodyPhysics(system.Ts, averaged_input=False, offset=system.physics.has_offset)
@@ -119,8 +126,9 @@ def _run_measured(ctx) -> dict:
         for conv in CONVENTIONS:
             y_hat, tau_hat, _ = simulate_loop(loop, ctrl, sig, conv)
             m |= {f"{conv}/{k}": v for k, v in loop_errors(y, tau, y_hat, tau_hat).items()}
-            if conv == "data":
+            if conv == main:
                 force[name] = (ds["t"], tau - tau_hat)
+            if conv == "data":
                 k0 = int(round((1.0 - tail) * y.size))   # the validation tail of a training record
                 m["data/force_rel_error_tail"] = float(100 * np.linalg.norm(tau[k0:] - tau_hat[k0:])
                                                        / np.linalg.norm(tau[k0:]))
@@ -129,7 +137,7 @@ def _run_measured(ctx) -> dict:
                 m |= {f"published_model/{conv}/{k}": v for k, v in loop_errors(y, tau, yp, tp).items()}
         u_ff = inv["u_ff"][name]
         sig_ff = LoopSignals(r, d, float(y[0]), ds["t"], u_ff)
-        y_ff, _, _ = simulate_loop(loop, ctrl, sig_ff, "data")
+        y_ff, _, _ = simulate_loop(loop, ctrl, sig_ff, main)
         m |= {f"model_based/{k}": v for k, v in _tracking(r, y_ff).items()}
         m |= {f"recorded/{k}": v for k, v in _tracking(r, y).items()}
         for k, val in m.items():
@@ -137,7 +145,7 @@ def _run_measured(ctx) -> dict:
         errors[name] = (ds["t"], r - y_ff)
         out[name] = {"y_hat": y_ff, "u_ff": u_ff, **m}
     ctx.figure(plots.tracking_errors(force, f"{system.name}: recorded force - model force in the loop "
-                                            "(data timing)", "τ - τ̂ [N]"), "force_error.png")
+                                            f"({main} convention)", "τ - τ̂ [N]"), "force_error.png")
     ctx.figure(plots.tracking_errors(errors, f"{system.name}: {cfg.invert.name} feedforward, "
                                              "model-predicted tracking error"), "tracking_error.png")
     np.savez_compressed(ctx.artifact("errors.npz"), Ts=system.Ts,

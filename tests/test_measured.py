@@ -276,3 +276,9 @@ def test_recording_has_no_plant():
         s.simulate(np.zeros(10))
     with pytest.raises(ValueError, match="controller.kp"):
         CascadeController(kp=-1.0, kv=1.0, gtau=1.0)
+
+
+def test_unknown_convention_is_named(store, cfg_of, tmp_path):
+    path = _csv(tmp_path)
+    with pytest.raises(runner.ConfigError, match=r"evaluate.convention='matlab'; choose one of \('data', 'published'\)"):
+        runner.run_job(cfg_of(*_measured_overrides(path), "evaluate.convention=matlab"))

@@ -33,7 +33,7 @@ lint: install  ## ruff
 # every experiment of `make reproduce`, in order (conf/experiment/<name>.yaml; sweeps are set in
 # the file with hydra.mode=MULTIRUN)
 EXPERIMENTS ?= physics_arx physics_linear_motor physics_rot_trans physics_two_mass ilc_rot_trans \
-  b1_arx_bias b1_linear_motor b1_noise_sweep k_two_mass b2_rot_trans b2_rot_trans_il emps_physics emps
+  b1_arx_bias b1_linear_motor b1_noise_sweep k_two_mass b2_rot_trans b2_rot_trans_il emps_physics emps_narx emps
 
 reproduce: install  ## run every paper experiment, then write results/REPORT.md, summary.csv, figures
 	@set -e; for e in $(EXPERIMENTS); do echo "== experiment=$$e"; \

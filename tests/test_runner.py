@@ -210,3 +210,31 @@ def test_report_stage_failure_leaves_the_old_results(store, cfg_of, monkeypatch)
                               "report.experiments=[physics_baseline]"))
     assert sorted(p.name for p in results.iterdir()) == ["figures"]   # no temp dirs, no partial files
     assert [p.name for p in (results / "figures").iterdir()] == ["kept.png"]
+
+
+def test_report_update_rebuilds_only_the_named_sections(store, cfg_of):
+    """report.update=true: the named experiment's section, rows and figures are rebuilt; every other
+    section, summary row and figure of the existing results/ stays as it was."""
+    import pandas as pd
+    runner.run_job(cfg_of(*SHORT_TWO_MASS))
+    results = store / "results"
+    (results / "figures").mkdir(parents=True)
+    (results / "figures" / "other_exp-fig.png").write_bytes(b"kept")
+    (results / "figures" / "physics_baseline-stale.png").write_bytes(b"old")
+    (results / "REPORT.md").write_text("# Results\n\nold header (runs made at git `abc`; x)\n\n## other_exp\n\nkept text\n\n"
+                                       "## physics_baseline\n\nold physics text\n")
+    pd.DataFrame([{"experiment": "other_exp", "claim": "Z1", "variant": "v", "metric": "m", "value": 0.125,
+                   "paper_value": "", "claim_holds": "true"},
+                  {"experiment": "physics_baseline", "claim": "", "variant": "old", "metric": "m", "value": 1.0,
+                   "paper_value": "", "claim_holds": ""}]).to_csv(results / "summary.csv", index=False)
+    runner.run_job(cfg_of("stages=[report]", "experiment_name=report", f"paths.results={results}",
+                          "report.experiments=[physics_baseline]", "report.update=true"))
+    md = (results / "REPORT.md").read_text()
+    assert "## other_exp\n\nkept text" in md and "old physics text" not in md
+    assert md.index("## other_exp") < md.index("## physics_baseline")        # order kept
+    assert "| Z1 | other_exp | yes |" in md and "`abc`" in md
+    table = pd.read_csv(results / "summary.csv")
+    assert set(table["experiment"]) == {"other_exp", "physics_baseline"}
+    assert "old" not in set(table["variant"]) and float(table[table.claim == "Z1"]["value"].iloc[0]) == 0.125
+    figs = {p.name for p in (results / "figures").iterdir()}
+    assert "other_exp-fig.png" in figs and "physics_baseline-stale.png" not in figs

@@ -18,7 +18,9 @@ tracking (the identified model in the loop with u_ff added, tag ``feedforward_sc
 ``<ref>/model_based/mae|max_abs|rms`` beside the recorded tracking without feedforward
 ``<ref>/recorded/…``; ``<ref>/data/force_rel_error_tail`` scores the last
 ``evaluate.validation_tail`` of the record (on the training file: the validation block the
-trainings held out, where hyper-parameters are chosen).  A measured-data model scored on a simulator is refused unless
+trainings held out, where hyper-parameters are chosen); where the record has a stepped disturbance
+(EMPS test pulses), ``data/force_error_share_after_steps`` is the share of the squared force error
+within 60 ms after its steps and ``data/force_rel_error_outside_steps`` the error elsewhere.  A measured-data model scored on a simulator is refused unless
 ``evaluate.allow_simulator=true``, which tags the run ``evaluated_on``.
 """
 from __future__ import annotations
@@ -32,7 +34,7 @@ from pipeline.systems.measured import Recording
 
 UPSTREAM = ("invert",)
 DEPENDS = ("system", "evaluate", "seed")
-VERSION = 3   # 2: per-phase peaks, errors.npz artifact; 3: per-phase feedforward force error
+VERSION = 4   # 2: per-phase peaks, errors.npz artifact; 3: per-phase feedforward force error; 4: measured systems
 
 
 def optimal_input(system, r):
@@ -132,6 +134,7 @@ def _run_measured(ctx) -> dict:
                 k0 = int(round((1.0 - tail) * y.size))   # the validation tail of a training record
                 m["data/force_rel_error_tail"] = float(100 * np.linalg.norm(tau[k0:] - tau_hat[k0:])
                                                        / np.linalg.norm(tau[k0:]))
+                m |= _after_disturbance_edges(d, tau, tau_hat, int(round(EDGE_WINDOW / system.Ts)))
             if published is not None:
                 yp, tp, _ = simulate_loop(published, ctrl, sig, conv)
                 m |= {f"published_model/{conv}/{k}": v for k, v in loop_errors(y, tau, yp, tp).items()}
@@ -152,6 +155,24 @@ def _run_measured(ctx) -> dict:
                         **{f"{k}/{x}": v for k, (t, e) in errors.items()
                            for x, v in (("r", inv["r"][k]), ("e", e), ("force_error", force[k][1]))})
     return {"per_reference": out}
+
+
+#: window after each step of the measured disturbance [s] whose force error is split off (diagnostic)
+EDGE_WINDOW = 0.06
+
+
+def _after_disturbance_edges(d, tau, tau_hat, n: int) -> dict[str, float]:
+    """Where the force error sits relative to the disturbance steps (EMPS test pulses): the share of
+    ‖τ - τ̂‖² within ``n`` samples after a step of d, and the relative force error outside them."""
+    edges = np.flatnonzero(np.diff(np.asarray(d)) != 0) + 1
+    if edges.size == 0:
+        return {}
+    near = np.zeros(len(tau), bool)
+    for k in edges:
+        near[k:k + n] = True
+    e2 = (np.asarray(tau) - tau_hat) ** 2
+    return {"data/force_error_share_after_steps": float(e2[near].sum() / e2.sum()),
+            "data/force_rel_error_outside_steps": float(100 * np.sqrt(e2[~near].sum() / np.sum(tau[~near] ** 2)))}
 
 
 def _tracking(r, y) -> dict[str, float]:

@@ -154,6 +154,18 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
                   f"error {te:.2f} % ({'<' if c1 else '≥'} {X1_FORCE} %), physics {pte:.2f} % "
                   f"({'below' if c2 else 'not below'}), train/test gap {te - tr:+.2f} points vs physics "
                   f"{pte - ptr:+.2f} ({'no worse' if c3 else 'worse'}).", ""]
+        share = {lab: r["m"].get("evaluate/test/data/force_error_share_after_steps") for lab, r in table}
+        outside = {lab: r["m"].get("evaluate/test/data/force_rel_error_outside_steps") for lab, r in table}
+        if all(v is not None for v in share.values()):
+            lines += ["Where the test error sits: " + "; ".join(
+                f"{lab}: {100 * share[lab]:.0f} % of the squared force error within 60 ms after a force-pulse "
+                f"step, {outside[lab]:.2f} % relative error elsewhere" for lab, _ in table) + ". The pulses "
+                "are an excitation the training file does not contain: the model's response to a 175 N force "
+                "step is extrapolated, whatever the criterion.", ""]
+            for lab, r in table:
+                v = "physics" if lab == "physics" else f"pgnn-{r['kind']}"
+                rows += [row(E, f"{v}/test/data", "force_error_share_after_steps", share[lab]),
+                         row(E, f"{v}/test/data", "force_rel_error_outside_steps", outside[lab])]
         fig = _figure(P, best, figdir / "emps-force-error.png")
         if fig:
             lines += ["![EMPS test force error](figures/emps-force-error.png)", ""]

@@ -20,8 +20,9 @@ tracking (the identified model in the loop with u_ff added, tag ``feedforward_sc
 ``evaluate.validation_tail`` of the record (on the training file: the validation block the
 trainings held out, where hyper-parameters are chosen); where the record has a stepped disturbance
 (EMPS test pulses), ``data/force_error_share_after_steps`` is the share of the squared force error
-within 60 ms after its steps and ``data/force_rel_error_outside_steps`` the error elsewhere.  A measured-data model scored on a simulator is refused unless
-``evaluate.allow_simulator=true``, which tags the run ``evaluated_on``.
+within 60 ms after its steps and ``data/force_rel_error_outside_steps`` the error elsewhere.
+A measured-data model scored on a simulator is refused unless ``evaluate.allow_simulator=true``,
+which tags the run ``evaluated_on``.
 """
 from __future__ import annotations
 

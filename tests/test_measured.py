@@ -256,7 +256,7 @@ def test_measured_model_on_a_simulator_is_refused_or_tagged(store, cfg_of):
     # the EMPS record is not the simulated linear motor's loop: its sample time agrees, so only the
     # explicit choice lets it through, and the run says so
     from pipeline import tracking
-    runner.run_job(cfg_of(*ov, "+evaluate.allow_simulator=true"))
+    runner.run_job(cfg_of(*ov, "evaluate.allow_simulator=true"))
     run = tracking.search_runs("misuse").iloc[0]
     assert "not the plant the data came from" in run["tags.evaluated_on"]
 

@@ -35,7 +35,8 @@ from pipeline.systems.measured import Recording
 
 UPSTREAM = ("invert",)
 DEPENDS = ("system", "evaluate", "seed")
-VERSION = 4   # 2: per-phase peaks, errors.npz artifact; 3: per-phase feedforward force error; 4: measured systems
+VERSION = 5   # 2: per-phase peaks, errors.npz artifact; 3: per-phase feedforward force error; 4: measured systems;
+              # 5: u_ff in the measured systems' errors.npz
 
 
 def optimal_input(system, r):
@@ -154,7 +155,8 @@ def _run_measured(ctx) -> dict:
                                              "model-predicted tracking error"), "tracking_error.png")
     np.savez_compressed(ctx.artifact("errors.npz"), Ts=system.Ts,
                         **{f"{k}/{x}": v for k, (t, e) in errors.items()
-                           for x, v in (("r", inv["r"][k]), ("e", e), ("force_error", force[k][1]))})
+                           for x, v in (("r", inv["r"][k]), ("e", e), ("force_error", force[k][1]),
+                                        ("u_ff", inv["u_ff"][k]))})
     return {"per_reference": out}
 
 

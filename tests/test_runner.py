@@ -221,7 +221,7 @@ def test_report_update_rebuilds_only_the_named_sections(store, cfg_of):
     (results / "figures").mkdir(parents=True)
     (results / "figures" / "other_exp-fig.png").write_bytes(b"kept")
     (results / "figures" / "physics_baseline-stale.png").write_bytes(b"old")
-    (results / "REPORT.md").write_text("# Results\n\nold header (runs made at git `abc`; x)\n\n"
+    (results / "REPORT.md").write_text("# Results\n\nold header (runs made at git `abc`, report at `d`)\n\n"
                                        "## other_exp\n\nkept text\n\n## physics_baseline\n\nold physics text\n")
     pd.DataFrame([{"experiment": "other_exp", "claim": "Z1", "variant": "v", "metric": "m", "value": 0.125,
                    "paper_value": "", "claim_holds": "true"},

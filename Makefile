@@ -32,13 +32,16 @@ lint: install  ## ruff
 
 # every experiment of `make reproduce`, in order (conf/experiment/<name>.yaml; sweeps are set in
 # the file with hydra.mode=MULTIRUN)
-EXPERIMENTS ?= physics_arx physics_linear_motor physics_rot_trans physics_two_mass ilc_rot_trans \
+ALL_EXPERIMENTS := physics_arx physics_linear_motor physics_rot_trans physics_two_mass ilc_rot_trans \
   b1_arx_bias b1_linear_motor b1_noise_sweep k_two_mass b2_rot_trans b2_rot_trans_il emps_physics emps_narx emps
+EXPERIMENTS ?= $(ALL_EXPERIMENTS)
+# a subset rebuilds only its own report sections and keeps the rest of results/ (report.update)
+REPORT_UPDATE := $(if $(filter-out $(ALL_EXPERIMENTS),$(EXPERIMENTS))$(filter-out $(EXPERIMENTS),$(ALL_EXPERIMENTS)),true,false)
 
 reproduce: install  ## run every paper experiment, then write results/REPORT.md, summary.csv, figures
 	@set -e; for e in $(EXPERIMENTS); do echo "== experiment=$$e"; \
 	  $(PY) -m pipeline experiment=$$e; done
-	$(PY) -m pipeline stages=[report] experiment_name=report
+	$(PY) -m pipeline stages=[report] experiment_name=report report.update=$(REPORT_UPDATE)
 
 ui: install  ## MLflow UI on http://127.0.0.1:5000 over the same store as the runs
 	$(VENV)/bin/mlflow server --backend-store-uri "$${MLFLOW_TRACKING_URI:-$(MLFLOW_DB)}" \

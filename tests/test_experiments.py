@@ -39,7 +39,7 @@ def _sweep(experiment: str) -> dict[str, list[str]]:
 
 def _makefile_experiments() -> list[str]:
     text = (ROOT / "Makefile").read_text()
-    m = re.search(r"^EXPERIMENTS \?=((?:.*\\\n)*.*)$", text, re.M)
+    m = re.search(r"^ALL_EXPERIMENTS :=((?:.*\\\n)*.*)$", text, re.M)
     return m.group(1).replace("\\\n", " ").split()
 
 

@@ -11,9 +11,10 @@ True/False on claim rows, None elsewhere); ``markdown``: the REPORT.md section (
 claim, our numbers, figures saved into ``figdir`` and linked as ``figures/<file>``, and a
 sentence on what matched).  Experiments without a provider get the generic table.
 
-``report.update=true`` rebuilds only the sections of ``report.experiments`` and keeps every other
-section of the existing REPORT.md, its summary.csv rows and its figures (a subset of experiments
-rerun does not erase the others' results); the header says which sections were rebuilt.
+``report.update=true`` rebuilds only the sections of the ``report.experiments`` that have runs in
+the store and keeps every other section of the existing REPORT.md, its summary.csv rows and its
+figures (a subset of experiments rerun does not erase the others' results; ``make reproduce
+EXPERIMENTS=...`` uses it); the header says which sections were rebuilt.
 """
 from __future__ import annotations
 
@@ -71,9 +72,10 @@ def run(ctx) -> dict:
     results.mkdir(parents=True, exist_ok=True)
     figdir = Path(tempfile.mkdtemp(prefix=".figures-tmp-", dir=results))  # swapped in when complete
     try:
-        table, text = _build(cfg, figdir)
-        if cfg.report.get("update", False):
-            table, text = _merge(results, table, text, [str(e) for e in cfg.report.experiments], figdir)
+        update = bool(cfg.report.get("update", False))
+        table, text, built = _build(cfg, figdir, skip_empty=update)
+        if update:
+            table, text = _merge(results, table, text, built, figdir)
         _write(results / "summary.csv", lambda p: table.to_csv(p, index=False))
         old = Path(tempfile.mkdtemp(prefix=".figures-old-", dir=results))
         if (results / "figures").exists():
@@ -87,14 +89,18 @@ def run(ctx) -> dict:
     return {}
 
 
-def _build(cfg, figdir: Path) -> tuple[pd.DataFrame, str]:
-    """summary.csv as a table and REPORT.md as text; the sections' figures go to ``figdir``."""
+def _build(cfg, figdir: Path, skip_empty: bool = False) -> tuple[pd.DataFrame, str, list[str]]:
+    """summary.csv as a table, REPORT.md as text and the experiments built; the sections' figures
+    go to ``figdir``.  ``skip_empty``: experiments without runs get no section (update mode keeps theirs)."""
     provs = providers()
-    rows, sections, shas = [], [], set()
+    rows, sections, shas, built = [], [], set(), []
     for exp in cfg.report.experiments:
         runs, mixed = latest_runs(str(exp))
         if "tags.git_sha" in runs:
             shas |= set(runs["tags.git_sha"].dropna())
+        if runs.empty and skip_empty:
+            continue
+        built.append(str(exp))
         if runs.empty:
             sections.append(f"## {exp}\n\nNo finished runs in the tracking store "
                             f"({tracking.tracking_uri()}); run `make reproduce`.\n")
@@ -116,7 +122,7 @@ def _build(cfg, figdir: Path) -> tuple[pd.DataFrame, str]:
             f"{', '.join(f'`{x[:12]}`' for x in sorted(shas)) or 'unknown'}, report at "
             f"`{tracking.git_sha()[:12]}`). One section per experiment; every number is also a row "
             "of `summary.csv`.", ""]
-    return table, "\n".join(head + _claim_table(table) + sections) + "\n"
+    return table, "\n".join(head + _claim_table(table) + sections) + "\n", built
 
 
 def _claim_table(table: pd.DataFrame) -> list[str]:

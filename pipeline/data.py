@@ -190,8 +190,14 @@ def load_emps(folder: str | Path, which: str = "DATA_EMPS") -> Dataset:
     if missing:
         raise ValueError(f"{path}: variable(s) {missing} missing; an EMPS file holds {list(need)}")
     col = {k: np.asarray(m[k], dtype=np.float64).ravel() for k in ("t", "qm", "qg", "vir")}
+    if "pulses_N" in m:
+        col["pulses_N"] = np.asarray(m["pulses_N"], dtype=np.float64).ravel()
+    lengths = {k: v.size for k, v in col.items()}
+    if len(set(lengths.values())) > 1:
+        raise ValueError(f"{path}: variables of different lengths {lengths}; every signal needs one sample per "
+                         "time step: cut them to a common length")
     const = {k: float(np.asarray(m[k]).ravel()[0]) for k in EMPS_CONSTANTS}
-    d = np.asarray(m["pulses_N"], dtype=np.float64).ravel() if "pulses_N" in m else np.zeros_like(col["t"])
+    d = col.get("pulses_N", np.zeros_like(col["t"]))
     frame = pd.DataFrame({"t": col["t"] - col["t"][0], "r": col["qg"], "u": const["gtau"] * col["vir"],
                           "y": col["qm"], "d": d})
     validate_frame(frame, str(path))

@@ -61,6 +61,8 @@ def make_system(cfg: DictConfig):
     except Exception as exc:  # hydra wraps constructor errors; surface the message
         cause = exc.__cause__ or exc
         raise ConfigError(f"system '{name}': {cause}") from exc
+    if name and getattr(system, "name", None) != name:   # e.g. a Recording: its config names it
+        system.name = str(name)
     return system
 
 

@@ -12,7 +12,9 @@ reference is a recorded file (kind ``measured``), and the identified model is re
 known controller with the recorded reference and disturbance (``pipeline.identify.measured_loop``)
 in both timing conventions, ``data`` and ``published`` (``evaluate.convention`` picks the one of the
 figures and of the feedforward tracking; both are always logged): metrics ``<ref>/<convention>/
-force_rel_error | position_rel_error | rmse_mm``; the published reference model, where the system
+force_rel_error | position_rel_error | loop_rmse_mm``, and ``<ref>/benchmark_rmse_mm`` (the
+benchmark's open-loop simulation: the model driven by the recorded force, first 20 samples only
+initialise); the published reference model, where the system
 gives it, as ``<ref>/published_model/<convention>/…``; and the feedforward's *model-predicted*
 tracking (the identified model in the loop with u_ff added, tag ``feedforward_scoring``) as
 ``<ref>/model_based/mae|max_abs|rms`` beside the recorded tracking without feedforward
@@ -35,8 +37,8 @@ from pipeline.systems.measured import Recording
 
 UPSTREAM = ("invert",)
 DEPENDS = ("system", "evaluate", "seed")
-VERSION = 5   # 2: per-phase peaks, errors.npz artifact; 3: per-phase feedforward force error; 4: measured systems;
-              # 5: u_ff in the measured systems' errors.npz
+VERSION = 6   # 2: per-phase peaks, errors.npz artifact; 3: per-phase feedforward force error; 4: measured systems;
+              # 5: u_ff in the measured systems' errors.npz; 6: benchmark (open-loop) RMSE
 
 
 def optimal_input(system, r):
@@ -106,7 +108,8 @@ def run(ctx) -> dict:
 # measured systems: replay in the recorded loop
 # ------------------------------------------------------------------------------------------
 def _run_measured(ctx) -> dict:
-    from pipeline.identify.measured_loop import CONVENTIONS, LoopModel, LoopSignals, loop_errors, simulate_loop
+    from pipeline.identify.measured_loop import (CONVENTIONS, LoopModel, LoopSignals, benchmark_rmse_mm,
+                                                 loop_errors, simulate_loop, simulate_open_loop)
     from pipeline.systems.measured import RigidBodyPhysics
     from stages._common import reference_specs
     from stages.generate.measured import reference
@@ -140,6 +143,8 @@ def _run_measured(ctx) -> dict:
             if published is not None:
                 yp, tp, _ = simulate_loop(published, ctrl, sig, conv)
                 m |= {f"published_model/{conv}/{k}": v for k, v in loop_errors(y, tau, yp, tp).items()}
+        y_ol = simulate_open_loop(loop, tau, float(y[0]))       # benchmark convention: vir in, qm out
+        m["benchmark_rmse_mm"] = benchmark_rmse_mm(y, y_ol)
         u_ff = inv["u_ff"][name]
         sig_ff = LoopSignals(r, d, float(y[0]), ds["t"], u_ff)
         y_ff, _, _ = simulate_loop(loop, ctrl, sig_ff, main)

@@ -12,7 +12,8 @@ import pandas as pd
 import pytest
 
 from pipeline import data, runner
-from pipeline.identify.measured_loop import LoopModel, LoopSignals, identify_loop_sim_error, loop_errors, simulate_loop
+from pipeline.identify.measured_loop import (LoopModel, LoopSignals, benchmark_rmse_mm, identify_loop_sim_error,
+                                            loop_errors, simulate_loop, simulate_open_loop)
 from pipeline.systems.measured import CascadeController, Recording, RigidBodyPhysics
 
 EMPS = Path(__file__).resolve().parents[2] / "shared" / "data" / "emps"
@@ -286,3 +287,95 @@ def test_unknown_convention_is_named(store, cfg_of, tmp_path):
     with pytest.raises(runner.ConfigError,
                        match=r"evaluate.convention='matlab'; choose one of \('data', 'published'\)"):
         runner.run_job(cfg_of(*_measured_overrides(path), "evaluate.convention=matlab"))
+
+
+def test_open_loop_benchmark_simulation_is_the_rigid_body_recursion():
+    """simulate_open_loop (the loop kernel with zero gains) = the one-step rigid body driven by u,
+    written out here: y(k) = 2y(k-1) - y(k-2) + Ts² (ū(k-1) - F_v δy - F_c sign δy - OF)/M."""
+    s = _emps_system()
+    th = s.published_theta()
+    M, Fv, Fc, OF = 95.1089, 203.5034, 20.3935, -3.1648
+    rng = np.random.default_rng(1)
+    u = 50.0 * np.sin(np.arange(300) * 0.05) + rng.normal(0, 5, 300)
+    y = simulate_open_loop(LoopModel.physics_only(s.physics, th), u, 0.01)
+    ref = np.full(300, 0.01)
+    for k in range(1, 300):
+        y1, y2 = ref[k - 1], ref[k - 2] if k >= 2 else 0.01
+        w = 0.5 * (u[k - 1] + (u[k - 2] if k >= 2 else 0.0))
+        v = (y1 - y2) / 1e-3
+        ref[k] = 2 * y1 - y2 + 1e-6 * (w - Fv * v - Fc * np.sign(v) - OF) / M
+    # θ = [1/M, F_v/M, …] rounds differently from dividing by M, and the double integrator sums that
+    # rounding over 300 steps (~1e-14 m); a wrong term (delay, averaging, sign) errs by > 1e-6 m
+    np.testing.assert_allclose(y, ref, rtol=0, atol=1e-12)
+    assert benchmark_rmse_mm(ref, y) < 1e-9
+
+
+def test_measured_reference_needs_its_file_and_a_useful_length(store, cfg_of, tmp_path):
+    path = _csv(tmp_path)
+    ov = _measured_overrides(path)
+    with pytest.raises(runner.ConfigError, match="reference 'test' of kind 'measured' names no file"):
+        runner.run_job(cfg_of(*ov[:-5], "evaluate=emps", "evaluate.references=[{name:test,kind:measured}]",
+                              *ov[-4:]))
+    pd.read_csv(path).iloc[:8].to_csv(tmp_path / "short.csv", index=False)
+    with pytest.raises(runner.ConfigError, match=r"short\.csv: 8 samples; at least 20"):
+        runner.run_job(cfg_of(*ov[:-5], "evaluate=emps",
+                              "evaluate.references=[{name:test,kind:measured,file:short.csv}]", *ov[-4:]))
+    with pytest.raises(runner.ConfigError, match=r"reference 'test': .*gone\.csv does not exist; check data\.path"):
+        runner.run_job(cfg_of(*ov[:-5], "evaluate=emps",
+                              "evaluate.references=[{name:test,kind:measured,file:gone.csv}]", *ov[-4:]))
+
+
+def test_emps_file_with_signals_of_different_lengths_is_named(tmp_path):
+    from scipy.io import loadmat, savemat
+    if not (EMPS / "DATA_EMPS.mat").exists():
+        pytest.skip("../shared/data/emps (the EMPS benchmark files) is not beside the repo")
+    m = {k: v for k, v in loadmat(EMPS / "DATA_EMPS.mat").items() if not k.startswith("__")}
+    m["vir"] = m["vir"][:-100]
+    savemat(tmp_path / "DATA_EMPS.mat", m)
+    with pytest.raises(ValueError, match=r"DATA_EMPS\.mat: variables of different lengths.*'vir': 24741"):
+        data.load_emps(tmp_path, "DATA_EMPS")
+
+
+def test_negative_mass_is_returned_for_the_warning_not_hidden():
+    """A sign error the controller check cannot see (e.g. a user's own loop) gives M < 0 from the
+    filtered least squares; the baseline turns it into the physics_warning tag."""
+    from stages.baseline import nonphysical
+    s, sig = _toy_loop(3000)
+    y, tau, _ = simulate_loop(LoopModel.physics_only(s.physics, s.published_theta()), s.ctrl, sig)
+    th = s.physics.fit_filtered(y, -tau, decimation=1, trim=50)
+    phys = s.physics.physical(th)
+    assert phys["M"] < 0 and nonphysical(phys)[0].startswith("M=-")
+
+
+def test_system_config_name_is_the_recordings_name(cfg_of):
+    assert runner.make_system(cfg_of("system=emps")).name == "emps"
+
+
+def test_measured_pgnn_trainings_and_the_emps_report_section(store, cfg_of, tmp_path):
+    """Both PGNN criteria on a user record through train -> analytic inversion -> replay, and the
+    report section that chooses on the validation tail: smoke budgets, real code paths."""
+    import pandas as pd
+    from pipeline import tracking
+    path = _csv(tmp_path, n=3000)
+    user = ["system=measured", "system.controller.kp=160.18", "system.controller.kv=243.45",
+            "system.controller.gtau=35.150652", "data.format=table", f"data.path={tmp_path}", "data.file=rec.csv",
+            "evaluate.references=[{name:train,kind:measured,file:rec.csv},{name:test,kind:measured,file:rec.csv}]"]
+    runner.run_job(cfg_of("experiment=emps_physics", *user))
+    for e in ("emps", "emps_narx"):
+        runner.run_job(cfg_of(f"experiment={e}", *user, "model.hidden=[2]", "identify.n_restarts=1",
+                              "identify.max_iter=3"))
+    runs = tracking.search_runs("emps")
+    assert len(runs) == 3
+    pgnn = runs[runs["tags.identify"] != "none"]
+    assert set(pgnn["tags.lm_stop"]) <= {"max_iter", "ftol", "gtol", "mu_max"}
+    # the record is the physics model's own loop: every model replays it to well below 1 %
+    assert (runs["metrics.evaluate/test/data/force_rel_error"] < 1.0).all()
+    results = store / "results"
+    runner.run_job(cfg_of("stages=[report]", "experiment_name=report", f"paths.results={results}",
+                          "report.experiments=[emps]"))
+    table = pd.read_csv(results / "summary.csv")
+    x1 = table[table["claim"] == "X1"]
+    assert {"force_rel_error<4.5", "force_rel_error<physics", "train_test_gap<=physics"} <= set(x1["metric"])
+    md = (results / "REPORT.md").read_text()
+    assert "Stopped on the iteration cap (not converged)" in md     # max_iter=3 is flagged
+    assert "model-based" in md

@@ -252,16 +252,18 @@ class LoopSignals:
     u_ff: np.ndarray | None = None
 
 
-def _convention(sig: LoopSignals, convention: str, Ts: float) -> tuple[np.ndarray, np.ndarray, int]:
+def _convention(sig: LoopSignals, convention: str):
+    """(r, d, u_ff, D) of the convention: as recorded, or read at the script's time base with D = 1."""
     if convention not in CONVENTIONS:
         raise ValueError(f"convention={convention!r}; choose one of {CONVENTIONS}")
+    uff = np.zeros_like(sig.r) if sig.u_ff is None else sig.u_ff
     if convention == "data":
-        return sig.r, sig.d, 0
+        return sig.r, sig.d, uff, 0
     if sig.t is None or sig.t.size < 10:
         raise ValueError("the published convention needs the data's time column t (>= 10 samples)")
     h = float(sig.t[9] - sig.t[8])                       # the script's step t(10) - t(9)
     ts = sig.t[0] + np.arange(sig.r.size) * h
-    return np.interp(ts, sig.t, sig.r), np.interp(ts, sig.t, sig.d), 1
+    return tuple(np.interp(ts, sig.t, x) for x in (sig.r, sig.d, uff)) + (1,)
 
 
 def simulate_loop(model: LoopModel, ctrl, sig: LoopSignals, convention: str = "data", sens: bool = False):
@@ -269,10 +271,8 @@ def simulate_loop(model: LoopModel, ctrl, sig: LoopSignals, convention: str = "d
 
     Returns (ŷ [m], τ̂ [N], u [N] applied force) and, with ``sens``, the sensitivities
     (∂ŷ/∂θ [N, P], ∂τ̂/∂θ [N, P])."""
-    r, d, D = _convention(sig, convention, model.Ts)
-    r = np.ascontiguousarray(r, dtype=np.float64)
-    d = np.ascontiguousarray(d, dtype=np.float64)
-    uff = np.zeros_like(r) if sig.u_ff is None else np.ascontiguousarray(sig.u_ff, dtype=np.float64)
+    r, d, uff, D = _convention(sig, convention)
+    r, d, uff = (np.ascontiguousarray(x, dtype=np.float64) for x in (r, d, uff))
     if not (d.shape == r.shape == uff.shape):
         raise ValueError(f"r, d and u_ff must have one length, got {r.shape}, {d.shape}, {uff.shape}")
     y, tau, u, Sy, Sc = _loop(r, d, uff, float(sig.y0), model.n_a, model.n_b, model.averaged, model.theta_phy,
@@ -283,18 +283,40 @@ def simulate_loop(model: LoopModel, ctrl, sig: LoopSignals, convention: str = "d
     return y, tau, u
 
 
-def loop_errors(y_meas, tau_meas, y_hat, tau_hat, n_init: int = 20) -> dict[str, float]:
+def loop_errors(y_meas, tau_meas, y_hat, tau_hat) -> dict[str, float]:
     """Scores of a closed-loop simulation against the record (EMPS README):
 
     - ``force_rel_error`` [%] = 100 ‖τ - τ̂‖ / ‖τ‖ (all samples);
     - ``position_rel_error`` [%] = 100 ‖q - q̂‖ / ‖q‖;
-    - ``rmse_mm`` [mm]: rms(q - q̂) over samples ``n_init``… (benchmark convention: the first 20
-      samples only initialise).
+    - ``loop_rmse_mm`` [mm]: rms(q - q̂) of the closed-loop replay.
     """
     y_meas, tau_meas = np.asarray(y_meas), np.asarray(tau_meas)
     return {"force_rel_error": float(100 * np.linalg.norm(tau_meas - tau_hat) / np.linalg.norm(tau_meas)),
             "position_rel_error": float(100 * np.linalg.norm(y_meas - y_hat) / np.linalg.norm(y_meas)),
-            "rmse_mm": float(1e3 * np.sqrt(np.mean((y_meas[n_init:] - y_hat[n_init:]) ** 2)))}
+            "loop_rmse_mm": float(1e3 * np.sqrt(np.mean((y_meas - y_hat) ** 2)))}
+
+
+@dataclass(frozen=True)
+class _NoFeedback:
+    kp: float = 0.0
+    kv: float = 0.0
+    gtau: float = 1.0
+    v_sat: float = math.inf
+
+
+def simulate_open_loop(model: LoopModel, u, y0: float) -> np.ndarray:
+    """ŷ [m] of the model driven by a recorded force u [N], no controller (the EMPS benchmark's
+    simulation convention: input vir, output qm): the loop kernel with zero gains and u as the
+    disturbance, so the same model code runs."""
+    u = np.asarray(u, dtype=np.float64)
+    y, _, _ = simulate_loop(model, _NoFeedback(), LoopSignals(np.zeros_like(u), u, float(y0)), "data")
+    return y
+
+
+def benchmark_rmse_mm(y_meas, y_hat, n_init: int = 20) -> float:
+    """rms(q - q̂) [mm] over the samples after the first ``n_init`` (which only initialise)."""
+    e = np.asarray(y_meas)[n_init:] - np.asarray(y_hat)[n_init:]
+    return float(1e3 * np.sqrt(np.mean(e ** 2)))
 
 
 # --------------------------------------------------------------------------------------

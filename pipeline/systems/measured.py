@@ -141,10 +141,10 @@ class RigidBodyPhysics(LinearMotorPhysics):
         k = max(1, trim // max(decimation, 1))
         from pipeline.identify.least_squares import solve_scaled
         p = solve_scaled(X[k:-k], z[k:-k])     # [M, F_v, F_c(, OF)]
-        if not p[0] > 0:
-            raise ValueError(f"the filtered least squares gives a non-positive mass M = {p[0]:.4g} kg: "
-                             "check the signs and units of u (force) and y (position)")
-        return np.concatenate([[1.0], p[1:]]) / p[0]
+        if p[0] == 0:
+            raise ValueError("the filtered least squares gives a zero mass: the data do not excite the "
+                             "acceleration; check that y moves and that u is the force")
+        return np.concatenate([[1.0], p[1:]]) / p[0]   # M < 0 comes back as is: the baseline warns
 
 
 # --------------------------------------------------------------------------- controller

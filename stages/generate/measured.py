@@ -20,6 +20,8 @@ FORMATS = ("table", "emps")
 #: relative rms of (recorded force - controller law on the recorded position) above which the
 #: record is not this loop (EMPS: 0.2 % in the training file; a sign or unit error gives > 100 %)
 CONTROLLER_RTOL = 0.05
+#: shortest record an evaluation reference may be (the published convention reads t(10) - t(9))
+MIN_REFERENCE = 20
 
 
 def _folder_and_file(cfg, file: str | None) -> tuple[Path, str | None]:
@@ -50,8 +52,11 @@ def load_file(cfg, file: str | None = None) -> data.Dataset:
     return ds
 
 
-def check_record(ds: data.Dataset, system, source: str) -> None:
-    """A loaded record against the system it is meant for (sample time, controller, units)."""
+def check_record(ds: data.Dataset, system, source: str, min_len: int = 0) -> None:
+    """A loaded record against the system it is meant for (length, sample time, controller, units)."""
+    if len(ds) < min_len:
+        raise ValueError(f"{source}: {len(ds)} samples; at least {min_len} are needed here (a short record cannot "
+                         "identify or score the loop): give the whole recording")
     Ts = float(ds.Ts)
     sys_Ts = float(getattr(system, "Ts", Ts))
     if abs(Ts - sys_Ts) > data.TS_RTOL * sys_Ts:
@@ -78,7 +83,11 @@ def check_record(ds: data.Dataset, system, source: str) -> None:
 def check(cfg, system) -> None:
     try:
         ds = load_file(cfg)
-        check_record(ds, system, ds.meta.get("source", str(cfg.data.path)))
+        need = 0
+        if isinstance(system, Recording):   # the filtered least squares drops and decimates samples
+            idim = {"trim": 50, "decimation": 10, **system.idim}
+            need = 2 * int(idim["trim"]) + 20 * max(int(idim["decimation"]), 1)
+        check_record(ds, system, ds.meta.get("source", str(cfg.data.path)), min_len=need)
     except (ValueError, FileNotFoundError) as exc:
         raise ConfigError(str(exc)) from exc
 
@@ -89,9 +98,15 @@ def make(cfg, system, ctx) -> data.Dataset:
 
 def reference(cfg, spec: dict, system) -> data.Dataset:
     """The record an evaluation reference of kind ``measured`` names (``spec['file']``), checked."""
+    if not spec.get("file"):
+        raise ConfigError(f"reference '{spec.get('name')}' of kind 'measured' names no file; give the recorded "
+                          "file inside data.path, e.g. {name: test, kind: measured, file: DATA_EMPS_PULSES}")
     try:
-        ds = load_file(cfg, spec.get("file"))
-        check_record(ds, system, ds.meta.get("source", str(spec.get("file"))))
-    except (ValueError, FileNotFoundError) as exc:
+        ds = load_file(cfg, spec["file"])
+        check_record(ds, system, ds.meta.get("source", str(spec["file"])), min_len=MIN_REFERENCE)
+    except FileNotFoundError as exc:
+        raise ConfigError(f"reference '{spec.get('name')}': {str(exc).split(';')[0]}; check data.path and the "
+                          "reference's file") from exc
+    except ValueError as exc:
         raise ConfigError(f"reference '{spec.get('name')}': {exc}") from exc
     return ds

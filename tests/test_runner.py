@@ -238,3 +238,7 @@ def test_report_update_rebuilds_only_the_named_sections(store, cfg_of):
     assert "old" not in set(table["variant"]) and float(table[table.claim == "Z1"]["value"].iloc[0]) == 0.125
     figs = {p.name for p in (results / "figures").iterdir()}
     assert "other_exp-fig.png" in figs and "physics_baseline-stale.png" not in figs
+    # a second update keeps the kept sections' SHA (not the rebuilt ones')
+    runner.run_job(cfg_of("stages=[report]", "experiment_name=report", f"paths.results={results}",
+                          "report.experiments=[physics_baseline]", "report.update=true"))
+    assert "kept from the previous report (runs made at git `abc`)" in (results / "REPORT.md").read_text()

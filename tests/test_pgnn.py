@@ -106,6 +106,10 @@ def test_jacobian_matches_finite_differences(structure, hidden, activation):
     assert bool(((J - Jfd).abs() <= 1e-6 * Jfd.abs().amax(0)).all())
     Jad = torch.func.jacfwd(lambda t: m.predict(t, prep))(th)
     assert torch.allclose(J, Jad, rtol=1e-12, atol=1e-14)
+    # the LM's path: row blocks written into a reused buffer and scaled in place is the same
+    # arithmetic, so it must equal the one-block J times the scale to the bit
+    buf = torch.full_like(J, float("nan"))
+    assert torch.equal(m.jacobian(th, prep, out=buf, scale=-0.37, block=64), J * (-0.37))
 
 
 def test_initial_pgnn_equals_physics_and_parts():

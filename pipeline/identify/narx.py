@@ -192,7 +192,8 @@ def criterion(model: PGNN, prep: Prepared, target: torch.Tensor, sigma: float,
     """Residual and exact Jacobian of the normalised criterion ([B1] (12), (14), (29)).
 
     ``residual(θ) = [(target - ŷ(θ))/(σ sqrt M); R d(θ)]`` with d the relative deviation of
-    θ_phy from θ*_phy; ``||residual||²`` is V(θ) of the module docstring.
+    θ_phy from θ*_phy; ``||residual||²`` is V(θ) of the module docstring.  ``jacobian`` returns
+    the same buffer at every call (overwritten): use each J before asking for the next.
     """
     M = target.shape[0]
     c = 1.0 / (sigma * np.sqrt(M))
@@ -209,13 +210,16 @@ def criterion(model: PGNN, prep: Prepared, target: torch.Tensor, sigma: float,
             e = torch.cat([e, Rs @ (theta[sl] - theta_star)])
         return e
 
+    # one buffer for every Jacobian of the fit: the data rows are rewritten in place, the
+    # regulariser rows written once (no per-iteration allocation, scaling copy or concatenation)
+    n_reg = Rs.shape[0] if reg else 0
+    buf = torch.zeros(M + n_reg, model.n_params, dtype=torch.float64)
+    if reg:
+        buf[M:, sl] = Rs
+
     def jacobian(theta):
-        J = model.jacobian(theta, prep) * (-c)
-        if reg:
-            Jr = torch.zeros(Rs.shape[0], theta.numel(), dtype=torch.float64)
-            Jr[:, sl] = Rs
-            J = torch.cat([J, Jr])
-        return J
+        model.jacobian(theta, prep, out=buf[:M], scale=-c)
+        return buf
 
     return residual, jacobian
 

@@ -526,20 +526,42 @@ class PGNN(nn.Module):
             out = out + self._mlp(prep.x, layers)
         return out
 
-    def jacobian(self, theta: torch.Tensor, prep: Prepared, chunk: int = 20000) -> torch.Tensor:
-        """Exact ∂ŷ/∂θ [M, n_params]: closed form for one hidden layer (tanh, sigmoid,
-        identity) or no hidden layer, torch.func.jacfwd in row chunks otherwise."""
+    def jacobian(self, theta: torch.Tensor, prep: Prepared, chunk: int = 20000,
+                 out: torch.Tensor | None = None, scale: float | None = None,
+                 block: int = 2048) -> torch.Tensor:
+        """Exact ∂ŷ/∂θ [M, n_params] (times ``scale`` if given): closed form for one hidden layer
+        (tanh, sigmoid, identity) or no hidden layer, torch.func.jacfwd in row chunks otherwise.
+
+        ``out``: a preallocated contiguous [M, n_params] float64 buffer to write into (an LM reuses
+        one buffer instead of allocating a fresh J every iteration).  The closed form fills J in
+        row blocks of ``block`` rows, each block complete (and scaled) while it is in cache: one
+        pass over J's memory instead of one per parameter group; every entry is the same product
+        as an unblocked computation, so J is bit-identical."""
         M = len(prep)
         th_phy, layers = self._unflatten(theta)
         closed = (not self.use_nn or len(layers) == 1 or
                   (len(layers) == 2 and self.activation in ("tanh", "sigmoid", "identity")))
+        if out is not None and (out.shape != (M, self.n_params) or not out.is_contiguous()):
+            raise ValueError(f"out must be a contiguous [{M}, {self.n_params}] buffer, got {tuple(out.shape)}")
         if not closed:
             blocks = []
             for i in range(0, M, chunk):
                 rows = prep.rows(slice(i, i + chunk))
                 blocks.append(torch.func.jacfwd(lambda th, rows=rows: self.predict(th, rows))(theta))
-            return torch.cat(blocks, dim=0)
-        J = torch.empty(M, self.n_params, dtype=torch.float64)
+            J = torch.cat(blocks, dim=0)
+            if scale is not None:
+                J.mul_(scale)
+            return J if out is None else out.copy_(J)
+        J = torch.empty(M, self.n_params, dtype=torch.float64) if out is None else out
+        for a in range(0, M, block):
+            self._jacobian_rows(layers, prep.rows(slice(a, a + block)), J[a:a + block])
+            if scale is not None:
+                J[a:a + block].mul_(scale)
+        return J
+
+    def _jacobian_rows(self, layers, prep: Prepared, J: torch.Tensor) -> None:
+        """The closed-form Jacobian of the rows of ``prep`` into the row block ``J``."""
+        M = J.shape[0]
         i = 0
         if self.use_physics:
             p = prep.T.shape[1]
@@ -568,7 +590,6 @@ class PGNN(nn.Module):
                 J[:, i:i + H] = G
                 torch.mul(h, s, out=J[:, i + H:i + 2 * H])
                 J[:, i + 2 * H] = s
-        return J
 
     def forward(self, phi: torch.Tensor) -> torch.Tensor:
         """One-step prediction ŷ(θ, φ) [B] for a batch of regressors φ [B, n_phi] ([B1] (10)).

@@ -356,7 +356,7 @@ def test_measured_pgnn_trainings_and_the_emps_report_section(store, cfg_of, tmp_
     report section that chooses on the validation tail: smoke budgets, real code paths."""
     import pandas as pd
     from pipeline import tracking
-    path = _csv(tmp_path, n=3000)
+    _csv(tmp_path, n=3000)                 # rec.csv: the physics model in the EMPS cascade
     user = ["system=measured", "system.controller.kp=160.18", "system.controller.kv=243.45",
             "system.controller.gtau=35.150652", "data.format=table", f"data.path={tmp_path}", "data.file=rec.csv",
             "evaluate.references=[{name:train,kind:measured,file:rec.csv},{name:test,kind:measured,file:rec.csv}]"]

@@ -122,7 +122,9 @@ def fit(ctx) -> dict:
             "sigma": fit_.sigma}
 
 
-def _figure(fit_, r, y, Ts):
+def _loss_panels(fit_, ylabel: str, title: str):
+    """A figure with the LM loss curve of every restart (the kept one bold) on top and an empty
+    panel below for the identification error."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -130,8 +132,13 @@ def _figure(fit_, r, y, Ts):
     for i, rr in enumerate(fit_.restarts):
         a0.semilogy(rr.history, lw=2.0 if i == fit_.best else 0.8)
     a0.set_xlabel("accepted LM step")
-    a0.set_ylabel("normalised cost (16)")
-    a0.set_title(f"closed-loop simulation-error LM, n1 = {fit_.arx.n1}", fontsize=9)
+    a0.set_ylabel(ylabel)
+    a0.set_title(title, fontsize=9)
+    return fig, a1
+
+
+def _figure(fit_, r, y, Ts):
+    fig, a1 = _loss_panels(fit_, "normalised cost (16)", f"closed-loop simulation-error LM, n1 = {fit_.arx.n1}")
     t = np.arange(y.size) * Ts
     a1.plot(t, y - fit_.y_hat, lw=0.6)
     a1.set_xlabel("t [s]")
@@ -215,16 +222,8 @@ def _fit_measured(ctx) -> dict:
 
 
 def _figure_measured(fit_, t, tau, tau_hat, n_train):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, (a0, a1) = plt.subplots(2, 1, figsize=(7, 5))
-    for i, rr in enumerate(fit_.restarts):
-        a0.semilogy(rr.history, lw=2.0 if i == fit_.best else 0.8)
-    a0.set_xlabel("accepted LM step")
-    a0.set_ylabel("normalised cost")
-    a0.set_title(f"closed-loop simulation error on the recorded force, n1 = {fit_.loop.n1} "
-                 f"(stop: {fit_.restarts[fit_.best].message})", fontsize=9)
+    fig, a1 = _loss_panels(fit_, "normalised cost", f"closed-loop simulation error on the recorded force, "
+                           f"n1 = {fit_.loop.n1} (stop: {fit_.restarts[fit_.best].message})")
     a1.plot(t, tau - tau_hat, lw=0.5)
     a1.axvline(t[n_train - 1], color="k", ls=":", lw=0.8)
     a1.set_xlabel("t [s] (dotted: start of the validation block)")

@@ -39,8 +39,7 @@ EXPERIMENTS ?= $(ALL_EXPERIMENTS)
 REPORT_UPDATE := $(if $(filter-out $(ALL_EXPERIMENTS),$(EXPERIMENTS))$(filter-out $(EXPERIMENTS),$(ALL_EXPERIMENTS)),true,false)
 
 reproduce: install  ## run every paper experiment, then write results/REPORT.md, summary.csv, figures
-	@set -e; for e in $(EXPERIMENTS); do echo "== experiment=$$e"; \
-	  $(PY) -m pipeline experiment=$$e; done
+	$(PY) -m pipeline.reproduce $(EXPERIMENTS)
 	$(PY) -m pipeline stages=[report] experiment_name=report report.update=$(REPORT_UPDATE)
 
 ui: install  ## MLflow UI on http://127.0.0.1:5000 over the same store as the runs

@@ -1,0 +1,29 @@
+"""make reproduce's driver: per-experiment wall time, jobs, ETA, results/timings.csv (issue 10, item 4)."""
+from __future__ import annotations
+
+import pandas as pd
+
+from pipeline import reproduce
+
+
+def test_eta_and_merge_from_the_previous_timings():
+    prev = pd.DataFrame([{"experiment": e, "jobs": 1, "wall_seconds": s, "cores_used": 1, "cores_available": 2,
+                          "git_sha": "old"} for e, s in (("a", 10.0), ("b", 20.0), ("c", 30.5))])
+    assert reproduce.eta_seconds(prev, ["b", "c"]) == 50.5
+    assert reproduce.eta_seconds(prev, ["b", "new"]) is None and reproduce.eta_seconds(None, ["a"]) is None
+    merged = reproduce.merge(prev, [{"experiment": "b", "jobs": 4, "wall_seconds": 7.0, "cores_used": 1,
+                                     "cores_available": 2, "git_sha": "new"}])
+    assert list(merged["experiment"]) == ["b", "a", "c"]                 # the rerun first, the rest kept
+    assert merged.set_index("experiment").loc["b", "wall_seconds"] == 7.0
+
+
+def test_driver_times_an_experiment_and_counts_its_jobs(store, capsys):
+    results = store / "results"
+    table = reproduce.run(["physics_arx"], results)
+    out = capsys.readouterr()
+    assert "== physics_arx: " in out.out and "1 job(s)" in out.out and "done" in out.out
+    assert "[arx_bias-" in out.err                                        # the job's own lines streamed
+    on_disk = pd.read_csv(results / "timings.csv")
+    assert list(on_disk.columns) == reproduce.COLUMNS and on_disk.loc[0, "experiment"] == "physics_arx"
+    assert on_disk.loc[0, "jobs"] == 1 and on_disk.loc[0, "wall_seconds"] > 0
+    assert len(table) == 1 and table.loc[0, "wall_seconds"] == on_disk.loc[0, "wall_seconds"]

@@ -91,7 +91,7 @@ def validate_frame(df: pd.DataFrame, source: str) -> None:
 
 
 def sample_time(t, Ts_sidecar, source: str, rtol: float = TS_RTOL) -> float:
-    """The sample time of a record [s] from its time column ``t`` and/or sidecar ``Ts``.
+    """The sample time of a record [s] from its time column ``t`` (required) and optional sidecar ``Ts``.
 
     ``t`` must be increasing and uniform to ``rtol`` (relative spread of its steps), the sidecar
     positive and equal to t's step (to ``rtol``).  Raises ValueError naming the problem and the fix.
@@ -105,11 +105,6 @@ def sample_time(t, Ts_sidecar, source: str, rtol: float = TS_RTOL) -> float:
         if not (np.isfinite(Ts_sidecar) and Ts_sidecar > 0):
             raise ValueError(f"{source}: sidecar 'Ts' = {Ts_sidecar!r} is not a positive sample time; give "
                              "the sample time in s")
-    if t is None:
-        if Ts_sidecar is None:
-            raise ValueError(f"{source}: no 't' column and no sidecar 'Ts'; add a time column [s] or a "
-                             "JSON sidecar with {\"Ts\": <sample time in s>}")
-        return Ts_sidecar
     t = np.asarray(t, dtype=np.float64)
     dt = np.diff(t)
     if np.any(dt <= 0):
@@ -165,8 +160,7 @@ def load(path: str | Path) -> Dataset:
     meta = json.loads(side.read_text()) if side.exists() else {}
     meta["source"] = str(path)
     validate_frame(frame, str(path))
-    meta["Ts"] = sample_time(frame["t"].to_numpy(np.float64) if "t" in frame else None, meta.get("Ts"),
-                             str(path))
+    meta["Ts"] = sample_time(frame["t"].to_numpy(np.float64), meta.get("Ts"), str(path))
     return Dataset(frame, meta)
 
 

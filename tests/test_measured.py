@@ -108,7 +108,7 @@ def test_loop_sensitivities_match_finite_differences():
     th[2] = 0.0                                  # no Coulomb term: the loop is smooth in θ
     rng = np.random.default_rng(0)
     m = LoopModel(1e-3, 2, 2, True, th, W1=rng.normal(size=(3, 4)), b1=rng.normal(size=3),
-                  W2=rng.normal(size=3), b2=0.1, P=np.diag([10.0, 1e4, 0.02, 0.02]), out_scale=1e-7)
+                  W2=rng.normal(size=3), b2=0.1, nn_P=np.diag([10.0, 1e4, 0.02, 0.02]), out_scale=1e-7)
     theta = m.theta()
     _, tau, _, _, St = simulate_loop(m, s.ctrl, sig, sens=True)
     for p in range(theta.size):

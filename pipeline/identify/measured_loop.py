@@ -35,6 +35,8 @@ from dataclasses import dataclass, field, replace
 import numba
 import numpy as np
 
+from pipeline.identify.sim_error import nn_export, nn_split
+
 CONVENTIONS = ("data", "published")
 
 
@@ -51,8 +53,8 @@ class LoopModel:
     b1: np.ndarray = None
     W2: np.ndarray = None
     b2: float = 0.0
-    P: np.ndarray = None
-    c: np.ndarray = None
+    nn_P: np.ndarray = None
+    nn_c: np.ndarray = None
     out_scale: float = 1.0
 
     def __post_init__(self):
@@ -63,9 +65,9 @@ class LoopModel:
         if self.theta_phy.shape not in ((3,), (4,)):
             raise ValueError(f"theta_phy must be [1/M, F_v/M, F_c/M(, OF/M)], got shape {self.theta_phy.shape}")
         nphi = self.n_a + self.n_b
-        self.P = np.eye(nphi) if self.P is None else np.ascontiguousarray(self.P, dtype=np.float64)
-        nx = self.P.shape[0]
-        self.c = np.zeros(nx) if self.c is None else np.ascontiguousarray(self.c, dtype=np.float64)
+        self.nn_P = np.eye(nphi) if self.nn_P is None else np.ascontiguousarray(self.nn_P, dtype=np.float64)
+        nx = self.nn_P.shape[0]
+        self.nn_c = np.zeros(nx) if self.nn_c is None else np.ascontiguousarray(self.nn_c, dtype=np.float64)
         self.W1 = np.zeros((0, nx)) if self.W1 is None else np.ascontiguousarray(self.W1, np.float64).reshape(-1, nx)
         n1 = self.W1.shape[0]
         self.b1 = np.zeros(n1) if self.b1 is None else np.ascontiguousarray(self.b1, np.float64).reshape(-1)
@@ -83,13 +85,8 @@ class LoopModel:
             raise ValueError(f"the loop model has one tanh hidden layer, got hidden={model.hidden}, "
                              f"activation={model.activation!r}")
         Ts = float(getattr(model.physics, "pm", model.physics).Ts)
-        kw = {}
-        if model.use_nn:
-            l1, l2 = model.layers
-            kw = dict(W1=l1.weight.detach().numpy().copy(), b1=l1.bias.detach().numpy().copy(),
-                      W2=l2.weight.detach().numpy()[0].copy(), b2=float(l2.bias.detach()[0]),
-                      P=model.nn_P.numpy().copy(), c=model.nn_c.numpy().copy(), out_scale=float(model.out_scale))
-        return cls(Ts, model.n_a, model.n_b, bool(averaged), model.theta_phy.detach().numpy().copy(), **kw)
+        return cls(Ts, model.n_a, model.n_b, bool(averaged), model.theta_phy.detach().numpy().copy(),
+                   **nn_export(model))
 
     @classmethod
     def physics_only(cls, physics, theta) -> "LoopModel":
@@ -102,7 +99,7 @@ class LoopModel:
 
     @property
     def n_params(self) -> int:
-        return self.theta_phy.size + (self.n1 * (self.P.shape[0] + 2) + 1 if self.n1 else 0)
+        return self.theta_phy.size + (self.n1 * (self.nn_P.shape[0] + 2) + 1 if self.n1 else 0)
 
     def theta(self) -> np.ndarray:
         if not self.n1:
@@ -113,12 +110,7 @@ class LoopModel:
         theta = np.asarray(theta, dtype=np.float64).reshape(-1)
         if theta.shape != (self.n_params,):
             raise ValueError(f"theta must have {self.n_params} entries, got {theta.shape}")
-        p, n1, nx = self.theta_phy.size, self.n1, self.P.shape[0]
-        if not n1:
-            return replace(self, theta_phy=theta.copy())
-        i = p + n1 * nx
-        return replace(self, theta_phy=theta[:p].copy(), W1=theta[p:i].reshape(n1, nx).copy(),
-                       b1=theta[i:i + n1].copy(), W2=theta[i + n1:i + 2 * n1].copy(), b2=float(theta[-1]))
+        return replace(self, **nn_split(theta, self.theta_phy.size, self.n1, self.nn_P.shape[0]))
 
 
 @numba.njit(cache=True)
@@ -137,6 +129,13 @@ def _loop(r, d, uff, y0, n_a, n_b, averaged, th, W1, b1, W2, b2, P, c, so, Ts, k
     Sy = np.zeros((M, NP))
     Sc = np.zeros((M, NP))
     Sw = np.zeros((M, NP))
+    W1P = np.zeros((n1, nphi))   # W1 P: ∂(pre-activation)/∂φ, constant over the run
+    for m in range(n1):
+        for i in range(nphi):
+            col = 0.0
+            for a in range(nx):
+                col += W1[m, a] * P[a, i]
+            W1P[m, i] = col
     phi = np.zeros(nphi)
     dfdphi = np.zeros(nphi)
     x = np.zeros(nx)
@@ -176,10 +175,7 @@ def _loop(r, d, uff, y0, n_a, n_b, averaged, th, W1, b1, W2, b2, P, c, so, Ts, k
                     o += W2[m] * h[m]
                     g = so * W2[m] * (1.0 - h[m] * h[m])
                     for i in range(nphi):
-                        col = 0.0
-                        for a in range(nx):
-                            col += W1[m, a] * P[a, i]
-                        dfdphi[i] += g * col
+                        dfdphi[i] += g * W1P[m, i]
                 f += so * o
             y[k] = f
             if sens:
@@ -276,7 +272,7 @@ def simulate_loop(model: LoopModel, ctrl, sig: LoopSignals, convention: str = "d
     if not (d.shape == r.shape == uff.shape):
         raise ValueError(f"r, d and u_ff must have one length, got {r.shape}, {d.shape}, {uff.shape}")
     y, tau, u, Sy, Sc = _loop(r, d, uff, float(sig.y0), model.n_a, model.n_b, model.averaged, model.theta_phy,
-                              model.W1, model.b1, model.W2, model.b2, model.P, model.c, model.out_scale,
+                              model.W1, model.b1, model.W2, model.b2, model.nn_P, model.nn_c, model.out_scale,
                               model.Ts, ctrl.kp, ctrl.kv, ctrl.gtau, ctrl.v_sat, D, sens)
     if sens:
         return y, tau, u, Sy, Sc * ctrl.gtau
@@ -331,6 +327,7 @@ class LoopFit:
     sigma: float                   # std of the measured force on the training samples [N]
     n_train: int
     val_force_rel_error: float | None   # on the samples after n_train [%] (None without validation)
+    tau_hat: np.ndarray                 # the identified loop's force over the whole record [N]
     restarts: list = field(default_factory=list)   # pipeline.identify.narx.RestartResult per start
     best: int = 0
 
@@ -400,8 +397,8 @@ def identify_loop_sim_error(model, averaged: bool, ctrl, sig: LoopSignals, tau_m
     restarts, best = best_of_restarts(model, residual, jacobian, n_restarts if model.use_nn else 1, seed,
                                       progress=progress, **lm_options)
     loop = LoopModel.from_pgnn(model, averaged)
+    _, tau, _ = simulate_loop(loop, ctrl, sig, "data")
     val = None
     if nt < N:
-        _, tau, _ = simulate_loop(loop, ctrl, sig, "data")
         val = float(100 * np.linalg.norm(tau_meas[nt:] - tau[nt:]) / np.linalg.norm(tau_meas[nt:]))
-    return LoopFit(loop, ts, sigma, nt, val, restarts, best)
+    return LoopFit(loop, ts, sigma, nt, val, tau, restarts, best)

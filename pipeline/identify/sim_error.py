@@ -129,18 +129,8 @@ class ArxPGNN:
         if model.use_nn and not (len(model.hidden) == 1 and model.activation == "tanh"):
             raise ValueError(f"the [B2] PGNN (30) has one tanh hidden layer, got hidden={model.hidden}, "
                              f"activation={model.activation!r}")
-        import torch
-        with torch.no_grad():
-            th = model.theta_phy.detach().numpy().copy()
-            if model.use_nn:
-                l1, l2 = model.layers
-                kw = dict(W1=l1.weight.detach().numpy().copy(), b1=l1.bias.detach().numpy().copy(),
-                          W2=l2.weight.detach().numpy()[0].copy(), b2=float(l2.bias[0]),
-                          nn_P=model.nn_P.numpy().copy(), nn_c=model.nn_c.numpy().copy(),
-                          out_scale=float(model.out_scale))
-            else:
-                kw = {}
-        return cls(model.n_a, model.n_b, model.n_k, th, y_range=y_range, **kw)
+        th = model.theta_phy.detach().numpy().copy()
+        return cls(model.n_a, model.n_b, model.n_k, th, y_range=y_range, **nn_export(model))
 
     def load_into(self, model) -> None:
         """Write this model's parameters into a PGNN module of the same layout."""
@@ -182,15 +172,7 @@ class ArxPGNN:
         theta = np.asarray(theta, dtype=np.float64).reshape(-1)
         if theta.shape != (self.n_params,):
             raise ValueError(f"theta must have {self.n_params} entries, got {theta.shape}")
-        p, n1, nx = self.n_phi, self.n1, self.n_x
-        if not n1:
-            return replace(self, theta_phy=theta.copy())
-        i = p
-        W1 = theta[i:i + n1 * nx].reshape(n1, nx); i += n1 * nx
-        b1 = theta[i:i + n1]; i += n1
-        W2 = theta[i:i + n1]; i += n1
-        return replace(self, theta_phy=theta[:p].copy(), W1=W1.copy(), b1=b1.copy(), W2=W2.copy(),
-                       b2=float(theta[i]))
+        return replace(self, **nn_split(theta, self.n_phi, self.n1, self.n_x))
 
     def linear_part(self) -> "ArxPGNN":
         """The physics model alone (n1 = 0)."""
@@ -215,6 +197,27 @@ class ArxPGNN:
             col = self.W1 @ self.nn_P[:, self.n_a]          # ∂z/∂u(k-n_k-1)
             g = g + self.out_scale * ((1.0 - h * h) * self.W2) @ col
         return g
+
+
+def nn_export(model) -> dict:
+    """The one tanh hidden layer of a PGNN module as arrays (W1, b1, W2, b2, nn_P, nn_c,
+    out_scale); empty without an NN.  Shared by the array models of the closed-loop kernels."""
+    if not model.use_nn:
+        return {}
+    l1, l2 = model.layers
+    return dict(W1=l1.weight.detach().numpy().copy(), b1=l1.bias.detach().numpy().copy(),
+                W2=l2.weight.detach().numpy()[0].copy(), b2=float(l2.bias.detach()[0]),
+                nn_P=model.nn_P.numpy().copy(), nn_c=model.nn_c.numpy().copy(), out_scale=float(model.out_scale))
+
+
+def nn_split(theta: np.ndarray, p: int, n1: int, nx: int) -> dict:
+    """θ in the PGNN module's order [θ_phy (p), W1 (n1×nx), b1, W2, b2] as the array models'
+    fields (θ_phy alone without an NN)."""
+    if not n1:
+        return {"theta_phy": theta.copy()}
+    i = p + n1 * nx
+    return {"theta_phy": theta[:p].copy(), "W1": theta[p:i].reshape(n1, nx).copy(), "b1": theta[i:i + n1].copy(),
+            "W2": theta[i + n1:i + 2 * n1].copy(), "b2": float(theta[i + 2 * n1])}
 
 
 def as_arx(model) -> ArxPGNN:

@@ -112,6 +112,11 @@ class RigidBodyPhysics(LinearMotorPhysics):
         base = LinearMotorPhysics(self.Ts, self.averaged_input)
         return base.feedforward(np.array([1.0, p[1], p[2]]) / p[0], r) + of
 
+    @staticmethod
+    def min_samples(decimation: int = 10, trim: int = 50) -> int:
+        """Shortest record :meth:`fit_filtered` accepts: the trimmed ends plus 20 decimated rows."""
+        return 2 * int(trim) + 20 * max(int(decimation), 1)
+
     def fit_filtered(self, y, u, cutoff_hz: float = 50.0, order: int = 4, decimation: int = 10,
                      trim: int = 50) -> np.ndarray:
         """θ by least squares on the inverse model with zero-phase filtered derivatives (IDIM-LS,
@@ -126,7 +131,7 @@ class RigidBodyPhysics(LinearMotorPhysics):
         nyq = 0.5 / self.Ts
         if not 0.0 < cutoff_hz < nyq:
             raise ValueError(f"cutoff_hz={cutoff_hz} must lie in (0, {nyq}) Hz (Nyquist at Ts={self.Ts} s)")
-        if y.shape[0] < 2 * trim + 20 * max(decimation, 1):
+        if y.shape[0] < self.min_samples(decimation, trim):
             raise ValueError(f"{y.shape[0]} samples are too few for the filtered least squares "
                              f"(trim={trim}, decimation={decimation}); give a longer record")
         b, a = signal.butter(int(order), cutoff_hz / nyq)
@@ -258,6 +263,10 @@ class Recording(System):
         p = self.published
         return self.physics.theta_from_physical(p["M"], p["F_v"], p["F_c"],
                                                 p.get("OF", 0.0) if self.physics.has_offset else None)
+
+    def min_samples(self) -> int:
+        """Shortest training record the physics baseline (``idim`` settings) can use."""
+        return self.physics.min_samples(**{k: v for k, v in self.idim.items() if k in ("decimation", "trim")})
 
     def fit_physics(self, y, u) -> np.ndarray:
         """θ of the physics model from one record, by the filtered inverse-model least squares."""

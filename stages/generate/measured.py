@@ -83,10 +83,7 @@ def check_record(ds: data.Dataset, system, source: str, min_len: int = 0) -> Non
 def check(cfg, system) -> None:
     try:
         ds = load_file(cfg)
-        need = 0
-        if isinstance(system, Recording):   # the filtered least squares drops and decimates samples
-            idim = {"trim": 50, "decimation": 10, **system.idim}
-            need = 2 * int(idim["trim"]) + 20 * max(int(idim["decimation"]), 1)
+        need = system.min_samples() if isinstance(system, Recording) else 0   # filtered LS trims, decimates
         check_record(ds, system, ds.meta.get("source", str(cfg.data.path)), min_len=need)
     except (ValueError, FileNotFoundError) as exc:
         raise ConfigError(str(exc)) from exc

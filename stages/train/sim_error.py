@@ -174,7 +174,7 @@ def _check_measured(cfg, system) -> None:
 
 def _fit_measured(ctx) -> dict:
     import torch
-    from pipeline.identify.measured_loop import LoopSignals, identify_loop_sim_error, simulate_loop
+    from pipeline.identify.measured_loop import LoopSignals, identify_loop_sim_error
     from pipeline.identify.narx import build_regression
     from stages.train.narx import build_model as build_narx_model
     cfg, system = ctx.cfg, ctx.system
@@ -214,8 +214,7 @@ def _fit_measured(ctx) -> dict:
         ctx.metric(f"theta_phy/{k}", v)
     for k, v in system.physics.physical(theta_star).items():
         ctx.metric(f"theta_phy_star/{k}", v)
-    y_hat, tau_hat, _ = simulate_loop(fit_.loop, system.ctrl, sig)
-    ctx.figure(_figure_measured(fit_, ds["t"], u, tau_hat, n_train), "identification.png")
+    ctx.figure(_figure_measured(fit_, ds["t"], u, fit_.tau_hat, n_train), "identification.png")
     model.eval()
     return {"model": model, "model_input": True, "loop": fit_.loop, "theta_phy_star": theta_star,
             "physical": physical, "val_force_rel_error": fit_.val_force_rel_error}

@@ -13,7 +13,12 @@ A stage is a module ``stages.<name>`` with
 The cache key of a stage is the SHA-256 of its name, VERSION, the DEPENDS sub-configs and its
 upstream keys, so changing ``invert.*`` reruns invert and evaluate but not generate or train.
 A stage writes into a temporary directory that is renamed into place only when complete, so
-an interrupted run leaves nothing a rerun would trust.
+an interrupted run leaves nothing a rerun would trust.  Concurrent jobs (a Hydra launcher running
+several at once, on one machine or on a cluster sharing the cache directory) take a file lock per
+key before computing: two jobs needing the same stage compute it once, the second waits and loads
+it.  ``ctx.memo`` caches a part of a stage (one LM restart) on its own key, which may leave out
+config keys the part does not depend on (``identify.n_restarts``): a sweep asking for the first 3
+of the 10 restarts another job trained loads them.
 """
 from __future__ import annotations
 
@@ -31,6 +36,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
+from filelock import FileLock
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline import tracking
@@ -93,6 +99,7 @@ class StageContext:
     workdir: Path
     system: Any = None
     key: str = ""               # the stage's cache key (hash of its config and inputs)
+    subkey: Any = None          # subkey(exclude) -> the key with the dotted config keys ``exclude`` left out
     metrics: list = field(default_factory=list)
     tags: dict = field(default_factory=dict)
     figures: list = field(default_factory=list)
@@ -136,6 +143,25 @@ class StageContext:
         self.datasets.append([f"data/{path.name}", name, context])
         return path
 
+    def memo(self, label: str, compute, exclude: Iterable[str] = ()):
+        """``compute()``, cached on its own key: this stage's key without the config keys
+        ``exclude``, plus ``label``.  For a part of a stage that does not depend on those keys
+        (restart i of an LM does not depend on ``identify.n_restarts``); locked and written
+        atomically like a stage."""
+        key = hashlib.sha256(f"{self.subkey(tuple(exclude))}/{label}".encode()).hexdigest()[:20]
+        final = cache_dir(self.cfg) / f"{self.name}.parts" / key
+        with _locked(final):
+            if (final / "result.pkl").exists():
+                with open(final / "result.pkl", "rb") as f:
+                    return pickle.load(f)
+            value = compute()
+            tmp = final.with_name(f".tmp-{key}-{os.getpid()}-{time.time_ns()}")
+            tmp.mkdir(parents=True)
+            with open(tmp / "result.pkl", "wb") as f:
+                pickle.dump(value, f, protocol=pickle.HIGHEST_PROTOCOL)
+            os.rename(tmp, final)
+        return value
+
     def progress(self, iterable: Iterable, desc: str = "", total: int | None = None):
         from tqdm.auto import tqdm
         return tqdm(iterable, desc=f"{self.name}: {desc}", total=total, leave=False,
@@ -148,15 +174,41 @@ def _select(cfg: DictConfig, key: str):
         OmegaConf.is_list(node) else node
 
 
-def stage_key(cfg: DictConfig, name: str, mod, upstream_keys: dict[str, str]) -> str:
+def _without(node, dotted: str):
+    """``node`` (a plain dict) with the dotted key removed (no-op if absent)."""
+    head, _, rest = dotted.partition(".")
+    if not isinstance(node, dict) or head not in node:
+        return node
+    node = dict(node)
+    if rest:
+        node[head] = _without(node[head], rest)
+    else:
+        del node[head]
+    return node
+
+
+def stage_key(cfg: DictConfig, name: str, mod, upstream_keys: dict[str, str],
+              exclude: tuple[str, ...] = ()) -> str:
     version = [getattr(mod, "VERSION", 1)]
     if getattr(mod, "KIND_KEY", None):  # the chosen implementation's VERSION counts too
         version.append(getattr(implementation(name, str(OmegaConf.select(cfg, mod.KIND_KEY))),
                                "VERSION", 1))
-    payload = {"stage": name, "version": version,
-               "config": {k: _select(cfg, k) for k in mod.DEPENDS},
+    config = {k: _select(cfg, k) for k in mod.DEPENDS}
+    for dotted in exclude:   # a part's key (StageContext.memo) leaves out keys it does not depend on
+        config = _without(config, dotted) if "." in dotted else \
+            {k: v for k, v in config.items() if k != dotted}
+    payload = {"stage": name, "version": version, "config": config,
                "upstream": {u: upstream_keys[u] for u in mod.UPSTREAM}}
+    if exclude:
+        payload["exclude"] = sorted(exclude)
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _locked(final: Path) -> FileLock:
+    """The lock of one cache entry (``<cache>/.locks/<stage>-<key>.lock``): held while it is computed."""
+    locks = final.parent.parent / ".locks"
+    locks.mkdir(parents=True, exist_ok=True)
+    return FileLock(str(locks / f"{final.parent.name}-{final.name}.lock"))
 
 
 def selected_stages(cfg: DictConfig) -> list[str]:
@@ -260,30 +312,25 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, 
             key = keys[name]
             final = store / name / key[:20]
             cacheable = getattr(mod, "CACHE", True)
-            if cacheable and (final / "record.json").exists():
-                results[name], record = _load(final)
-                hit = True
-            else:
-                tmp = store / name / f".tmp-{key[:20]}-{os.getpid()}-{time.time_ns()}"
-                tmp.mkdir(parents=True)
+            lock = _locked(final) if cacheable else None
+            if lock is not None and not (final / "record.json").exists():
                 try:
-                    ctx = StageContext(cfg, name, {u: results[u] for u in mod.UPSTREAM}, tmp,
-                                       system, key)
-                    _seed_everything(int(cfg.seed), name)
-                    t0 = time.perf_counter()
-                    result = mod.run(ctx) or {}
-                    seconds = time.perf_counter() - t0
-                except BaseException:
-                    shutil.rmtree(tmp, ignore_errors=True)
-                    raise
-                if cacheable:
-                    _store(tmp, final, result, ctx, seconds)
+                    lock.acquire(timeout=0)
+                except TimeoutError:  # another job computes this entry now: wait for it, then load
+                    print(f"[{cfg.run_name}] {name}: waiting for another job computing the same result",
+                          file=sys.stderr, flush=True)
+                    lock.acquire()
+            try:
+                if cacheable and (final / "record.json").exists():
+                    results[name], record = _load(final)
+                    hit = True
                 else:
-                    final = tmp
-                    (tmp / "record.json").write_text(json.dumps(_record(ctx, seconds)))
-                results[name] = result
-                record = json.loads((final / "record.json").read_text())
-                hit = False
+                    final, results[name], record = _compute(cfg, name, mod, key, keys, results, system,
+                                                            store, cacheable)
+                    hit = False
+            finally:
+                if lock is not None and lock.is_locked:
+                    lock.release()
             _log_stage(run, name, record, final, hit)
             print(f"[{cfg.run_name}] {name}: " + ("cached" if hit else f"{record['seconds']:.1f} s"),
                   file=sys.stderr, flush=True)  # one line per stage: a log file shows progress too
@@ -294,6 +341,29 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, 
         if own_run:
             run.end(status)
     return results
+
+
+def _compute(cfg, name, mod, key, keys, results, system, store, cacheable):
+    """Run one stage into a temporary directory and move it into the cache (atomic)."""
+    final = store / name / key[:20]
+    tmp = store / name / f".tmp-{key[:20]}-{os.getpid()}-{time.time_ns()}"
+    tmp.mkdir(parents=True)
+    try:
+        ctx = StageContext(cfg, name, {u: results[u] for u in mod.UPSTREAM}, tmp, system, key,
+                           subkey=lambda exclude: stage_key(cfg, name, mod, keys, exclude))
+        _seed_everything(int(cfg.seed), name)
+        t0 = time.perf_counter()
+        result = mod.run(ctx) or {}
+        seconds = time.perf_counter() - t0
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if cacheable:
+        _store(tmp, final, result, ctx, seconds)
+    else:
+        final = tmp
+        (tmp / "record.json").write_text(json.dumps(_record(ctx, seconds)))
+    return final, result, json.loads((final / "record.json").read_text())
 
 
 def _seed_everything(seed: int, stage: str) -> None:

@@ -294,7 +294,7 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
                   gtol: float = 1e-10, mu0: float = 1e-3, patience: int = 5,
                   progress: Callable | None = None,
                   on_iteration: Callable[[int, int, float], None] | None = None,
-                  theta_star=None) -> NarxFit:
+                  theta_star=None, memo: Callable | None = None) -> NarxFit:
     """Identify ``model`` from data with the criterion its structure implies.
 
     ``structure='forward'`` → [B1] (12); ``'inverse'`` → [B1] (14); ``'invertible'`` → [B1]
@@ -324,6 +324,8 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
     theta_star : array, optional
         θ*_phy, the regulariser centre and start of θ_phy; default the physics-only least
         squares [B1] (7) on the same rows (a measured system passes its filtered baseline).
+    memo : callable, optional
+        ``memo(i, compute)`` caches restart i (see :func:`best_of_restarts`).
 
     Returns
     -------
@@ -388,29 +390,40 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
 
     restarts, fit.best = best_of_restarts(model, residual, jacobian, n_restarts, seed, val_fn=val_fn,
                                           max_iter=max_iter, ftol=ftol, gtol=gtol, mu0=mu0,
-                                          patience=patience, progress=progress, on_iteration=on_iteration)
+                                          patience=patience, progress=progress, on_iteration=on_iteration,
+                                          memo=memo)
     fit.restarts.extend(restarts)
     return fit
 
 
 def best_of_restarts(model: PGNN, residual, jacobian, n_restarts: int, seed: int, *, val_fn=None,
-                     progress=None, on_iteration=None, **lm_options) -> tuple[list[RestartResult], int]:
+                     progress=None, on_iteration=None, memo=None,
+                     **lm_options) -> tuple[list[RestartResult], int]:
     """LM from ``n_restarts`` random NN initialisations ([B1] §VI: best of 10): restart i is
     seeded by SeedSequence([seed, i]), θ_phy starts where the model holds it; the lowest training
-    cost is loaded into ``model``. Returns every restart and the index of the best."""
+    cost is loaded into ``model``. Returns every restart and the index of the best.
+
+    Restart i depends on ``(seed, i)`` only, not on ``n_restarts``: ``memo(i, compute)`` (e.g.
+    the stage cache, :meth:`pipeline.runner.StageContext.memo`) may return a stored result of it."""
+    theta0 = model.parameter_vector()
+
+    def restart(i: int) -> RestartResult:
+        s_i = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
+        model.load_parameter_vector(theta0)
+        model.reset_parameters(s_i)
+        t0 = time.perf_counter()
+        cb = None if on_iteration is None else (lambda it, th, c: on_iteration(i, it, c))
+        res: LMResult = levenberg_marquardt(residual, model.parameter_vector(), jacobian=jacobian,
+                                            val_cost=val_fn, callback=cb, **lm_options)
+        return RestartResult(s_i, res.cost, res.val_cost, res.history, res.val_history, res.n_iter,
+                             res.message, time.perf_counter() - t0, res.theta)
+
     out = []
     restarts = range(n_restarts)
     if progress is not None:
         restarts = progress(restarts)
     for i in restarts:
-        s_i = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
-        model.reset_parameters(s_i)
-        t0 = time.perf_counter()
-        cb = None if on_iteration is None else (lambda it, th, c, i=i: on_iteration(i, it, c))
-        res: LMResult = levenberg_marquardt(residual, model.parameter_vector(), jacobian=jacobian,
-                                            val_cost=val_fn, callback=cb, **lm_options)
-        out.append(RestartResult(s_i, res.cost, res.val_cost, res.history, res.val_history, res.n_iter,
-                                 res.message, time.perf_counter() - t0, res.theta))
+        out.append(restart(i) if memo is None else memo(i, lambda i=i: restart(i)))
     best = int(np.argmin([r.cost for r in out]))
     model.load_parameter_vector(out[best].theta)
     return out, best

@@ -24,6 +24,12 @@ def run(ctx) -> dict:
     return implementation("train", str(ctx.cfg.identify.kind)).fit(ctx)
 
 
+def restart_memo(ctx):
+    """``memo(i, compute)`` for :func:`pipeline.identify.narx.best_of_restarts`: restart i cached on
+    the train key without ``identify.n_restarts`` (its seed is (seed, i) whatever the count)."""
+    return lambda i, compute: ctx.memo(f"restart{i}", compute, exclude=("identify.n_restarts",))
+
+
 def log_restarts(ctx, restarts) -> None:
     """The loss curve (and validation curve) of every LM restart, and its cost, time and iterations."""
     for i, rr in enumerate(restarts):

@@ -25,7 +25,7 @@ from pipeline.identify.narx import identify_pgnn
 from pipeline.models.pgnn import PGNN, physics_features_for
 from pipeline.runner import ConfigError
 from pipeline.systems.measured import Recording
-from stages.train import log_restarts
+from stages.train import log_restarts, restart_memo
 
 STRUCTURES = ("forward", "inverse", "invertible")
 
@@ -93,7 +93,8 @@ def fit(ctx) -> dict:
                          gtol=float(ident.gtol), mu0=float(ident.mu0),
                          patience=int(ident.patience),
                          progress=lambda it: ctx.progress(it, desc="LM restarts"),
-                         theta_star=ctx.inputs["baseline"]["theta"] if isinstance(system, Recording) else None)
+                         theta_star=ctx.inputs["baseline"]["theta"] if isinstance(system, Recording) else None,
+                         memo=restart_memo(ctx))
     log_restarts(ctx, fit_.restarts)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)

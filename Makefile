@@ -35,11 +35,13 @@ lint: install  ## ruff
 ALL_EXPERIMENTS := physics_arx physics_linear_motor physics_rot_trans physics_two_mass ilc_rot_trans \
   b1_arx_bias b1_linear_motor b1_noise_sweep k_two_mass b2_rot_trans b2_rot_trans_il emps_physics emps_narx emps
 EXPERIMENTS ?= $(ALL_EXPERIMENTS)
+# jobs of a sweep run at once (Hydra joblib launcher); empty = the machine's cores
+JOBS ?=
 # a subset rebuilds only its own report sections and keeps the rest of results/ (report.update)
 REPORT_UPDATE := $(if $(filter-out $(ALL_EXPERIMENTS),$(EXPERIMENTS))$(filter-out $(EXPERIMENTS),$(ALL_EXPERIMENTS)),true,false)
 
 reproduce: install  ## run every paper experiment, then write results/REPORT.md, summary.csv, figures
-	$(PY) -m pipeline.reproduce $(EXPERIMENTS)
+	$(PY) -m pipeline.reproduce $(if $(JOBS),--jobs $(JOBS)) $(EXPERIMENTS)
 	$(PY) -m pipeline stages=[report] experiment_name=report report.update=$(REPORT_UPDATE)
 
 ui: install  ## MLflow UI on http://127.0.0.1:5000 over the same store as the runs

@@ -4,7 +4,8 @@
   artifacts under ``<repo>/mlruns/artifacts`` (absolute paths, so every working directory
   shares one store).
 - One Hydra job = one run; a multirun gets a parent run (:class:`MultirunCallback`) whose id
-  reaches the jobs through the environment variable ``PIPELINE_PARENT_RUN_ID``.
+  reaches the jobs through the environment variable ``PIPELINE_PARENT_RUN_ID``, whichever Hydra
+  launcher runs them (basic, joblib, submitit).
 """
 from __future__ import annotations
 
@@ -148,12 +149,16 @@ try:  # the Hydra callback lives here so that tracking stays in one module
     class MultirunCallback(Callback):
         """Parent MLflow run around a Hydra multirun; jobs attach to it (DESIGN).
 
-        The parent ends FINISHED when every job finished, FAILED otherwise; if the sweep dies
-        (an exception, Ctrl-C, SIGTERM) an ``atexit`` hook marks it FAILED instead of leaving it
+        Works with every launcher: the parent's id is set in the environment of the process that
+        runs each job (``on_job_start`` runs there: in-process for the basic launcher, in the worker
+        for joblib, on the node for submitit, which receive this callback pickled with it).  The
+        parent ends FINISHED when every child finished, FAILED otherwise; if the sweep dies (an
+        exception, Ctrl-C, SIGTERM) an ``atexit`` hook marks it FAILED instead of leaving it
         RUNNING."""
 
         def __init__(self) -> None:
             self.failed = 0
+            self.parent_run_id: str | None = None
 
         def on_multirun_start(self, config, **kwargs) -> None:
             import atexit
@@ -162,8 +167,13 @@ try:  # the Hydra callback lives here so that tracking stays in one module
             run = c.create_run(exp_id, run_name=f"{config.experiment_name}-sweep",
                                tags={"git_sha": git_sha(), "experiment": str(config.experiment_name),
                                      "sweep": "parent"})
+            self.parent_run_id = run.info.run_id
             os.environ[PARENT_ENV] = run.info.run_id
             atexit.register(self._close, "FAILED")
+
+        def on_job_start(self, config, **kwargs) -> None:
+            if self.parent_run_id:          # a worker process of a parallel launcher
+                os.environ[PARENT_ENV] = self.parent_run_id
 
         def on_job_end(self, config, job_return, **kwargs) -> None:
             from hydra.core.utils import JobStatus
@@ -171,10 +181,20 @@ try:  # the Hydra callback lives here so that tracking stays in one module
                 self.failed += 1
 
         def on_multirun_end(self, config, **kwargs) -> None:
-            self._close("FAILED" if self.failed else "FINISHED")
+            self._close("FAILED" if self.failed or self._unfinished_children() else "FINISHED")
+
+        def _unfinished_children(self) -> int:
+            """Children not FINISHED (parallel launchers report job ends in their workers)."""
+            if not self.parent_run_id:
+                return 0
+            runs = client().search_runs(
+                [client().get_run(self.parent_run_id).info.experiment_id],
+                filter_string=f"tags.mlflow.parentRunId = '{self.parent_run_id}'", max_results=10000)
+            return sum(r.info.status != "FINISHED" for r in runs)
 
         def _close(self, status: str) -> None:
-            run_id = os.environ.pop(PARENT_ENV, None)
+            run_id, self.parent_run_id = self.parent_run_id, None
+            os.environ.pop(PARENT_ENV, None)
             if run_id:
                 client().set_terminated(run_id, status)
 except ImportError:  # pragma: no cover

@@ -46,14 +46,76 @@ def test_multirun_has_one_parent_with_three_children(sweep_store):
     assert set(children["status"]) == {"FINISHED"} and parents["status"].iloc[0] == "FINISHED"
 
 
-def test_runs_read_back_through_mlflow_server_rest_api(sweep_store):
-    tmp, env = sweep_store
+def _sweep(tmp, *overrides, uri=None, timeout=600):
+    """A multirun of SHORT_TWO_MASS through the real CLI into a fresh cache (and store)."""
+    env = {**os.environ, "PIPELINE_CACHE": str(tmp / "cache"), "OMP_NUM_THREADS": "1",
+           "MLFLOW_TRACKING_URI": uri or f"sqlite:///{tmp / 'mlflow.db'}"}
+    out = subprocess.run([sys.executable, "-m", "pipeline", "-m", *SHORT_TWO_MASS, *overrides,
+                          f"hydra.sweep.dir={tmp / 'sweep'}"], cwd=ROOT, env=env,
+                         capture_output=True, text=True, timeout=timeout)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return env
+
+
+def _children(uri):
+    """(parent status, {seed: child run}) of the one sweep in the physics_baseline experiment."""
+    import mlflow
+    mlflow.set_tracking_uri(uri)
+    runs = mlflow.search_runs(experiment_names=["physics_baseline"])
+    parents = runs[runs["tags.sweep"] == "parent"]
+    assert len(parents) == 1
+    kids = runs[runs["tags.mlflow.parentRunId"] == parents["run_id"].iloc[0]]
+    assert set(kids["status"]) == {"FINISHED"}
+    return parents["status"].iloc[0], {r["params.seed"]: r for _, r in kids.iterrows()}
+
+
+def _science(run) -> dict:
+    """A run's metrics that do not measure time."""
+    return {k: v for k, v in run.items() if k.startswith("metrics.") and v == v and not _timing(k)}
+
+
+def _timing(key: str) -> bool:
+    return "time/" in key or "seconds" in key
+
+
+@pytest.mark.parametrize("launcher", ["local", "submitit_local"])
+def test_parallel_launchers_match_the_serial_sweep(sweep_store, tmp_path, launcher):
+    """Issue 10: joblib (conf/hydra/launcher/local.yaml) and submitit's local executor run a 2-job
+    sweep into one store: parent and both children FINISHED, every metric equal to the serial run."""
+    _, serial_env = sweep_store
+    env = _sweep(tmp_path, "seed=0,1", f"hydra/launcher={launcher}")
+    status, par = _children(env["MLFLOW_TRACKING_URI"])
+    _, ser = _children(serial_env["MLFLOW_TRACKING_URI"])
+    assert status == "FINISHED" and sorted(par) == ["0", "1"]
+    for seed in par:
+        assert _science(par[seed]) and _science(par[seed]) == _science(ser[seed])
+
+
+def test_concurrent_jobs_sharing_stages_compute_them_once(tmp_path):
+    """Two parallel jobs with one config (only the run name differs) need the same five stage
+    results: each is computed once (one cache miss, one entry), the other job waits and loads it."""
+    env = _sweep(tmp_path, "run_name=a,b", "hydra/launcher=local", "hydra.launcher.n_jobs=2")
+    import mlflow
+    mlflow.set_tracking_uri(env["MLFLOW_TRACKING_URI"])
+    runs = mlflow.search_runs(experiment_names=["physics_baseline"])
+    kids = runs[runs["tags.sweep"] == "child"]
+    assert len(kids) == 2
+    for stage in ("generate", "baseline", "train", "invert", "evaluate"):
+        assert sorted(kids[f"tags.cache.{stage}"]) == ["hit", "miss"], stage
+        entries = [d for d in (tmp_path / "cache" / stage).iterdir()]
+        assert len(entries) == 1, entries                      # no duplicate, no torn temporary
+
+
+@pytest.fixture(scope="module")
+def mlflow_server(tmp_path_factory):
+    """A real `mlflow server` on 127.0.0.1 with its own SQLite store and proxied artifacts."""
+    tmp = tmp_path_factory.mktemp("server")
     port = _free_port()
     server = subprocess.Popen(
         [os.path.join(os.path.dirname(sys.executable), "mlflow"), "server",
-         "--backend-store-uri", env["MLFLOW_TRACKING_URI"], "--host", "127.0.0.1",
-         "--port", str(port), "--workers", "1"],
-        cwd=tmp, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+         "--backend-store-uri", f"sqlite:///{tmp / 'server.db'}", "--artifacts-destination",
+         str(tmp / "artifacts"), "--host", "127.0.0.1", "--port", str(port), "--workers", "1"],
+        cwd=tmp, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
         start_new_session=True)          # its own process group: its workers are stopped with it
     base = f"http://127.0.0.1:{port}"
     try:
@@ -71,17 +133,7 @@ def test_runs_read_back_through_mlflow_server_rest_api(sweep_store):
             if time.monotonic() > deadline:
                 pytest.fail("mlflow server did not come up within 300 s")
             time.sleep(0.5)
-        exp = requests.get(f"{base}/api/2.0/mlflow/experiments/get-by-name",
-                           params={"experiment_name": "physics_baseline"}, timeout=10).json()
-        exp_id = exp["experiment"]["experiment_id"]
-        found = requests.post(f"{base}/api/2.0/mlflow/runs/search",
-                              json={"experiment_ids": [exp_id],
-                                    "filter": "tags.sweep = 'child'"}, timeout=10).json()["runs"]
-        assert len(found) == 3
-        metrics = {m["key"]: m["value"] for m in found[0]["data"]["metrics"]}
-        assert metrics["evaluate/held/rms"] > 0
-        tags = {t["key"]: t["value"] for t in found[0]["data"]["tags"]}
-        assert tags["system"] == "two_mass_stribeck" and tags["invert"] == "physics"
+        yield base, tmp
     finally:
         try:
             os.killpg(server.pid, signal.SIGTERM)
@@ -91,6 +143,48 @@ def test_runs_read_back_through_mlflow_server_rest_api(sweep_store):
         except subprocess.TimeoutExpired:
             os.killpg(server.pid, signal.SIGKILL)
             server.wait()
+
+
+def test_four_parallel_jobs_to_an_mlflow_server_lose_nothing(sweep_store, mlflow_server):
+    """Issue 10: a 4-job multirun with 4 parallel workers tracking to a server: the parent and all
+    four children FINISHED; every child has the metrics, tags and artifacts of the serial run (read
+    back over the server's REST API)."""
+    base, tmp = mlflow_server
+    _sweep(tmp, "seed=0,1,2,3", "hydra/launcher=local", "hydra.launcher.n_jobs=4", uri=base)
+    exp = requests.get(f"{base}/api/2.0/mlflow/experiments/get-by-name",
+                       params={"experiment_name": "physics_baseline"}, timeout=30).json()
+    exp_id = exp["experiment"]["experiment_id"]
+    runs = requests.post(f"{base}/api/2.0/mlflow/runs/search", json={"experiment_ids": [exp_id]},
+                         timeout=30).json()["runs"]
+    parents = [r for r in runs if {"key": "sweep", "value": "parent"} in r["data"]["tags"]]
+    assert len(parents) == 1 and parents[0]["info"]["status"] == "FINISHED"
+    kids = [r for r in runs if {"key": "mlflow.parentRunId", "value": parents[0]["info"]["run_id"]}
+            in r["data"]["tags"]]
+    assert len(kids) == 4 and {k["info"]["status"] for k in kids} == {"FINISHED"}
+
+    _, serial = _children(sweep_store[1]["MLFLOW_TRACKING_URI"])
+    from mlflow.tracking import MlflowClient
+    ser_client = MlflowClient(sweep_store[1]["MLFLOW_TRACKING_URI"])
+    srv_client = MlflowClient(base)
+
+    def artifacts(c, run_id, path=""):
+        out = []
+        for f in c.list_artifacts(run_id, path):
+            out += artifacts(c, run_id, f.path) if f.is_dir else [f.path]
+        return sorted(p for p in out if not p.endswith(".yaml"))   # the config file is named by run id
+
+    for kid in kids:
+        params = {p["key"]: p["value"] for p in kid["data"]["params"]}
+        metrics = {m["key"]: m["value"] for m in kid["data"]["metrics"] if not _timing(m["key"])}
+        tags = {t["key"]: t["value"] for t in kid["data"]["tags"]}
+        assert tags["system"] == "two_mass_stribeck" and tags["invert"] == "physics"
+        assert metrics["evaluate/held/rms"] > 0
+        if params["seed"] in serial:       # seeds 0-2 also ran serially into SQLite
+            ref = serial[params["seed"]]
+            assert metrics == {k[len("metrics."):]: v for k, v in _science(ref).items()}
+            assert artifacts(srv_client, kid["info"]["run_id"]) == artifacts(ser_client, ref["run_id"]) != []
+        else:
+            assert len(metrics) == len(_science(next(iter(serial.values()))))
 
 
 def test_failed_sweep_marks_parent_failed(tmp_path):

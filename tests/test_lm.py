@@ -97,3 +97,23 @@ def test_bad_input_raises():
                             jacobian=lambda t: torch.eye(3, dtype=torch.float64))
     with pytest.raises(ValueError, match="NaN"):
         levenberg_marquardt(lambda t: t / 0.0 * 0.0, torch.zeros(2, dtype=torch.float64))
+
+
+def test_normal_equations_from_row_blocks():
+    # JᵀJ, Jᵀr summed over row blocks equal the unblocked ones to rounding, and an LM given them
+    # (jacobian.normal_equations) reaches the same least-squares optimum without forming J
+    from pipeline.identify.lm import normal_equations_from_blocks
+    A, b, x = _lip_problem([1.0, 2.0, 0.5, 1.5, 1.0], n=1000)
+    r = torch.randn(1000, dtype=torch.float64)
+    G, g = normal_equations_from_blocks(((a, A[a:a + 300]) for a in range(0, 1000, 300)), r, 5)
+    assert torch.equal(G, G.T)
+    assert torch.allclose(G, A.T @ A, rtol=1e-14, atol=1e-14 * float(G.diagonal().max()))
+    assert torch.allclose(g, A.T @ r, rtol=1e-14, atol=1e-13)
+
+    def jac(t):
+        raise AssertionError("J must not be formed")
+    jac.normal_equations = lambda t, res: normal_equations_from_blocks(
+        ((a, A[a:a + 300]) for a in range(0, 1000, 300)), res, 5)
+    out = levenberg_marquardt(lambda t: A @ t - b, torch.zeros(5, dtype=torch.float64), jacobian=jac)
+    assert out.converged, out.message
+    assert float((out.theta - x).norm() / x.norm()) < 1e-10

@@ -112,6 +112,38 @@ def test_jacobian_matches_finite_differences(structure, hidden, activation):
     assert torch.equal(m.jacobian(th, prep, out=buf, scale=-0.37, block=64), J * (-0.37))
 
 
+@pytest.mark.parametrize("hidden,activation", [((6,), "tanh"), ((), "tanh"), ((5, 4), "tanh"),
+                                               ((6,), "sigmoid")])
+def test_criterion_normal_equations_equal_the_full_jacobian(hidden, activation):
+    # the LM's path: JᵀJ and Jᵀr summed over row blocks (syrk/gemv in cache, J never stored),
+    # hidden activations reused from the residual at the same θ; J itself is bit-identical
+    m = PGNN(2, 2, 1, physics=LinearFeatures(4), hidden=hidden, activation=activation,
+             out_init_scale=1.0, seed=3)
+    g = torch.Generator().manual_seed(1)
+    phi = torch.randn(2500, 4, generator=g, dtype=torch.float64)  # 2500 = 2 blocks + a tail
+    m.fit_normalisation(phi)
+    prep = m.prepare(phi)
+    target = torch.randn(2500, generator=g, dtype=torch.float64)
+    ts = torch.tensor([1.0, -2.0, 0.5, 3.0], dtype=torch.float64)
+    res, jac = criterion(m, prep, target, 0.8, ts, torch.eye(4, dtype=torch.float64))
+    th = m.parameter_vector() + 0.3 * torch.randn(m.n_params, generator=g, dtype=torch.float64)
+    r = res(th)
+    assert torch.equal(m.predict(th, prep, block=1024), m.predict(th, prep))
+    J = jac(th).clone()
+    A, gr = jac.normal_equations(th, r)
+    assert torch.allclose(A, J.T @ J, rtol=1e-13, atol=1e-13 * float(A.diagonal().max()))
+    assert torch.equal(A, A.T)
+    assert torch.allclose(gr, J.T @ r, rtol=1e-13, atol=1e-13 * float(gr.abs().max()))
+    blocks = torch.cat([b.clone() for _, b in m.jacobian_blocks(th, prep, scale=-0.5, block=1024)])
+    assert torch.equal(blocks, m.jacobian(th, prep, scale=-0.5, block=2500))  # the same products
+    if len(hidden) == 1:
+        h = torch.empty(2500, hidden[0], dtype=torch.float64)
+        m.predict(th, prep, block=1024, hidden=h)
+        cached = torch.cat([b.clone() for _, b in m.jacobian_blocks(th, prep, scale=-0.5, block=1024,
+                                                                    hidden=h)])
+        assert torch.equal(cached, blocks)
+
+
 def test_initial_pgnn_equals_physics_and_parts():
     g = torch.Generator().manual_seed(0)
     phi = torch.randn(50, 3, generator=g, dtype=torch.float64)

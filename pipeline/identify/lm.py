@@ -29,9 +29,11 @@ import math
 from dataclasses import dataclass, field
 from typing import Callable
 
+import numpy as np
 import torch
+from scipy.linalg.blas import dsyrk as _dsyrk
 
-__all__ = ["LMResult", "levenberg_marquardt", "autodiff_jacobian"]
+__all__ = ["LMResult", "levenberg_marquardt", "autodiff_jacobian", "normal_equations_from_blocks"]
 
 _MU_MAX = 1e20
 
@@ -93,6 +95,22 @@ def _gram(J: torch.Tensor) -> torch.Tensor:
     return J.T @ J
 
 
+def normal_equations_from_blocks(blocks, r: torch.Tensor, n_par: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(JᵀJ, Jᵀr) summed over row blocks ``(a, J[a:a+k])`` of J (contiguous float64 tensors,
+    covering the rows of ``r`` once): BLAS syrk (half the flops of a gemm) and gemv on each block
+    while it is in cache, so J is never stored whole.  The sums run block by block, so they differ
+    from an unblocked JᵀJ in the last bits only."""
+    A = np.zeros((n_par, n_par), order="F")
+    g = np.zeros(n_par)
+    rn = r.numpy()
+    for a, J in blocks:
+        Jt = J.numpy().T  # [n_par, k] Fortran-ordered: syrk 'N' computes Jt Jtᵀ = JᵀJ
+        A = _dsyrk(1.0, Jt, beta=1.0, c=A, trans=0, lower=1, overwrite_c=1)
+        g += Jt @ rn[a:a + Jt.shape[1]]
+    A = np.tril(A) + np.tril(A, -1).T
+    return torch.from_numpy(A), torch.from_numpy(g)
+
+
 def _check_vector(name: str, x) -> torch.Tensor:
     if not isinstance(x, torch.Tensor):
         x = torch.as_tensor(x, dtype=torch.float64)
@@ -122,7 +140,9 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
         Initial parameters (1-D float64, n_par entries); not modified.
     jacobian : callable, optional
         ``jacobian(θ) -> J`` [n_res, n_par], exact ``∂r/∂θ``.  If None, computed with
-        ``torch.func.jacfwd`` (tall J) or ``jacrev`` (wide J).
+        ``torch.func.jacfwd`` (tall J) or ``jacrev`` (wide J).  If it has an attribute
+        ``normal_equations(θ, r) -> (JᵀJ, Jᵀr)``, that is used instead of forming J (e.g.
+        :func:`normal_equations_from_blocks` over row blocks of a tall J).
     max_iter : int
         Maximum number of damped systems solved (accepted plus rejected steps).
     ftol : float
@@ -186,15 +206,22 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
     message, n_iter = "max_iter", 0
     need_jac = True
     eye = torch.eye(n_par, dtype=torch.float64)
+    normal = getattr(jacobian, "normal_equations", None)
 
     while True:
         if cost == 0.0:
             message = "zero_cost"
             break
         if need_jac:
-            J = eval_jac(theta, r.numel())
-            A = _gram(J)
-            g = J.T @ r
+            if normal is not None:
+                A, g = normal(theta, r)
+                if A.shape != (n_par, n_par) or g.shape != (n_par,):
+                    raise ValueError(f"jacobian.normal_equations returned shapes {tuple(A.shape)}, "
+                                     f"{tuple(g.shape)}; expected ({n_par}, {n_par}) and ({n_par},)")
+            else:
+                J = eval_jac(theta, r.numel())
+                A = _gram(J)
+                g = J.T @ r
             diag = torch.diagonal(A).clone()
             # gradient test, scale-free (cosine of each column with the residual)
             col = torch.sqrt(diag)

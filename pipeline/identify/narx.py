@@ -22,6 +22,7 @@ record (never a random split of time samples).
 """
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -29,7 +30,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from pipeline.identify.lm import LMResult, levenberg_marquardt
+from pipeline.identify.lm import LMResult, levenberg_marquardt, normal_equations_from_blocks
 from pipeline.models.pgnn import PGNN, Prepared
 
 __all__ = ["Regression", "forward_regressor", "inverse_regressor", "build_regression",
@@ -134,6 +135,9 @@ def build_regression(model: PGNN, y, u) -> Regression:
 # --------------------------------------------------------------------------------------------
 # criteria
 # --------------------------------------------------------------------------------------------
+_BLOCK = 1024  # rows per block of the residual and the Jacobian: a [_BLOCK, ~100] block stays in L2
+
+
 def physics_least_squares(model: PGNN, phi, target) -> np.ndarray:
     """θ*_phy of [B1] (7): closed-form least squares of the physics part alone,
     ``target - T₀(φ) ≈ T(φ) θ``, with column scaling (SVD-based ``numpy.linalg.lstsq``).
@@ -193,34 +197,56 @@ def criterion(model: PGNN, prep: Prepared, target: torch.Tensor, sigma: float,
 
     ``residual(θ) = [(target - ŷ(θ))/(σ sqrt M); R d(θ)]`` with d the relative deviation of
     θ_phy from θ*_phy; ``||residual||²`` is V(θ) of the module docstring.  ``jacobian`` returns
-    the same buffer at every call (overwritten): use each J before asking for the next.
+    the same buffer at every call (overwritten): use each J before asking for the next.  The LM
+    uses ``jacobian.normal_equations(θ, r) -> (JᵀJ, Jᵀr)`` instead, summed over row blocks of J
+    in cache (:func:`pipeline.identify.lm.normal_equations_from_blocks`), so J is never stored.
     """
     M = target.shape[0]
     c = 1.0 / (sigma * np.sqrt(M))
     reg = R is not None and theta_star is not None and model.use_physics and bool(torch.any(R != 0))
     sl = model.phy_slice
+    n_reg = 0
     if reg:
         scale = theta_star.abs()
         scale = torch.where(scale > 1e-12 * scale.max(), scale, torch.ones_like(scale))
         Rs = R / scale[None, :]  # ∂(R d)/∂θ_phy
+        n_reg = Rs.shape[0]
+        J_reg = torch.zeros(n_reg, model.n_params, dtype=torch.float64)  # constant rows of J
+        J_reg[:, sl] = Rs
+
+    # the hidden activations of the last residual evaluation and its θ: the LM asks for the
+    # normal equations at the θ of the residual it just accepted, so they need not be recomputed
+    one_hidden = model.use_nn and len(model.hidden) == 1
+    hidden = torch.empty(M, model.hidden[0], dtype=torch.float64) if one_hidden else None
+    hidden_at = [None]
 
     def residual(theta):
-        e = (target - model.predict(theta, prep)) * c
+        hidden_at[0] = None
+        e = (target - model.predict(theta, prep, block=_BLOCK, hidden=hidden)) * c
+        hidden_at[0] = theta.detach().clone() if one_hidden else None
         if reg:
             e = torch.cat([e, Rs @ (theta[sl] - theta_star)])
         return e
 
-    # one buffer for every Jacobian of the fit: the data rows are rewritten in place, the
-    # regulariser rows written once (no per-iteration allocation, scaling copy or concatenation)
-    n_reg = Rs.shape[0] if reg else 0
-    buf = torch.zeros(M + n_reg, model.n_params, dtype=torch.float64)
-    if reg:
-        buf[M:, sl] = Rs
+    buf = None  # one buffer for every full Jacobian, allocated on first use
 
     def jacobian(theta):
-        model.jacobian(theta, prep, out=buf[:M], scale=-c)
+        nonlocal buf
+        if buf is None:
+            buf = torch.empty(M + n_reg, model.n_params, dtype=torch.float64)
+            if reg:
+                buf[M:] = J_reg
+        model.jacobian(theta, prep, out=buf[:M], scale=-c, block=_BLOCK)
         return buf
 
+    def normal_equations(theta, r):
+        h = hidden if hidden_at[0] is not None and torch.equal(hidden_at[0], theta) else None
+        blocks = model.jacobian_blocks(theta, prep, scale=-c, block=_BLOCK, hidden=h)
+        if reg:
+            blocks = itertools.chain(blocks, [(M, J_reg)])
+        return normal_equations_from_blocks(blocks, r, model.n_params)
+
+    jacobian.normal_equations = normal_equations
     return residual, jacobian
 
 

@@ -276,6 +276,46 @@ def physics_features_for(physics_model, structure: str, n_a: int, n_b: int, n_k:
 
 
 # --------------------------------------------------------------------------------------------
+# closed-form Jacobian of one hidden layer (numba)
+# --------------------------------------------------------------------------------------------
+# activations whose derivative is a function of their value: h' = 1 - h² (tanh), h (1 - h) (sigmoid), 1
+_DERIVATIVE_FROM_VALUE = {"tanh": 0, "sigmoid": 1, "identity": 2}
+
+
+@numba.njit(cache=True)
+def _one_hidden_jacobian_rows(J, T, x, h, w2s, s, act, scale):
+    """Rows of scale · ∂ŷ/∂θ for ŷ = T₀ + T θ_phy + s (W2 h(W1 x + b1) + b2) ([B1] (10), (11)),
+    parameter order [θ_phy, W1 (H × n), b1, W2, b2]: T, G ⊗ x, G, s h, s with G = h' · (s W2)
+    (∂ŷ/∂ pre-activation, ``w2s`` = s W2).  Each entry is the same IEEE product, times scale,
+    as the vectorised formula (no fused multiply-add), in one pass over the rows of J."""
+    M, n = x.shape
+    H = h.shape[1]
+    p = T.shape[1]
+    c = p + H * n
+    G = np.empty(H)
+    for m in range(M):
+        for i in range(p):
+            J[m, i] = T[m, i] * scale
+        for j in range(H):
+            hj = h[m, j]
+            if act == 0:
+                G[j] = (1.0 - hj * hj) * w2s[j]
+            elif act == 1:
+                G[j] = (hj * (1.0 - hj)) * w2s[j]
+            else:
+                G[j] = w2s[j]
+        q = p
+        for j in range(H):
+            for k in range(n):
+                J[m, q] = (G[j] * x[m, k]) * scale
+                q += 1
+        for j in range(H):
+            J[m, c + j] = G[j] * scale
+            J[m, c + H + j] = (h[m, j] * s) * scale
+        J[m, c + 2 * H] = s * scale
+
+
+# --------------------------------------------------------------------------------------------
 # the PGNN
 # --------------------------------------------------------------------------------------------
 @dataclass
@@ -509,22 +549,44 @@ class PGNN(nn.Module):
             layers.append((W, b))
         return th_phy, layers
 
-    def _mlp(self, x, layers):
+    def _mlp(self, x, layers, hidden: torch.Tensor | None = None):
         act = _ACTIVATIONS[self.activation]
         for W, b in layers[:-1]:
             x = act(torch.addmm(b, x, W.T))
+        if hidden is not None:  # keep the (single) hidden layer's activations
+            hidden.copy_(x)
         W, b = layers[-1]
         return torch.addmm(b, x, W.T)[:, 0] * self.out_scale
 
-    def predict(self, theta: torch.Tensor, prep: Prepared) -> torch.Tensor:
-        """ŷ [M] for a flat parameter vector θ on prepared data."""
+    def predict(self, theta: torch.Tensor, prep: Prepared, block: int | None = None,
+                hidden: torch.Tensor | None = None) -> torch.Tensor:
+        """ŷ [M] for a flat parameter vector θ on prepared data; with ``block``, computed in row
+        blocks of that size (temporaries stay in cache; the same arithmetic per row).
+
+        ``hidden``: a [M, H] buffer that receives the activations of a single hidden layer, for
+        :meth:`jacobian_blocks` at the same θ and ``block``."""
         th_phy, layers = self._unflatten(theta)
+        if block is None:
+            return self._predict_rows(th_phy, layers, prep, hidden)
+        M = len(prep)
+        out = torch.empty(M, dtype=torch.float64)
+        for a in range(0, M, block):
+            out[a:a + block] = self._predict_rows(th_phy, layers, prep.rows(slice(a, a + block)),
+                                                  None if hidden is None else hidden[a:a + block])
+        return out
+
+    def _predict_rows(self, th_phy, layers, prep: Prepared, hidden=None) -> torch.Tensor:
         out = 0.0
         if self.use_physics:
             out = prep.offset + prep.T @ th_phy
         if self.use_nn:
-            out = out + self._mlp(prep.x, layers)
+            out = out + self._mlp(prep.x, layers, hidden)
         return out
+
+    def _closed_form(self) -> bool:
+        """True when :meth:`jacobian` has a closed form (one hidden tanh/sigmoid/identity layer, or none)."""
+        return not self.use_nn or len(self.layers) == 1 or (
+            len(self.layers) == 2 and self.activation in ("tanh", "sigmoid", "identity"))
 
     def jacobian(self, theta: torch.Tensor, prep: Prepared, chunk: int = 20000,
                  out: torch.Tensor | None = None, scale: float | None = None,
@@ -532,64 +594,68 @@ class PGNN(nn.Module):
         """Exact ∂ŷ/∂θ [M, n_params] (times ``scale`` if given): closed form for one hidden layer
         (tanh, sigmoid, identity) or no hidden layer, torch.func.jacfwd in row chunks otherwise.
 
-        ``out``: a preallocated contiguous [M, n_params] float64 buffer to write into (an LM reuses
-        one buffer instead of allocating a fresh J every iteration).  The closed form fills J in
-        row blocks of ``block`` rows, each block complete (and scaled) while it is in cache: one
-        pass over J's memory instead of one per parameter group; every entry is the same product
-        as an unblocked computation, so J is bit-identical."""
+        ``out``: a preallocated contiguous [M, n_params] float64 buffer to write into.  The rows
+        are those of :meth:`jacobian_blocks` (``block`` rows, or ``chunk`` for jacfwd)."""
         M = len(prep)
-        th_phy, layers = self._unflatten(theta)
-        closed = (not self.use_nn or len(layers) == 1 or
-                  (len(layers) == 2 and self.activation in ("tanh", "sigmoid", "identity")))
         if out is not None and (out.shape != (M, self.n_params) or not out.is_contiguous()):
             raise ValueError(f"out must be a contiguous [{M}, {self.n_params}] buffer, got {tuple(out.shape)}")
-        if not closed:
-            blocks = []
-            for i in range(0, M, chunk):
-                rows = prep.rows(slice(i, i + chunk))
-                blocks.append(torch.func.jacfwd(lambda th, rows=rows: self.predict(th, rows))(theta))
-            J = torch.cat(blocks, dim=0)
-            if scale is not None:
-                J.mul_(scale)
-            return J if out is None else out.copy_(J)
         J = torch.empty(M, self.n_params, dtype=torch.float64) if out is None else out
-        for a in range(0, M, block):
-            self._jacobian_rows(layers, prep.rows(slice(a, a + block)), J[a:a + block])
-            if scale is not None:
-                J[a:a + block].mul_(scale)
+        for _ in self.jacobian_blocks(theta, prep, scale, block if self._closed_form() else chunk, out=J):
+            pass
         return J
 
-    def _jacobian_rows(self, layers, prep: Prepared, J: torch.Tensor) -> None:
-        """The closed-form Jacobian of the rows of ``prep`` into the row block ``J``."""
-        M = J.shape[0]
+    def jacobian_blocks(self, theta: torch.Tensor, prep: Prepared, scale: float | None = None,
+                        block: int = 2048, out: torch.Tensor | None = None,
+                        hidden: torch.Tensor | None = None):
+        """Yield ``(a, J_a)``: the rows a, a+1, … of the exact ∂ŷ/∂θ (times ``scale``), ``block``
+        rows at a time, written into the rows of ``out`` if given, else into one reused
+        [block, n_params] buffer (overwritten by the next block: use J_a before asking for it).
+        ``hidden``: the hidden activations at this θ, from :meth:`predict` with the same ``block``
+        (one hidden layer only), instead of computing them again.
+
+        Each block is complete (and scaled) while it is in cache, so a consumer can reduce it
+        (e.g. JᵀJ by syrk) without J ever being stored whole.  Every entry is the same product
+        as a one-block computation."""
+        M, P = len(prep), self.n_params
+        _, layers = self._unflatten(theta)
+        closed = self._closed_form()
+        buf = None if out is not None else torch.empty(min(block, M), P, dtype=torch.float64)
+        for a in range(0, M, block):
+            rows = prep.rows(slice(a, a + block))
+            J = out[a:a + block] if out is not None else buf[:len(rows)]
+            if closed:
+                self._jacobian_rows(layers, rows, J, scale, None if hidden is None else hidden[a:a + block])
+            else:
+                J.copy_(torch.func.jacfwd(lambda th: self.predict(th, rows))(theta))
+                if scale is not None:
+                    J.mul_(scale)
+            yield a, J
+
+    def _jacobian_rows(self, layers, prep: Prepared, J: torch.Tensor, scale: float | None,
+                       h: torch.Tensor | None = None) -> None:
+        """The closed-form Jacobian (times ``scale``) of the rows of ``prep`` into the row block ``J``;
+        ``h``: the hidden activations of these rows if known."""
+        s = self.out_scale
+        if self.use_nn and len(layers) == 2:
+            (W1, b1), (W2, b2) = layers
+            if h is None:
+                h = _ACTIVATIONS[self.activation](torch.addmm(b1, prep.x, W1.T))
+            T = prep.T if self.use_physics else prep.x[:, :0]
+            _one_hidden_jacobian_rows(J.numpy(), T.numpy(), prep.x.numpy(), h.numpy(), (s * W2[0]).numpy(),
+                                      float(s), _DERIVATIVE_FROM_VALUE[self.activation],
+                                      1.0 if scale is None else float(scale))
+            return
         i = 0
         if self.use_physics:
             p = prep.T.shape[1]
             J[:, :p] = prep.T
             i = p
-        if self.use_nn:
-            s = self.out_scale
-            x = prep.x
-            n = x.shape[1]
-            if len(layers) == 1:
-                torch.mul(x, s, out=J[:, i:i + n])
-                J[:, i + n] = s
-            else:
-                (W1, b1), (W2, b2) = layers
-                H = W1.shape[0]
-                h = _ACTIVATIONS[self.activation](torch.addmm(b1, x, W1.T))
-                if self.activation == "tanh":
-                    dh = 1.0 - h * h
-                elif self.activation == "sigmoid":
-                    dh = h * (1.0 - h)
-                else:
-                    dh = torch.ones_like(h)
-                G = dh * (s * W2[0])  # ∂ŷ/∂(pre-activation) [M, H]
-                torch.mul(G[:, :, None], x[:, None, :], out=J[:, i:i + H * n].view(M, H, n))
-                i += H * n
-                J[:, i:i + H] = G
-                torch.mul(h, s, out=J[:, i + H:i + 2 * H])
-                J[:, i + 2 * H] = s
+        if self.use_nn:  # no hidden layer: ŷ = s (W x + b)
+            n = prep.x.shape[1]
+            torch.mul(prep.x, s, out=J[:, i:i + n])
+            J[:, i + n] = s
+        if scale is not None:
+            J.mul_(scale)
 
     def forward(self, phi: torch.Tensor) -> torch.Tensor:
         """One-step prediction ŷ(θ, φ) [B] for a batch of regressors φ [B, n_phi] ([B1] (10)).

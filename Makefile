@@ -33,7 +33,8 @@ lint: install  ## ruff
 # every experiment of `make reproduce`, in order (conf/experiment/<name>.yaml; sweeps are set in
 # the file with hydra.mode=MULTIRUN)
 ALL_EXPERIMENTS := physics_arx physics_linear_motor physics_rot_trans physics_two_mass ilc_rot_trans \
-  b1_arx_bias b1_linear_motor b1_noise_sweep k_two_mass b2_rot_trans b2_rot_trans_il emps_physics emps_narx emps
+  b1_arx_bias b1_linear_motor b1_noise_sweep k_two_mass b2_rot_trans b2_rot_trans_il b2_rot_trans_linear \
+  emps_physics emps_narx emps
 EXPERIMENTS ?= $(ALL_EXPERIMENTS)
 # jobs of a sweep run at once (Hydra joblib launcher); empty = the machine's cores
 JOBS ?=

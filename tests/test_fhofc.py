@@ -391,3 +391,22 @@ def test_b2_bad_config_fails_before_work(store, cfg_of, override, message):
     base = [o for o in B2_SMALL if not o.startswith("identify.")] if override.startswith("identify=") else B2_SMALL
     with pytest.raises(runner.ConfigError, match=message):
         runner.run_job(cfg_of(*base, override))
+
+
+@pytest.mark.parametrize("gamma", [0.3, 1.0])
+def test_gamma_floor_of_il_fhofc_is_the_regularised_optimum(gamma, mp):
+    """Issue 11: with the plant's true linear part as model, IL-FHOFC (22) (α = 1) sits at the
+    closed-form regularised optimum u* = argmin ‖R - Y0 - G U‖² + γ²‖ΔU‖² in every trial: its rms
+    error is the γ-floor no model can beat (Γ penalises U_ff itself, not its change); 1e-8."""
+    model, ctrl, G, C = mp
+    N = 200
+    r = smooth_move(N, 1.0)
+    out = il_fhofc(model, ctrl, r, lambda u: simulate_closed_loop(model, ctrl, r, u)[0], n_trials=4,
+                   alpha=1.0, gamma=gamma, check_range=False)
+    y0, Gl = lifted_problem(G, C, r, N)
+    u_star = np.linalg.lstsq(np.vstack([Gl, gamma * difference_matrix(N)]),
+                             np.concatenate([r - y0, np.zeros(N)]), rcond=None)[0]
+    floor = np.linalg.norm(r - y0 - Gl @ u_star) / np.sqrt(N)
+    assert floor > 3e-7                                   # γ > 0 leaves a visible error (R peaks at 1)
+    assert np.max(np.abs(out.e_rms / floor - 1)) <= 1e-8
+    assert rel(out.u_ff[-1], u_star) <= 1e-8

@@ -244,3 +244,23 @@ def test_bad_input(loop):
         identify_sim_error(PGNN(4, 4, 0, physics=LinearFeatures(8), hidden=(32,)), ctrl, r, u_ex, r, u_ex)
     with pytest.raises(ValueError, match="measured plant input"):
         identify_sim_error(PGNN(4, 4, 0, physics=LinearFeatures(8), use_nn=False), ctrl, r, u_ex, r)
+
+
+def test_sim_error_fits_stop_on_tolerance_not_on_the_cap(loop):
+    """Issue 11: on a small problem (the linear plant, no noise, 2 neurons) both the output-error
+    fit of θ*_phy and the PGNN's LM stop on a tolerance well before their caps, and say so; the
+    linear model (n1 = 0) is θ*_phy itself, its stop reason that of θ*_phy's fit."""
+    lin_plant = RotTransNMP(c=0.0)
+    sim = _closed_loop_data(lin_plant, 600, 3, 0.0)
+    u_ex = closed_loop_exogenous(sim.u, sim.u_fb)
+    _, ctrl = loop
+    lin = identify_sim_error(PGNN(4, 4, 0, physics=LinearFeatures(8), use_nn=False), ctrl, sim.r, u_ex,
+                             sim.y, sim.u, theta_star="sim_error", linear_max_iter=500, ftol=1e-8)
+    assert lin.linear_stop in ("ftol", "gtol", "mu_max", "zero_cost") and lin.restarts[0].n_iter < 500
+    assert lin.restarts[0].message == lin.linear_stop
+    np.testing.assert_array_equal(lin.arx.theta_phy, lin.theta_phy_star)
+    m = PGNN(4, 4, 0, physics=LinearFeatures(8), hidden=(2,), seed=0, input_transform="raw")
+    fit = identify_sim_error(m, ctrl, sim.r, u_ex, sim.y, sim.u, theta_star=lin.theta_phy_star,
+                             max_iter=2000, ftol=1e-8, seed=0)
+    best = fit.restarts[fit.best]
+    assert best.message in ("ftol", "gtol", "mu_max", "zero_cost") and best.n_iter < 2000, best.message

@@ -26,6 +26,7 @@ part of [B2] (16)'s Λ = [I, 0].
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -650,6 +651,7 @@ class SimErrorFit:
     best: int = 0
     n_train: int = 0
     n_val: int = 0
+    linear_stop: str = ""       # stop reason of θ*_phy's fit (closed_form, given, or the LM's)
 
     @property
     def cost(self) -> float:
@@ -755,7 +757,9 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
     theta_star : {'arx', 'sim_error'} or ndarray
         θ*_phy: ``'arx'`` = one-step least squares of the physics model on the measured
         data ([B1] (7)); ``'sim_error'`` = that, refined by closed-loop simulation-error LM of
-        the linear model alone (output-error consistent under measurement noise); or given.
+        the linear model alone (output-error consistent under measurement noise); or given
+        (e.g. the plant's true linear part: an oracle).  Without NN (n1 = 0) the model is θ*_phy
+        itself, and its one "restart" carries the stop reason of θ*_phy's fit.
     n_restarts, seed : int
         NN initialisations; restart i uses ``SeedSequence([seed, i])`` (as [B1]'s NARX).
     val_fraction : float
@@ -801,11 +805,14 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
     y_range = (float(y.min()), float(y.max()))
     sigma = float(np.std(y[train]))
 
-    # θ*_phy: the linear model identified first
+    # θ*_phy: the linear model identified first (its fit's stop reason is kept: linear_stop)
+    t0 = time.perf_counter()
+    linear_stop, linear_history, linear_iter = "given", [], 0
     if isinstance(theta_star, str):
         if theta_star not in ("arx", "sim_error"):
             raise ValueError(f"theta_star must be 'arx', 'sim_error' or an array, got {theta_star!r}")
         ts = physics_least_squares(model, reg.phi, reg.target)  # [B1] (7)
+        linear_stop = "closed_form"
         if theta_star == "sim_error":
             lin = ArxPGNN(model.n_a, model.n_b, model.n_k, ts)
             res_l, jac_l = sim_error_criterion(lin, ctrl, r, u_ex, y, ts, 0.0, train, sigma)
@@ -813,6 +820,7 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
                                       jacobian=lambda th: torch.from_numpy(jac_l(th.numpy())),
                                       max_iter=linear_max_iter, ftol=ftol, gtol=gtol, mu0=mu0)
             ts = out.theta.numpy().copy()
+            linear_stop, linear_history, linear_iter = out.message, out.history, out.n_iter
     else:
         ts = np.asarray(theta_star, float).reshape(-1)
         if ts.shape != (model.n_phi,):
@@ -838,11 +846,20 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
 
     res_t = lambda th: torch.from_numpy(residual(th.numpy()))     # noqa: E731
     jac_t = lambda th: torch.from_numpy(jacobian(th.numpy()))     # noqa: E731
-    restarts_out, best = best_of_restarts(model, res_t, jac_t, n_restarts if model.use_nn else 1, seed,
-                                          val_fn=val_fn, max_iter=max_iter, ftol=ftol, gtol=gtol, mu0=mu0,
-                                          patience=patience, progress=progress, on_iteration=on_iteration,
-                                          memo=memo)
+    if model.use_nn:
+        restarts_out, best = best_of_restarts(model, res_t, jac_t, n_restarts, seed,
+                                              val_fn=val_fn, max_iter=max_iter, ftol=ftol, gtol=gtol, mu0=mu0,
+                                              patience=patience, progress=progress, on_iteration=on_iteration,
+                                              memo=memo)
+    else:   # the linear model (n1 = 0) is θ*_phy: fitting (16) toward itself would only trade it off
+        from pipeline.identify.narx import RestartResult
+        th = model.parameter_vector()
+        rr = res_t(th)
+        c = float(rr @ rr)
+        restarts_out = [RestartResult(seed, c, None if val_fn is None else val_fn(th), linear_history or [c], [],
+                                      linear_iter, linear_stop, time.perf_counter() - t0, th)]
+        best = 0
     arx = ArxPGNN.from_pgnn(model, y_range)
     y_hat, _ = simulate_closed_loop(arx, ctrl, r, u_ex)
     ident = float(np.linalg.norm(y - y_hat) / math.sqrt(N))
-    return SimErrorFit(model, arx, ts, sigma, ident, y_hat, restarts_out, best, N - n_val, n_val)
+    return SimErrorFit(model, arx, ts, sigma, ident, y_hat, restarts_out, best, N - n_val, n_val, linear_stop)

@@ -10,7 +10,7 @@ from pipeline.runner import implementation
 
 UPSTREAM = ("generate", "baseline")
 DEPENDS = ("model", "identify", "regularizer", "seed")
-VERSION = 1
+VERSION = 2   # 2: stop reasons (stop_reason tags, stopped_on_cap) in every fit's record
 KIND_KEY = "identify.kind"
 
 
@@ -40,3 +40,11 @@ def log_restarts(ctx, restarts) -> None:
         ctx.metric("restart_cost", rr.cost, step=i)
         ctx.metric("restart_seconds", rr.seconds, step=i)
         ctx.metric("restart_iterations", rr.n_iter, step=i)
+        ctx.tag(f"stop_reason.restart{i}", rr.message)       # why it stopped: a tolerance or CAPS
+    best = min(range(len(restarts)), key=lambda i: restarts[i].cost)
+    ctx.tag("stop_reason", restarts[best].message)
+    ctx.metric("stopped_on_cap", float(restarts[best].message in CAPS))     # the report flags these
+
+
+#: LM stop reasons that are a budget, not convergence (pipeline.identify.lm)
+CAPS = ("max_iter",)

@@ -30,7 +30,8 @@ from stages.train import log_restarts, restart_memo
 from pipeline.systems.arx_bias import ARXPhysics
 from pipeline.systems.measured import Recording
 
-THETA_STAR = ("arx", "sim_error")
+THETA_STAR = ("arx", "sim_error", "oracle")   # oracle: the plant's true linear part (an oracle, simulation only)
+VERSION = 2   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zeros logged
 
 
 def check(cfg, system) -> None:
@@ -64,6 +65,9 @@ def check(cfg, system) -> None:
         if system.controller() is None:
             raise ConfigError(f"identify.kind=sim_error simulates the closed loop; system '{system.name}' "
                               "has no feedback controller")
+        if ts == "oracle" and not hasattr(system, "linear_theta"):
+            raise ConfigError(f"identify.theta_star=oracle needs a simulated plant with a known linear "
+                              f"part; system '{system.name}' has none: use arx or sim_error")
 
 
 def build_model(cfg, system) -> PGNN:
@@ -95,7 +99,8 @@ def fit(ctx) -> dict:
     ident = cfg.identify
     lam = OmegaConf.to_container(cfg.regularizer.lam, resolve=True) \
         if OmegaConf.is_list(cfg.regularizer.get("lam")) else float(cfg.regularizer.get("lam", 0.0))
-    fit_ = identify_sim_error(model, ctrl, r, u_ex, y, u, lam=lam, theta_star=str(ident.theta_star),
+    theta_star = system.linear_theta() if ident.theta_star == "oracle" else str(ident.theta_star)
+    fit_ = identify_sim_error(model, ctrl, r, u_ex, y, u, lam=lam, theta_star=theta_star,
                               n_restarts=int(ident.n_restarts), seed=int(cfg.seed),
                               val_fraction=float(ident.val_fraction), max_iter=int(ident.max_iter),
                               ftol=float(ident.ftol), gtol=float(ident.gtol), mu0=float(ident.mu0),
@@ -110,6 +115,10 @@ def fit(ctx) -> dict:
     ctx.metric("n_params", model.n_params)
     ctx.metric("n1", fit_.arx.n1)
     ctx.tag("lm_stop", best.message)
+    ctx.tag("theta_star_stop", fit_.linear_stop)
+    zeros = np.roots(fit_.arx.theta_phy[int(cfg.model.n_a):])        # B(z) of y(k) = Σ a_i y(k-i) + Σ b_i u(k-i)
+    ctx.tag("zeros", ", ".join(f"{z:.4g}" for z in sorted(zeros, key=lambda z: -abs(z))))
+    ctx.metric("max_abs_zero", float(np.max(np.abs(zeros))))          # the sampled NMP zero (true: 2.25)
     physical = system.physics.physical(fit_.arx.theta_phy)
     for k, v in physical.items():
         ctx.metric(f"theta_phy/{k}", v)

@@ -26,10 +26,10 @@ def loop(plant):
     return ArxPGNN(*orders, theta), DiscreteController.from_tf(plant.controller())
 
 
-def _pgnn_like(lin: ArxPGNN, n1: int, seed: int, out_scale: float, r, u_ex, ctrl) -> ArxPGNN:
+def _pgnn_like(lin: ArxPGNN, n1: int, seed: int, out_scale: float, r, u_ex, ctrl, nn_inputs="all") -> ArxPGNN:
     """A [B1] PGNN module with ARX physics = lin and a random tanh layer, exported."""
     m = PGNN(lin.n_a, lin.n_b, lin.n_k, physics=LinearFeatures(lin.n_phi), hidden=(n1,),
-             out_init_scale=1.0, seed=seed)
+             out_init_scale=1.0, seed=seed, nn_inputs=nn_inputs)
     m.set_physics_estimate(lin.theta_phy)
     y, u = simulate_closed_loop(lin, ctrl, r, u_ex)
     m.fit_normalisation(torch.as_tensor(lin_regressor(lin, y, u)))
@@ -113,12 +113,15 @@ def test_pgnn_export_matches_module(loop):
     np.testing.assert_array_equal(m.parameter_vector().numpy(), th)
 
 
-def test_jacobians_match_autograd_and_finite_differences(loop):
-    """∂Ŷ/∂θ and ∂Ŷ/∂U_ff of the recurrent loop: torch autograd (1e-9) and central FD (1e-6)."""
+@pytest.mark.parametrize("nn_inputs", ["all", "outputs"])
+def test_jacobians_match_autograd_and_finite_differences(loop, nn_inputs):
+    """∂Ŷ/∂θ and ∂Ŷ/∂U_ff of the recurrent loop: torch autograd (1e-9) and central FD (1e-6);
+    also with an NN that sees the output window only (its input map drops the u columns)."""
     lin, ctrl = loop
     N = 80
     r, u_ex = _signals(N, 2)
-    m = _pgnn_like(lin, 4, 2, 1e-6, r, u_ex, ctrl)
+    m = _pgnn_like(lin, 4, 2, 1e-6, r, u_ex, ctrl, nn_inputs)
+    assert m.W1.shape[1] == (lin.n_a if nn_inputs == "outputs" else lin.n_phi)
     # a sizeable NN part so that its sensitivities matter
     m = m.with_theta(np.r_[m.theta_phy, m.theta()[m.n_phi:] * 3.0])
     th = m.theta()

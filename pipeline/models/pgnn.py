@@ -381,6 +381,10 @@ class PGNN(nn.Module):
         is the physics model) while every hidden unit has a full-size gradient; a tiny scaled
         output layer instead leaves the hidden layer's Jacobian columns ~``out_init_scale``
         small, which slows LM markedly.
+    nn_inputs : {'all', 'outputs'}
+        ``'outputs'``: the NN sees the output window only (a position-dependent nonlinearity
+        such as cogging; it cannot add an input-to-output response of its own, e.g. one that
+        amplifies measurement noise through an inverse).
     seed : int
         Seed of the initial NN weights (torch generator).
     """
@@ -388,8 +392,11 @@ class PGNN(nn.Module):
     def __init__(self, n_a: int, n_b: int, n_k: int = 0, *, structure: str = "forward",
                  physics: PhysicsFeatures | None = None, hidden=(16,), activation: str = "tanh",
                  use_physics: bool = True, use_nn: bool = True, input_transform: str = "delta",
-                 out_init_scale: float = 1e-3, out_init: str = "scaled", seed: int = 0):
+                 out_init_scale: float = 1e-3, out_init: str = "scaled", nn_inputs: str = "all", seed: int = 0):
         super().__init__()
+        if nn_inputs not in ("all", "outputs"):
+            raise ValueError(f"nn_inputs must be 'all' or 'outputs', got {nn_inputs!r}")
+        self.nn_inputs = nn_inputs
         if structure not in _STRUCTURES:
             raise ValueError(f"structure must be one of {_STRUCTURES}, got {structure!r}")
         if n_a < 0 or n_b < 1 or n_k < 0:
@@ -456,7 +463,9 @@ class PGNN(nn.Module):
         else:
             n_y = self.n_a
         sel = list(range(self.n_phi))
-        if self.structure == "invertible":
+        if self.nn_inputs == "outputs":   # the NN is a function of the output window only
+            sel = sel[:n_y]
+        elif self.structure == "invertible":
             sel.remove(self.u_index)  # [B1] (26): the NN does not see u(t-n_k-1)
         return sel, n_y
 

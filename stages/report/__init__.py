@@ -28,6 +28,7 @@ from pathlib import Path
 import pandas as pd
 
 from pipeline import tracking
+from stages.report._rows import row
 from pipeline.runner import ROOT
 
 UPSTREAM = ()
@@ -108,6 +109,10 @@ def _build(cfg, figdir: Path, skip_empty: bool = False) -> tuple[pd.DataFrame, s
         mod = provs.get(str(exp)) or importlib.import_module("stages.report.generic")
         r, md = mod.section(str(exp), runs, figdir)
         rows += r
+        stops = _stop_reasons(str(exp), runs)
+        if stops:
+            rows += stops[0]
+            md += stops[1]
         if mixed:
             md += (f"\n\n> Note: run name(s) {', '.join(mixed)} have finished runs with different "
                    "configs in the store; this section uses the latest of each. Run `make reproduce` "
@@ -125,14 +130,38 @@ def _build(cfg, figdir: Path, skip_empty: bool = False) -> tuple[pd.DataFrame, s
     return table, "\n".join(head + _claim_table(table) + sections) + "\n", built
 
 
+def _stop_reasons(experiment: str, runs: pd.DataFrame):
+    """summary.csv rows (fits with a stop reason, fits stopped on a cap) and a REPORT.md paragraph
+    naming the runs whose training stopped on an iteration cap (train convergence, issue 11)."""
+    if "tags.stop_reason" not in runs or runs["tags.stop_reason"].isna().all():
+        return None
+    fits = runs[runs["tags.stop_reason"].notna()]
+    capped = sorted(fits.loc[fits["tags.stop_reason"].str.startswith("max_iter"), "tags.mlflow.runName"])
+    rows = [row(experiment, "training", "fits_with_stop_reason", len(fits)),
+            row(experiment, "training", "fits_stopped_on_cap", len(capped))]
+    counts = ", ".join(f"{k}: {v}" for k, v in fits["tags.stop_reason"].value_counts().sort_index().items())
+    md = f"\n\nTraining stop reasons of the {len(fits)} runs ({counts})."
+    if capped:
+        md += (f" **Flag: {len(capped)} stopped on an iteration cap, not on a tolerance** "
+               f"({', '.join(f'`{n}`' for n in capped)}): their numbers are of a fit that was still improving.")
+    return rows, md + "\n"
+
+
 def _claim_table(table: pd.DataFrame) -> list[str]:
-    """The header's claim table: a claim holds when every one of its rows holds."""
+    """The header's claim table: a claim holds when every one of its rows holds; beside it, how many
+    of the experiment's fits stopped on an iteration cap."""
     claims = table[table["claim"] != ""]
     if claims.empty:
         return []
-    out = ["| claim | experiment | holds |", "| --- | --- | --- |"]
+    fits = table[table["variant"] == "training"].set_index(["experiment", "metric"])["value"]
+    no_fits = {c for m in providers().values() for c in getattr(m, "CLAIMS_WITHOUT_FITS", ())}
+    out = ["| claim | experiment | holds | its experiment's fits stopped on a cap |", "| --- | --- | --- | --- |"]
     for (c, e), g in claims.groupby(["claim", "experiment"], sort=False):
-        out.append(f"| {c} | {e} | {'yes' if (g['claim_holds'] == 'true').all() else 'no'} |")
+        cap = (f"{fits[(e, 'fits_stopped_on_cap')]:.0f} of {fits[(e, 'fits_with_stop_reason')]:.0f}"
+               if (e, "fits_stopped_on_cap") in fits.index and c not in no_fits else "")
+        if cap and not cap.startswith("0 "):
+            cap = f"**{cap}**"
+        out.append(f"| {c} | {e} | {'yes' if (g['claim_holds'] == 'true').all() else 'no'} | {cap} |")
     return out + [""]
 
 

@@ -79,7 +79,7 @@ def build_model(cfg, system) -> PGNN:
                 hidden=hidden, activation="tanh", use_nn=bool(hidden) and bool(m.get("use_nn", True)),
                 input_transform=str(m.get("input_transform", "raw")),
                 out_init_scale=float(m.get("out_init_scale", 1.0)), out_init=str(m.get("out_init", "mirrored")),
-                seed=int(cfg.seed))
+                nn_inputs=str(m.get("nn_inputs", "all")), seed=int(cfg.seed))
 
 
 def fit(ctx) -> dict:

@@ -14,11 +14,18 @@ help:  ## list the targets
 
 install: $(VENV)/.installed  ## create .venv: CPU torch first, then the project with [dev]
 
-$(VENV)/.installed: pyproject.toml
+# torch: the CPU build from PyTorch's CPU wheel index; where that index cannot be reached, the
+# default index (a machine with a local CPU wheel gets that one). Then the project, with the
+# versions CI tested (constraints.txt).
+TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
+
+$(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m pip install --quiet torch==2.13.0 --index-url $(TORCH_CPU_INDEX) --retries 1 --timeout 30 \
+	  || $(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet -c constraints.txt -e '.[dev]'
+	@$(PY) -c "import torch; print('installed torch', torch.__version__, '(CUDA build: large)' if torch.version.cuda else '(CPU build)')"
 	touch $@
 
 test: install  ## fast test suite (< 10 min on 2 cores)

@@ -162,7 +162,9 @@ class StageContext:
             os.rename(tmp, final)
         return value
 
-    def progress(self, iterable: Iterable, desc: str = "", total: int | None = None):
+    def progress(self, iterable: Iterable | None, desc: str = "", total: int | None = None):
+        """A tqdm bar over ``iterable`` (None: a manual bar, advanced with ``update``) on stderr when
+        it is a terminal or ``PIPELINE_PROGRESS`` is set (quiet in tests and logs)."""
         from tqdm.auto import tqdm
         return tqdm(iterable, desc=f"{self.name}: {desc}", total=total, leave=False,
                     disable=not sys.stderr.isatty() and not os.environ.get("PIPELINE_PROGRESS"))

@@ -472,21 +472,23 @@ def norm_optimal_ilc(run_trial: Callable[[np.ndarray], np.ndarray], model, N: in
                              "samples")
     inputs, rms_hist = [], []
     converged = False
-    bar = tqdm(range(n_trials), desc="ILC", disable=not progress, leave=False)
+    bar = tqdm(total=n_trials, desc="ILC trials", disable=not progress, leave=False)
     e = np.zeros(N)
-    for j in bar:
+    for j in range(n_trials):
         e = np.asarray(run_trial(f), dtype=np.float64)
         if e.shape != (N,) or not np.all(np.isfinite(e)):
             raise ValueError(f"run_trial must return a finite error of shape ({N},), got shape "
                              f"{e.shape} (trial {j})")
         inputs.append(f.copy())
         rms_hist.append(rms(e))
-        bar.set_postfix(rms=f"{rms_hist[-1]:.3e}")
+        bar.set_postfix(rms=f"{rms_hist[-1]:.3e}", refresh=False)
+        bar.update(1)             # the count advances with each trial (a manual bar: n is current)
         if rms_hist[-1] <= tol:
             converged = True
             break
         if j < n_trials - 1:
             f = f + gain * update.step(e, f)
+    bar.close()
     extras = {}
     if isinstance(update, MatrixFreeUpdate):
         extras["cg_iterations"] = list(update.cg_iterations)

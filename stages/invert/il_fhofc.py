@@ -58,9 +58,15 @@ def feedforward(ctx, name, r):
         clean.append(sim.y_clean)
         return sim.y
 
+    bar = ctx.progress(None, desc=f"IL-FHOFC trials on '{name}'", total=n_trials)   # a manual bar
+
+    def advance(i, e_rms):
+        bar.set_postfix(rms=f"{e_rms:.3e}", refresh=False)
+        bar.update(1)
     out = il_fhofc(model, ctrl, r, plant, n_trials=n_trials, alpha=float(inv.alpha), gamma=float(inv.gamma),
                    max_iter=int(inv.max_iter), ftol=float(inv.ftol), check_range=bool(inv.check_range),
-                   range_margin=float(inv.range_margin))
+                   range_margin=float(inv.range_margin), callback=advance)
+    bar.close()
     for i in range(n_trials):
         ctx.metric(f"{name}/trial_rms", out.e_rms[i], step=i)
         ctx.metric(f"{name}/trial_rms_clean", float(np.sqrt(np.mean((r - clean[i]) ** 2))), step=i)

@@ -24,6 +24,28 @@ def run(ctx) -> dict:
     return implementation("train", str(ctx.cfg.identify.kind)).fit(ctx)
 
 
+def lm_progress(ctx, desc: str = "LM restarts") -> dict:
+    """``progress`` and ``on_iteration`` for :func:`pipeline.identify.narx.best_of_restarts`: one bar
+    over the restarts whose postfix shows the running restart's LM step and cost."""
+    bar = {}
+
+    def progress(iterable):
+        items = list(iterable)
+        bar["bar"] = b = ctx.progress(None, desc=desc, total=len(items))   # manual: its count is current
+
+        def advance():
+            for x in items:
+                yield x
+                b.update(1)
+            b.close()
+        return advance()
+
+    def on_iteration(i, it, cost):
+        if "bar" in bar and it % 10 == 0:
+            bar["bar"].set_postfix(step=it, cost=f"{cost:.4e}")
+    return {"progress": progress, "on_iteration": on_iteration}
+
+
 def restart_memo(ctx):
     """``memo(i, compute)`` for :func:`pipeline.identify.narx.best_of_restarts`: restart i cached on
     the train key without ``identify.n_restarts`` (its seed is (seed, i) whatever the count)."""

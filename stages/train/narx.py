@@ -25,7 +25,7 @@ from pipeline.identify.narx import identify_pgnn
 from pipeline.models.pgnn import PGNN, physics_features_for
 from pipeline.runner import ConfigError
 from pipeline.systems.measured import Recording
-from stages.train import log_restarts, restart_memo
+from stages.train import lm_progress, log_restarts, restart_memo
 
 STRUCTURES = ("forward", "inverse", "invertible")
 
@@ -92,7 +92,7 @@ def fit(ctx) -> dict:
                          max_iter=int(ident.max_iter), ftol=float(ident.ftol),
                          gtol=float(ident.gtol), mu0=float(ident.mu0),
                          patience=int(ident.patience),
-                         progress=lambda it: ctx.progress(it, desc="LM restarts"),
+                         **lm_progress(ctx),
                          theta_star=ctx.inputs["baseline"]["theta"] if isinstance(system, Recording) else None,
                          memo=restart_memo(ctx))
     log_restarts(ctx, fit_.restarts)

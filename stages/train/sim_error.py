@@ -26,7 +26,7 @@ from omegaconf import OmegaConf
 from pipeline.identify.sim_error import DiscreteController, closed_loop_exogenous, identify_sim_error
 from pipeline.models.pgnn import PGNN, LinearFeatures
 from pipeline.runner import ConfigError
-from stages.train import log_restarts, restart_memo
+from stages.train import lm_progress, log_restarts, restart_memo
 from pipeline.systems.arx_bias import ARXPhysics
 from pipeline.systems.measured import Recording
 
@@ -105,7 +105,7 @@ def fit(ctx) -> dict:
                               val_fraction=float(ident.val_fraction), max_iter=int(ident.max_iter),
                               ftol=float(ident.ftol), gtol=float(ident.gtol), mu0=float(ident.mu0),
                               patience=int(ident.patience), linear_max_iter=int(ident.linear_max_iter),
-                              progress=lambda it: ctx.progress(it, desc="LM restarts"), memo=restart_memo(ctx))
+                              memo=restart_memo(ctx), **lm_progress(ctx))
     log_restarts(ctx, fit_.restarts)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)
@@ -208,8 +208,7 @@ def _fit_measured(ctx) -> dict:
     fit_ = identify_loop_sim_error(model, bool(system.physics.averaged_input), system.ctrl, sig, u, lam=lam,
                                    n_train=n_train, n_restarts=int(ident.n_restarts), seed=int(cfg.seed),
                                    max_iter=int(ident.max_iter), ftol=float(ident.ftol), gtol=float(ident.gtol),
-                                   mu0=float(ident.mu0), progress=lambda it: ctx.progress(it, desc="LM restarts"),
-                                   memo=restart_memo(ctx))
+                                   mu0=float(ident.mu0), memo=restart_memo(ctx), **lm_progress(ctx))
     log_restarts(ctx, fit_.restarts)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)

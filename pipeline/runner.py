@@ -27,6 +27,7 @@ import importlib
 import json
 import os
 import pickle
+import re
 import shutil
 import sys
 import time
@@ -46,6 +47,10 @@ ORDER = ("generate", "baseline", "train", "invert", "evaluate", "report")
 ROOT = tracking.ROOT
 #: config groups whose chosen option is a run tag (DESIGN, Tracking)
 TAG_GROUPS = ("system", "data", "model", "identify", "regularizer", "invert")
+
+
+#: an experiment name: it is also a folder of the artifact store, so no path separators or '..'
+SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 
 
 class ConfigError(ValueError):
@@ -235,6 +240,10 @@ def validate(cfg: DictConfig) -> tuple[list[str], Any, dict]:
         int(cfg.seed)
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"seed={cfg.seed!r} is not an integer; use e.g. seed=0") from exc
+    name = cfg.get("experiment_name")
+    if not isinstance(name, str) or not SAFE_NAME.fullmatch(name):
+        raise ConfigError(f"experiment_name={name!r} is not a name: use letters, digits, '.', '_' and '-' "
+                          "(it names the MLflow experiment and its artifact folder), e.g. experiment_name=my_study")
     system = make_system(cfg) if "system" in cfg and cfg.system is not None else None
     modules = {}
     needed, todo = set(), list(names)

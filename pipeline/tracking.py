@@ -52,7 +52,12 @@ def experiment_id(name: str) -> str:
     location = None
     uri = tracking_uri()
     if uri.startswith("sqlite:///"):  # artifacts beside the database, whatever the working directory
-        location = (Path(uri[len("sqlite:///"):]).parent / "artifacts" / name).as_uri()
+        root = (Path(uri[len("sqlite:///"):]).parent / "artifacts").resolve()
+        folder = (root / name).resolve()
+        if folder.parent != root:     # a name that is a path would write outside the store
+            raise ValueError(f"experiment name {name!r} would put artifacts outside {root}; "
+                             "use letters, digits, '.', '_' and '-'")
+        location = folder.as_uri()
     try:
         return c.create_experiment(name, artifact_location=location, tags=EXPERIMENT_KIND)
     except mlflow.exceptions.MlflowException:  # created meanwhile by another process

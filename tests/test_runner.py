@@ -124,6 +124,8 @@ def test_run_logs_params_tags_metrics_figures_config_dataset(store, cfg_of):
     ("invert.kind=teleport", "no 'invert' implementation for kind 'teleport'"),
     ("stages=[generate,fly]", "unknown stage"),
     ("system.m1=-1", "m1"),                                 # bad value caught by the plant
+    ("experiment_name=../../evil", "is not a name"),       # a path: would write outside the store
+    ("experiment_name=/some/abs/dir", "is not a name"),
 ])
 def test_bad_config_fails_before_work(store, cfg_of, override, message):
     from hydra.errors import HydraException
@@ -272,3 +274,10 @@ def test_restarts_cached_one_by_one_and_reused_bit_identically(store, cfg_of, tm
 
 def torch_equal(a, b) -> bool:
     return bool((a == b).all())
+
+
+def test_artifacts_never_leave_the_store(store):
+    """A name that is a path is refused by the tracking layer too (before any artifact is written)."""
+    with pytest.raises(ValueError, match="outside"):
+        tracking.experiment_id("../escape")
+    assert not (store.parent / "escape").exists() and not (store / "escape").exists()

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import functools
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -12,6 +13,11 @@ os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
 import mlflow  # noqa: E402
 
 from pipeline import tracking  # noqa: E402
+
+
+def safe_name(name: str) -> str:
+    """``name`` as one file name: characters other than letters, digits and ``._-[]=,`` become ``_``."""
+    return re.sub(r"[^A-Za-z0-9._\-\[\]=,]", "_", name).lstrip(".") or "_"
 
 
 def copy_figures(run_id: str, figdir: Path, prefix: str, only: tuple[str, ...] = ()) -> list[str]:
@@ -25,7 +31,7 @@ def copy_figures(run_id: str, figdir: Path, prefix: str, only: tuple[str, ...] =
                 continue
             local = mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=art.path,
                                                         dst_path=tmp)
-            name = f"{prefix}-{Path(art.path).name}"
+            name = safe_name(f"{prefix}-{Path(art.path).name}")   # a run name is not a path
             shutil.copyfile(local, figdir / name)
             out.append(f"figures/{name}")
     return out

@@ -23,6 +23,7 @@ of the 10 restarts another job trained loads them.
 from __future__ import annotations
 
 import hashlib
+import hmac
 import importlib
 import json
 import os
@@ -157,13 +158,14 @@ class StageContext:
         final = cache_dir(self.cfg) / f"{self.name}.parts" / key
         with _locked(final):
             if (final / "result.pkl").exists():
-                with open(final / "result.pkl", "rb") as f:
-                    return pickle.load(f)
+                try:
+                    return _read_signed(final)[0]
+                except UntrustedCache as exc:
+                    _set_aside(final, exc)
             value = compute()
             tmp = final.with_name(f".tmp-{key}-{os.getpid()}-{time.time_ns()}")
             tmp.mkdir(parents=True)
-            with open(tmp / "result.pkl", "wb") as f:
-                pickle.dump(value, f, protocol=pickle.HIGHEST_PROTOCOL)
+            _write_signed(tmp, value)
             os.rename(tmp, final)
         return value
 
@@ -261,11 +263,76 @@ def validate(cfg: DictConfig) -> tuple[list[str], Any, dict]:
     return names, system, modules
 
 
+class UntrustedCache(Exception):
+    """A cache entry not signed with this machine's cache key (written elsewhere, or altered)."""
+
+
+_KEY: bytes | None = None
+
+
+def cache_key_file() -> Path:
+    """The secret that signs this user's cache entries (``$PIPELINE_CACHE_KEY_FILE``, else
+    ``~/.config/pgnn-feedforward/cache.key``; created with mode 600 on first use)."""
+    return Path(os.environ.get("PIPELINE_CACHE_KEY_FILE")
+                or Path.home() / ".config" / "pgnn-feedforward" / "cache.key")
+
+
+def _signing_key() -> bytes:
+    global _KEY
+    path = cache_key_file()
+    if _KEY is None or os.environ.get("PIPELINE_CACHE_KEY_FILE"):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            with os.fdopen(fd, "wb") as f:
+                f.write(os.urandom(32))
+        except FileExistsError:
+            pass
+        _KEY = path.read_bytes()
+    return _KEY
+
+
+def _signature(*blobs: bytes) -> str:
+    mac = hmac.new(_signing_key(), digestmod=hashlib.sha256)
+    for b in blobs:
+        mac.update(hashlib.sha256(b).digest())
+    return mac.hexdigest()
+
+
+def _write_signed(entry: Path, result, record: dict | None = None) -> None:
+    """``result.pkl`` (+ ``record.json``) and ``signature``: HMAC-SHA256 of both with the cache key."""
+    payload = pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL)
+    (entry / "result.pkl").write_bytes(payload)
+    blobs = [payload]
+    if record is not None:
+        rec = json.dumps(record, indent=1).encode()
+        (entry / "record.json").write_bytes(rec)
+        blobs.append(rec)
+    (entry / "signature").write_text(_signature(*blobs))
+
+
+def _read_signed(entry: Path) -> tuple[Any, dict | None]:
+    """The entry's result (and record), unpickled only after its signature checked out."""
+    payload = (entry / "result.pkl").read_bytes()
+    blobs = [payload]
+    rec = entry / "record.json"
+    if rec.exists():
+        blobs.append(rec.read_bytes())
+    sig = entry / "signature"
+    if not sig.exists() or not hmac.compare_digest(sig.read_text().strip(), _signature(*blobs)):
+        raise UntrustedCache(f"{entry} is not signed with this machine's cache key ({cache_key_file()})")
+    return pickle.loads(payload), (json.loads(blobs[1]) if len(blobs) > 1 else None)
+
+
+def _set_aside(entry: Path, why: Exception) -> None:
+    """Move an untrusted entry out of the way (never loaded) so it is recomputed."""
+    aside = entry.with_name(f".untrusted-{entry.name}-{time.time_ns()}")
+    os.rename(entry, aside)
+    print(f"warning: {why}; not loaded (moved to {aside.name}), recomputing", file=sys.stderr, flush=True)
+
+
 def _load(stage_dir: Path) -> tuple[dict, dict]:
-    with open(stage_dir / "result.pkl", "rb") as f:
-        result = pickle.load(f)
-    record = json.loads((stage_dir / "record.json").read_text())
-    return result, record
+    return _read_signed(stage_dir)
 
 
 def _record(ctx: StageContext, seconds: float) -> dict:
@@ -274,9 +341,7 @@ def _record(ctx: StageContext, seconds: float) -> dict:
 
 
 def _store(tmp: Path, final: Path, result: dict, ctx: StageContext, seconds: float) -> None:
-    with open(tmp / "result.pkl", "wb") as f:
-        pickle.dump(result, f, protocol=pickle.HIGHEST_PROTOCOL)
-    (tmp / "record.json").write_text(json.dumps(_record(ctx, seconds), indent=1))
+    _write_signed(tmp, result, _record(ctx, seconds))
     try:
         os.rename(tmp, final)  # atomic: the directory appears complete or not at all
     except OSError:  # another process finished the same key first: keep theirs
@@ -332,13 +397,16 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, 
                           file=sys.stderr, flush=True)
                     lock.acquire()
             try:
+                hit = False
                 if cacheable and (final / "record.json").exists():
-                    results[name], record = _load(final)
-                    hit = True
-                else:
+                    try:
+                        results[name], record = _load(final)
+                        hit = True
+                    except UntrustedCache as exc:
+                        _set_aside(final, exc)
+                if not hit:
                     final, results[name], record = _compute(cfg, name, mod, key, keys, results, system,
                                                             store, cacheable)
-                    hit = False
             finally:
                 if lock is not None and lock.is_locked:
                     lock.release()

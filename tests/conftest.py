@@ -23,6 +23,7 @@ def store(tmp_path, monkeypatch):
     """Point the stage cache and the MLflow store at a temporary folder."""
     monkeypatch.setenv("PIPELINE_CACHE", str(tmp_path / "cache"))
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    monkeypatch.setenv("PIPELINE_CACHE_KEY_FILE", str(tmp_path / "cache.key"))
     return tmp_path
 
 

@@ -281,3 +281,38 @@ def test_artifacts_never_leave_the_store(store):
     with pytest.raises(ValueError, match="outside"):
         tracking.experiment_id("../escape")
     assert not (store.parent / "escape").exists() and not (store / "escape").exists()
+
+
+class _Payload:
+    """A pickle that runs code when loaded (what a hostile cache entry would hold)."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_cache_entry_from_elsewhere_is_never_unpickled(store, cfg_of, capsys):
+    """Issue 13: an entry not signed with this machine's cache key (a crafted pickle, or a signed
+    entry altered afterwards) is set aside unread and recomputed; its code never runs."""
+    import pickle
+    cfg = cfg_of(*SHORT_TWO_MASS, "stages=[generate]")
+    good = runner.run_job(cfg)["generate"]["dataset"].frame
+    entry = next(d for d in (store / "cache" / "generate").iterdir() if not d.name.startswith("."))
+    marker = store / "pwned"
+    (entry / "result.pkl").write_bytes(pickle.dumps(_Payload(marker)))      # signature no longer matches
+    again = runner.run_job(cfg)["generate"]["dataset"].frame
+    assert not marker.exists()
+    assert "not signed with this machine's cache key" in capsys.readouterr().err
+    assert again.equals(good)                                  # recomputed, bit-identical
+    # a cache copied from another machine (its own key) is not trusted either
+    other = store / "other.key"
+    other.write_bytes(b"x" * 32)
+    import os
+    os.environ["PIPELINE_CACHE_KEY_FILE"] = str(other)
+    try:
+        assert runner.run_job(cfg)["generate"]["dataset"].frame.equals(good)
+        assert "not signed" in capsys.readouterr().err
+    finally:
+        os.environ["PIPELINE_CACHE_KEY_FILE"] = str(store / "cache.key")

@@ -50,7 +50,7 @@ REPORT_UPDATE := $(if $(filter-out $(ALL_EXPERIMENTS),$(EXPERIMENTS))$(filter-ou
 
 reproduce: install  ## run every paper experiment, then write results/REPORT.md, summary.csv, figures
 	$(PY) -m pipeline.reproduce $(if $(JOBS),--jobs $(JOBS)) $(EXPERIMENTS)
-	$(PY) -m pipeline stages=[report] experiment_name=report report.update=$(REPORT_UPDATE)
+	$(PY) -m pipeline stages=[report] experiment_name=report run_name=report report.update=$(REPORT_UPDATE)
 
 ui: install  ## MLflow UI on http://127.0.0.1:5000 over the same store as the runs
 	$(VENV)/bin/mlflow server --backend-store-uri "$${MLFLOW_TRACKING_URI:-$(MLFLOW_DB)}" \

@@ -169,7 +169,8 @@ try:  # the Hydra callback lives here so that tracking stays in one module
             import atexit
             c = client()
             exp_id = experiment_id(str(config.experiment_name))
-            run = c.create_run(exp_id, run_name=f"{config.experiment_name}-sweep",
+            choice = (config.get("hydra", {}).get("runtime", {}).get("choices", {}) or {}).get("experiment")
+            run = c.create_run(exp_id, run_name=f"{choice or config.experiment_name}-sweep",   # one name per sweep file
                                tags={"git_sha": git_sha(), "experiment": str(config.experiment_name),
                                      "sweep": "parent"})
             self.parent_run_id = run.info.run_id

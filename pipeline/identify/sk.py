@@ -21,7 +21,15 @@ error, B^0 = 1), φ as constructed (Glorot).  After every step roots of B outsid
 are reflected inside (SPEC §5, reported in :attr:`SKResult.reflected`), the true J_OE is
 logged, and the best iterate by J_OE is returned.
 
-:func:`output_error_lm` minimises (7) directly by LM from a given model (SPEC §8 K3 check).
+Stopping (SPEC §8 K3, "stop on convergence, not on a cap"): the outer loop stops with reason
+``'tol'`` when the relative parameter change of a step is below ``tol`` *and* that step's inner
+LM stopped on its own tolerance (ftol/gtol/mu_max, not its iteration cap); ``max_iter`` is only
+a safety cap (reason ``'max_iter'``, :class:`SKNotConvergedWarning`).  Every iterate records
+its inner LM's stop message (:attr:`SKIterate.lm_message`, :attr:`SKIterate.lm_converged`).
+
+:func:`output_error_lm` minimises (7) directly by LM from a given model (SPEC §8 K3 check); with
+``lam > 0`` and a frozen ``weighting`` it minimises J_OE + λR ([K] (30)) with R frozen at that
+weighting (the check for the regularised PGNN, which does not minimise (7)).
 """
 from __future__ import annotations
 
@@ -40,10 +48,16 @@ from pipeline.identify.orthogonal import ModelSubspace, model_subspace, orthogon
 from pipeline.models.rational import RationalFeedforward, Segments, filter_segments
 
 __all__ = ["REGULARIZERS", "SKIterate", "SKResult", "SKNotConvergedWarning", "sk_iterations", "sk_restarts",
-           "oe_cost", "output_error_lm", "output_error_problem", "OEResult", "prepare_data"]
+           "oe_cost", "output_error_lm", "output_error_problem", "OEResult", "prepare_data",
+           "frozen_regularizer"]
 
 #: relative size below which a projected Jacobian column is rounding noise (see _varpro_step)
 _FLAT_RTOL = 1e-11
+#: squared projected/full column norm below which the normal equations' G_ii − ‖C_i‖² (which
+#: loses ~N·eps of G_ii to cancellation) is recomputed from the explicit projected column
+_CANCEL_RTOL2 = 1e-8
+#: LM stop messages that mean "converged" (pipeline.identify.lm; 'max_iter' and 'callback' do not)
+LM_CONVERGED = ("ftol", "gtol", "zero_cost", "mu_max", "closed form")
 #: regularisers of the SK step ([K] Alg. 5 = 'none', Alg. 19 = 'orthogonal')
 REGULARIZERS = ("none", "orthogonal")
 
@@ -70,7 +84,8 @@ class SKIterate:
     J_weighted : float
         Weighted cost J^j ([K] (10)) at the step's optimum, plus λR for 'orthogonal' [N²].
     regularizer : float
-        R^{j-1}(φ^j) ([K] (29)) [N²] (0 without approximator).
+        R^{j-1}(φ^j) ([K] (29)) [N²] (0 without approximator; at j = 0 with W = 1, only
+        computed with λ > 0).
     change : float
         Relative parameter change from the previous iterate (column-scaled θ, and φ).
     n_reflected : int
@@ -82,6 +97,13 @@ class SKIterate:
     lm_iter : int
         LM iterations of the step (0 for closed form).
     lm_message : str
+        Why the inner LM stopped ('ftol', 'gtol', 'mu_max', 'max_iter', …; 'closed form' for the
+        rational model's least-squares step, 'initialisation' for j = 0).
+    lm_converged : bool
+        The inner solve stopped on its tolerance (not on its iteration cap).
+    weighting : np.ndarray
+        q^{-1} coefficients of B^{j-1}, the denominator of the weighting W^{j-1} = 1/B^{j-1} of
+        this step (and of the regulariser R^{j-1}); [1.0] for j = 0.
     seconds : float
         Wall time of the step [s].
     """
@@ -99,6 +121,8 @@ class SKIterate:
     n_truncated: int = 0
     lm_iter: int = 0
     lm_message: str = ""
+    lm_converged: bool = True
+    weighting: np.ndarray = field(default_factory=lambda: np.ones(1))
     seconds: float = 0.0
 
 
@@ -109,17 +133,22 @@ class SKResult:
     Attributes
     ----------
     model : RationalFeedforward
-        The model at the best iterate (lowest J_OE); the input model is not modified.
+        The model at the best iterate (lowest J_OE, or J_OE + λR^{j-1}(φ^j) with the
+        regulariser: :attr:`cost`); the input model is not modified.
     best : int
         Index j of that iterate.
     iterates : list of SKIterate
         Every iterate, j = 0 (initialisation) … last.
     converged : bool
-        True when the parameter change fell below ``tol``.
+        True when the parameter change fell below ``tol`` after an inner solve that converged.
     message : str
-        'tol' or 'max_iter'.
+        Outer stop reason: 'tol' or 'max_iter'.
     reflected : list of int
         Iterations after which roots of B were reflected (SPEC §5: tag the run).
+    tol : float
+        The outer tolerance used.
+    lam : float
+        λ of the regulariser (0 without).
     """
 
     model: RationalFeedforward
@@ -128,6 +157,42 @@ class SKResult:
     converged: bool
     message: str
     reflected: list[int] = field(default_factory=list)
+    tol: float = math.nan
+    lam: float = 0.0
+
+    @property
+    def cost(self) -> list[float]:
+        """The criterion the iterates are ranked by: J_OE + λR^{j-1}(φ^j), j = 0 … last."""
+        return [it.J_OE + self.lam * it.regularizer for it in self.iterates]
+
+    @property
+    def stop_reason(self) -> str:
+        """Outer stop reason ('tol' or 'max_iter')."""
+        return self.message
+
+    @property
+    def inner_converged(self) -> bool:
+        """Every inner solve (j ≥ 1) stopped on its tolerance, none on its cap."""
+        return all(it.lm_converged for it in self.iterates[1:])
+
+    @property
+    def n_inner_capped(self) -> int:
+        """Number of inner solves that stopped on their iteration cap."""
+        return sum(not it.lm_converged for it in self.iterates[1:])
+
+    @property
+    def n_lm_iter(self) -> int:
+        """Inner LM iterations summed over the SK steps."""
+        return sum(it.lm_iter for it in self.iterates[1:])
+
+    def summary(self) -> str:
+        """One line: outer reason, iterations, inner stop messages (counts), last change."""
+        msgs: dict[str, int] = {}
+        for it in self.iterates[1:]:
+            msgs[it.lm_message] = msgs.get(it.lm_message, 0) + 1
+        inner = ", ".join(f"{k}×{v}" for k, v in msgs.items()) or "none"
+        return (f"{self.message} after {len(self.iterates) - 1} SK iterations (last change "
+                f"{self.iterates[-1].change:.2e}, tol {self.tol:.1e}); inner: {inner}")
 
     @property
     def J_OE(self) -> list[float]:
@@ -201,10 +266,13 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
             res = np.concatenate([res, sq * sub.coordinates(Wg)])
         return torch.from_numpy(res)
 
-    def jacobian(phi: torch.Tensor) -> torch.Tensor:
+    def filtered(phi: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         _, Jg = model.g_and_jacobian(inp, phi)
         WJ = filter_segments(Jg.numpy(), [1.0], den, seg)     # W ∂g/∂φ, column by column
-        C = U1.T @ WJ                                         # U1ᵀ W ∂g/∂φ  [p, n_φ]
+        return WJ, U1.T @ WJ                                  # and U1ᵀ W ∂g/∂φ  [p, n_φ]
+
+    def jacobian(phi: torch.Tensor) -> torch.Tensor:
+        WJ, C = filtered(phi)
         J = U1 @ C - WJ                                       # −(I − U1U1ᵀ) W ∂g/∂φ
         # a φ_i that moves g only inside im(W M) is flat in the reduced cost (θ absorbs it,
         # [K] Corollary 14); its projected column is rounding noise, which LM's scale-
@@ -216,6 +284,39 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
             J = np.vstack([J, sq * sub.coordinates(C, projected=True)])
         return torch.from_numpy(J)
 
+    def normal_equations(phi: torch.Tensor, r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(JᵀJ, Jᵀr) of :func:`jacobian` without forming J (the LM uses this; ~2× cheaper):
+        with J = U1 C − WJ and U1ᵀU1 = I, JᵀJ = WJᵀWJ − CᵀC and Jᵀr = Cᵀ U1ᵀr − WJᵀr.  The
+        subtraction loses ~N·eps of ‖WJ_i‖² to cancellation, so columns whose projected norm is
+        below √_CANCEL_RTOL2 of the full one are recomputed from the explicit projected column
+        (and tested for flatness exactly as :func:`jacobian` does)."""
+        WJ, C = filtered(phi)
+        WJt = WJ.T                                            # [n_φ, N], C-contiguous
+        rn = r.numpy()
+        n = WJ.shape[0]
+        r1 = rn[:n]
+        G = WJt @ WJ                                          # syrk
+        A = G - C.T @ C
+        g = C.T @ (U1.T @ r1) - WJt @ r1
+        full2 = np.diag(G).copy()
+        sus = np.flatnonzero(np.diag(A) <= _CANCEL_RTOL2 * full2)
+        if sus.size:
+            J_s = U1 @ C[:, sus] - WJ[:, sus]                 # explicit projected columns
+            A_s = C.T @ (U1.T @ J_s) - WJt @ J_s              # Jᵀ J_s, no cancellation
+            A[:, sus] = A_s
+            A[sus, :] = A_s.T
+            flat = sus[np.linalg.norm(J_s, axis=0) <= _FLAT_RTOL * np.sqrt(full2[sus])]
+            if flat.size:
+                A[:, flat] = 0.0
+                A[flat, :] = 0.0
+                g[flat] = 0.0
+        if lam > 0:
+            K = sq * sub.coordinates(C, projected=True)       # [p, n_φ] regulariser rows
+            A = A + K.T @ K
+            g = g + K.T @ rn[n:]
+        return torch.from_numpy(A), torch.from_numpy(g)
+
+    jacobian.normal_equations = normal_equations              # type: ignore[attr-defined]
     res = levenberg_marquardt(residual, model.phi, jacobian=jacobian, **lm_kw)
     return res.theta, res
 
@@ -235,9 +336,11 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
     r, f_hat : array or list of arrays
         Training references [m] and their optimal inputs f̂ [N] (one array per reference).
     max_iter : int
-        Maximum number of SK iterations (the run stops there with a warning).
+        Safety cap on the number of SK iterations (the run stops there with a warning and
+        reason 'max_iter').
     tol : float
-        Stop when the relative parameter change (column-scaled θ and φ) is below ``tol``.
+        Stop (reason 'tol') when the relative parameter change (column-scaled θ, and φ) of a
+        step is below ``tol`` and that step's inner LM converged (stopped on ftol/gtol/mu_max).
     regularizer : {'orthogonal', 'none'}
         Orthogonal projection-based regulariser [K] (29) or none ([K] Alg. 5).  Ignored for
         the rational model (no approximator).
@@ -248,7 +351,8 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
     init : {'equation_error', 'model'}
         θ^0 from the equation-error linear fit (B^0 = 1, [K]) or the model's current θ.
     lm_max_iter, lm_ftol, lm_gtol : int, float, float
-        LM settings of each PGNN step (:func:`pipeline.identify.lm.levenberg_marquardt`).
+        LM settings of each PGNN step (:func:`pipeline.identify.lm.levenberg_marquardt`): the
+        inner solve converges on ``lm_ftol``/``lm_gtol``; ``lm_max_iter`` is its safety cap.
     rank_rtol : float, optional
         Rank tolerance of [K] Assumption 10 (see :func:`model_subspace`).
     weighted_rank : {'truncate', 'raise'}
@@ -290,8 +394,13 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
         model.set_theta(sub0.solve(f))
     n_ref = model.reflect_unstable()
     snap = _snapshot(model)
+    reg0 = 0.0
+    if lam_eff > 0:                                # R^0 with the weighting of j = 0 (B^0 = 1)
+        with torch.no_grad():
+            reg0 = float(orthogonal_regularizer(sub0, model.exogenous_extra(data["inputs"]).numpy()))
     iterates = [SKIterate(j=0, theta=snap[0], phi=snap[1], g_gain=snap[2], J_OE=oe_cost(model, data),
-                          n_reflected=n_ref, seconds=time.perf_counter() - t0)]
+                          regularizer=reg0, n_reflected=n_ref, lm_message="initialisation",
+                          seconds=time.perf_counter() - t0)]
     reflected = [0] if n_ref else []
     if callback is not None:
         callback(iterates[0])
@@ -313,7 +422,7 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
             Wg = filter_segments(g, [1.0], den, seg)
             theta = sub.solve(Wf - Wg)                             # θ(φ) = (WM)^+ W (f̂ − g)
             reg = float(orthogonal_regularizer(sub, Wg))
-            lm_iter, lm_msg = lmres.n_iter, lmres.message
+            lm_iter, lm_msg = lmres.n_iter, lmres.message       # 'ftol'/'gtol'/… or 'max_iter'
         else:
             Wg = 0.0
             theta = sub.solve(Wf)                                  # closed-form LS
@@ -333,26 +442,33 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
         it = SKIterate(j=j, theta=snap[0], phi=snap[1], g_gain=snap[2], J_OE=oe_cost(model, data),
                        J_weighted=J_w, regularizer=reg, change=change, n_reflected=n_ref,
                        condition=sub.condition, n_truncated=sub.n_truncated, lm_iter=lm_iter,
-                       lm_message=lm_msg,
+                       lm_message=lm_msg, lm_converged=lm_msg in LM_CONVERGED, weighting=den.copy(),
                        seconds=time.perf_counter() - t0)
         iterates.append(it)
         if callback is not None:
             callback(it)
-        if change < tol:
+        # converged: the parameters stopped moving *and* this step's inner solve converged (a
+        # small change from an LM stopped on its cap is not a fixed point of the SK map)
+        if change < tol and it.lm_converged:
             converged, message = True, "tol"
             break
 
     if not converged:
+        n_cap = sum(not it.lm_converged for it in iterates[1:])
         warnings.warn(f"SK iterations did not converge in {max_iter} iterations (last relative "
-                      f"parameter change {iterates[-1].change:.2e} > tol {tol:.1e}); returning the "
-                      "best iterate by J_OE. Raise max_iter or tol if this is expected.",
+                      f"parameter change {iterates[-1].change:.2e}, tol {tol:.1e}; {n_cap} inner "
+                      "solves stopped on their LM cap); returning the best iterate by J_OE (+ λR). Raise "
+                      "max_iter / lm_max_iter or loosen tol if this is expected.",
                       SKNotConvergedWarning, stacklevel=2)
-    J = np.array([it.J_OE for it in iterates])
+    # the best iterate by the criterion SK minimises: J_OE ([K] (7)), plus λR^{j-1}(φ^j) with
+    # the regulariser ([K] (30)) — an early iterate with a lower J_OE but g_φ inside the model
+    # subspace is not the regularised solution
+    J = np.array([it.J_OE + lam_eff * it.regularizer for it in iterates])
     best = int(np.argmin(J)) if np.any(np.isfinite(J)) else len(iterates) - 1
     b = iterates[best]
     _restore(model, b.theta, b.phi, b.g_gain)
     return SKResult(model=model, best=best, iterates=iterates, converged=converged,
-                    message=message, reflected=reflected)
+                    message=message, reflected=reflected, tol=float(tol), lam=lam_eff)
 
 
 def _sk_restart(job: tuple) -> tuple[SKResult, float, bool]:
@@ -377,8 +493,7 @@ def sk_restarts(models, r, f_hat, *, n_jobs: int = 1, **kw) -> list[tuple[SKResu
     r, f_hat
         Training data, as :func:`sk_iterations`.
     n_jobs : int
-        Worker processes (``spawn`` context: each imports only this module's dependencies);
-        1 runs the restarts in this process.
+        Worker processes (joblib, loky backend); 1 runs the restarts in this process.
     **kw
         Passed to :func:`sk_iterations`.
 
@@ -391,40 +506,92 @@ def sk_restarts(models, r, f_hat, *, n_jobs: int = 1, **kw) -> list[tuple[SKResu
     jobs = [(m, r, f_hat, kw) for m in models]
     if int(n_jobs) <= 1 or len(jobs) == 1:
         return [_sk_restart(j) for j in jobs]
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-    ctx = multiprocessing.get_context("spawn")    # never fork a process that holds torch threads
-    with ProcessPoolExecutor(max_workers=min(int(n_jobs), len(jobs)), mp_context=ctx) as pool:
-        return list(pool.map(_sk_restart, jobs))
+    # joblib's loky processes (never fork a process that holds torch threads); inside a worker of
+    # Hydra's joblib launcher joblib itself decides how far to nest
+    from joblib import Parallel, delayed
+    return Parallel(n_jobs=min(int(n_jobs), len(jobs)), backend="loky")(delayed(_sk_restart)(j) for j in jobs)
 
 
 # ----------------------------------------------------------------------------- direct OE
 @dataclass
 class OEResult:
-    """Outcome of :func:`output_error_lm`: the refined model and J_OE before/after [N²]."""
+    """Outcome of :func:`output_error_lm`.
+
+    ``J_before``/``J_after`` are the minimised cost: J_OE ([K] (7)) for ``lam = 0``, else
+    J_OE + λR with R frozen at the given weighting ([K] (30)); ``J_OE_*`` and ``R_*`` are its
+    parts [N²].
+    """
 
     model: RationalFeedforward
     J_before: float
     J_after: float
     lm: LMResult
+    lam: float = 0.0
+    J_OE_before: float = math.nan
+    J_OE_after: float = math.nan
+    R_before: float = 0.0
+    R_after: float = 0.0
 
     @property
     def improvement(self) -> float:
-        """Relative decrease of J_OE, (J_before − J_after)/J_before."""
+        """Relative decrease of the minimised cost, (J_before − J_after)/J_before."""
         return (self.J_before - self.J_after) / self.J_before if self.J_before > 0 else 0.0
 
+    @property
+    def oe_improvement(self) -> float:
+        """Relative decrease of J_OE alone."""
+        b, a = self.J_OE_before, self.J_OE_after
+        return (b - a) / b if b > 0 else 0.0
 
-def output_error_problem(model: RationalFeedforward, data: dict):
-    """Residual and exact Jacobian of J_OE ([K] (7)) over x = col(a, b, φ).
+    @property
+    def stop_reason(self) -> str:
+        """The LM's stop message ('ftol', 'gtol', 'mu_max', 'max_iter', …)."""
+        return self.lm.message
+
+    @property
+    def converged(self) -> bool:
+        return self.lm.message in LM_CONVERGED
+
+
+def _frozen_subspace(model, data: dict, weighting, *, column_scale: bool = True,
+                     rank_rtol: float | None = None) -> ModelSubspace:
+    """SVD of W M for W = 1/B_w with B_w's q^{-1} coefficients ``weighting`` (frozen)."""
+    WM = filter_segments(data["M"], [1.0], np.asarray(weighting, dtype=np.float64), data["segments"])
+    return model_subspace(WM, column_scale=column_scale, rtol=rank_rtol, names=data["names"],
+                          rank_deficient="truncate")
+
+
+def frozen_regularizer(model, r, f_hat, weighting, *, column_scale: bool = True,
+                       rank_rtol: float | None = None) -> float:
+    """R(φ) = ‖(ΣVᵀ)^{-1} U1ᵀ W g_φ(r)‖² ([K] (29)) of ``model``'s approximator with the
+    weighting W = 1/B_w frozen (``weighting``: q^{-1} coefficients of B_w, e.g.
+    :attr:`SKIterate.weighting`); 0 without approximator [N²]."""
+    if not _has_approximator(model):
+        return 0.0
+    data = prepare_data(model, r, f_hat)
+    sub = _frozen_subspace(model, data, weighting, column_scale=column_scale, rank_rtol=rank_rtol)
+    with torch.no_grad():
+        g = model.exogenous_extra(data["inputs"]).numpy()
+    Wg = filter_segments(g, [1.0], np.asarray(weighting, dtype=np.float64), data["segments"])
+    return float(orthogonal_regularizer(sub, Wg))
+
+
+def output_error_problem(model: RationalFeedforward, data: dict, *, lam: float = 0.0,
+                         sub: ModelSubspace | None = None, weighting=None):
+    """Residual and exact Jacobian of J_OE ([K] (7)) over x = col(a, b, φ), optionally plus
+    λR with R frozen ([K] (30)).
 
     With f = (R a + g)/B and e = f̂ − f: ∂e/∂a = −R/B, ∂e/∂b_i = ψ_i(f)/B,
     ∂e/∂φ = −(∂g/∂φ)/B, all computed by filtering.  The residual is +inf when B is
-    unstable (LM then rejects the step).
+    unstable (LM then rejects the step).  With ``lam > 0`` (approximator models only) the
+    residual has p more rows √λ (ΣVᵀ)^{-1} U1ᵀ W_w g_φ(r) (``sub``: SVD of W_w M, ``weighting``:
+    the q^{-1} coefficients of B_w; both frozen, independent of x), so ‖residual‖² =
+    J_OE + λR.
 
     Returns
     -------
     residual, jacobian : callable
-        ``residual(x) -> e`` [N], ``jacobian(x) -> ∂e/∂x`` [N, n_x] (torch float64).
+        ``residual(x) -> e`` [N (+p)], ``jacobian(x) -> ∂e/∂x`` [N (+p), n_x] (torch float64).
     x0 : torch.Tensor
         The model's current x.
     """
@@ -432,29 +599,46 @@ def output_error_problem(model: RationalFeedforward, data: dict):
     R = inp["R"]
     has_g = _has_approximator(model)
     n_th = model.n_a + model.n_b
+    reg = lam > 0 and has_g
+    if reg and (sub is None or weighting is None):
+        raise ValueError("lam > 0 needs the frozen subspace `sub` and `weighting` of the regulariser")
+    sq = math.sqrt(lam) if reg else 0.0
+    w_den = np.asarray(weighting, dtype=np.float64) if reg else None
 
     def split(x: torch.Tensor):
         xn = x.detach().numpy()
         trial = RationalFeedforward(model.n_a, model.n_b, model.basis, model.Ts, b=xn[model.n_a:n_th])
         u = R @ xn[:model.n_a]
+        g = None
         if has_g:
-            u = u + model.g_value(inp, x[n_th:]).numpy()
-        return trial, u
+            g = model.g_value(inp, x[n_th:]).numpy()
+            u = u + g
+        return trial, u, g
 
     def residual(x: torch.Tensor) -> torch.Tensor:
-        trial, u = split(x)
+        trial, u, g = split(x)
+        n_extra = sub.p if reg else 0
         if not trial.is_stable():
-            return torch.full((seg.n,), math.inf, dtype=torch.float64)
-        return torch.from_numpy(f_hat_c - filter_segments(u, [1.0], trial.denominator(), seg))
+            return torch.full((seg.n + n_extra,), math.inf, dtype=torch.float64)
+        e = f_hat_c - filter_segments(u, [1.0], trial.denominator(), seg)
+        if reg:
+            e = np.concatenate([e, sq * sub.coordinates(filter_segments(g, [1.0], w_den, seg))])
+        return torch.from_numpy(e)
 
     def jacobian(x: torch.Tensor) -> torch.Tensor:
-        trial, u = split(x)
+        trial, u, _ = split(x)
         den = trial.denominator()
         fsim = filter_segments(u, [1.0], den, seg)
         cols = [-R, trial.ar_regressors(fsim, seg)]
+        Jg = None
         if has_g:
-            cols.append(-model.g_and_jacobian(inp, x[n_th:])[1].numpy())
-        return torch.from_numpy(np.ascontiguousarray(filter_segments(np.hstack(cols), [1.0], den, seg)))
+            Jg = model.g_and_jacobian(inp, x[n_th:])[1].numpy()
+            cols.append(-Jg)
+        J = np.ascontiguousarray(filter_segments(np.hstack(cols), [1.0], den, seg))
+        if reg:
+            Jr = sq * sub.coordinates(filter_segments(Jg, [1.0], w_den, seg))   # [p, n_φ]
+            J = np.vstack([J, np.hstack([np.zeros((sub.p, n_th)), Jr])])
+        return torch.from_numpy(J)
 
     x0 = [torch.from_numpy(model.theta)]
     if has_g:
@@ -463,21 +647,46 @@ def output_error_problem(model: RationalFeedforward, data: dict):
 
 
 def output_error_lm(model: RationalFeedforward, r, f_hat, *, max_iter: int = 50,
-                    ftol: float = 1e-12, gtol: float = 1e-12) -> OEResult:
+                    ftol: float = 1e-12, gtol: float = 1e-12, lam: float = 0.0, weighting=None,
+                    column_scale: bool = True, rank_rtol: float | None = None) -> OEResult:
     """Minimise J_OE ([K] (7)) directly by LM over (a, b, φ), starting from ``model``.
 
     Exact Jacobian by filtering (:func:`output_error_problem`); steps that make B unstable
     are rejected, so the result stays stable.  Used to check that SK reached the
     output-error optimum (SPEC §8 K3).  The input model is not modified.
+
+    With ``lam > 0`` (a model with approximator) the cost is J_OE + λR, R the orthogonal
+    regulariser ([K] (29)) frozen at the weighting W = 1/B_w, ``weighting`` the q^{-1}
+    coefficients of B_w (for an SK result: ``iterates[-1].weighting``, the weighting of the last
+    SK step): the criterion the regularised SK minimises ([K] (30)), SPEC §8 K3.
+
+    ``max_iter`` is a safety cap; the LM stops on ``ftol``/``gtol`` (see
+    :attr:`OEResult.stop_reason`).
     """
     model = copy.deepcopy(model)
     model.check_stable()
     data = prepare_data(model, r, f_hat)
-    residual, jacobian, x0 = output_error_problem(model, data)
-    J_before = oe_cost(model, data)
+    reg = lam > 0 and _has_approximator(model)
+    sub = None
+    if reg:
+        if weighting is None:
+            raise ValueError("lam > 0 needs the frozen weighting (q^{-1} coefficients of B_w)")
+        sub = _frozen_subspace(model, data, weighting, column_scale=column_scale, rank_rtol=rank_rtol)
+    residual, jacobian, x0 = output_error_problem(model, data, lam=lam if reg else 0.0, sub=sub,
+                                                  weighting=weighting)
+    n = data["segments"].n
+
+    def parts(x: torch.Tensor) -> tuple[float, float]:
+        e = residual(x).numpy()
+        return float(e[:n] @ e[:n]), (float(e[n:] @ e[n:]) / lam if reg else 0.0)
+
+    J0, R0 = parts(x0)
     res = levenberg_marquardt(residual, x0, jacobian=jacobian, max_iter=max_iter, ftol=ftol, gtol=gtol)
+    J1, R1 = parts(res.theta)
     n_th = model.n_a + model.n_b
     model.set_theta(res.theta[:n_th].numpy())
     if _has_approximator(model):
         model.set_phi(res.theta[n_th:])
-    return OEResult(model=model, J_before=J_before, J_after=oe_cost(model, data), lm=res)
+    lam_eff = lam if reg else 0.0
+    return OEResult(model=model, J_before=J0 + lam_eff * R0, J_after=J1 + lam_eff * R1, lm=res,
+                    lam=lam_eff, J_OE_before=J0, J_OE_after=J1, R_before=R0, R_after=R1)

@@ -3,34 +3,43 @@
 Model (``model.kind``): ``rational`` ([K] VI-B parametrisation 1) or ``pgnn_shared_ar`` ([K] (6),
 parametrisation 2).  Data: every segment's reference r and optimal input f̂ (``f_opt``, else u).
 The PGNN is trained from ``identify.n_restarts`` Glorot initialisations (in ``identify.n_jobs``
-processes); the restart with the lowest J_OE is the model.  Regulariser: ``regularizer.name``
+processes); the restart with the lowest training cost (J_OE, plus λR with the regulariser,
+[K] (30)) is the model.  Regulariser: ``regularizer.name``
 orthogonal ([K] (29), λ = ``regularizer.lam``) or none.
 
-Logged (``train/…``): J_OE per SK iteration of the kept restart (``sk_J_OE``, step j) and of
-every restart (``sk_J_OE/restart<i>``); J_OE of the last iterate, the minimum over iterates and
-the reported model (SPEC §8 K3); the direct LM on J_OE from the reported model
-(``oe_check/J_before|J_after|improvement``) and, for comparison, one more SK iteration with the
-same LM budget (``oe_check/sk_continued_J``); roots of B reflected (tag ``sk_reflected``);
+Logged (``train/…``): J_OE and the relative parameter change per SK iteration of the kept
+restart (``sk_J_OE``, ``sk_param_change``, step j) and of every restart (``…/restart<i>``, with
+the inner LM's iterations and whether it converged, ``sk_lm_iter|sk_lm_converged/restart<i>``);
+why every restart stopped (tags ``stop_reason.restart<i>``: 'tol' or 'max_iter', and
+``stop_detail.restart<i>``: iterations, last change, inner LM stop messages; tag ``stop_reason``
+and metric ``stopped_on_cap`` of the kept restart; metrics ``sk_stopped_on_tol``,
+``sk_inner_capped`` per restart); J_OE of the last iterate, the minimum over iterates and the
+reported model (SPEC §8 K3); the direct LM from the reported model (``oe_check/…``): on J_OE
+([K] (7)) for the rational TF and the unregularised PGNN, on J_OE + λR with R frozen at the
+last SK step's weighting ([K] (30)) for the regularised PGNN, with at least the inner solves'
+budget and tolerances (``oe_check/cost_before|cost_after|improvement``, its parts
+``J_OE_*``, ``R_*``, tag ``stop_reason.oe_check``); roots of B reflected (tag ``sk_reflected``);
 interpretability (SPEC §7): θ, θ's relative error against the plant's coefficients where the
 model class holds them, ``share_C_in_model`` (‖U1ᵀ W g‖/‖W g‖), ``ratio_C_M``, ``corr_M_C``,
 and the spread of f_M over the restarts per training reference (``spread_f_M/<ref>``, K2).
-Figures: J_OE per SK iteration; f̂, f, f_M, f_C (as [K] Fig. 6) with every restart's f_M.
+Figures: J_OE and the relative parameter change per SK iteration (every restart; open markers:
+inner LM stopped on its cap); f̂, f, f_M, f_C (as [K] Fig. 6) with every restart's f_M.
 """
 from __future__ import annotations
 
 import time
-import warnings
 
 import numpy as np
 import torch
 from omegaconf import OmegaConf
 
 from pipeline.identify.orthogonal import interpretability, spread_over_inits
-from pipeline.identify.sk import SKNotConvergedWarning, output_error_lm, sk_iterations, sk_restarts
+from pipeline.identify.sk import output_error_lm, sk_restarts
 from pipeline.models.rational import RationalFeedforward, basis_coefficients, basis_matrix
 from pipeline.models.shared_ar import ReferenceWindow, SharedARPGNN, make_approximator
 from pipeline.runner import ConfigError
 
+VERSION = 2   # 2: SK and the OE check stop on tolerances (stop reasons logged); regularised check on J_OE + λR
 KINDS = ("rational", "pgnn_shared_ar")
 REGULARIZERS = ("none", "orthogonal")
 
@@ -56,9 +65,13 @@ def check(cfg, system) -> None:
     if reg == "orthogonal" and not float(cfg.regularizer.lam) >= 0:
         raise ConfigError(f"regularizer.lam={cfg.regularizer.lam}: give λ >= 0")
     ident = cfg.identify
-    for k in ("max_iter", "n_restarts", "n_jobs"):
+    for k in ("max_iter", "n_restarts", "n_jobs", "lm_max_iter", "oe_check_iter"):
         if int(ident[k]) < 1:
             raise ConfigError(f"identify.{k}={ident[k]}: give an integer >= 1")
+    if int(ident.oe_check_iter) < int(ident.lm_max_iter):
+        raise ConfigError(f"identify.oe_check_iter={ident.oe_check_iter} < identify.lm_max_iter="
+                          f"{ident.lm_max_iter}: the OE check needs at least the budget of SK's inner "
+                          "solves (SPEC §8 K3)")
     if m["kind"] == "pgnn_shared_ar":
         if m.get("approximator") not in ("mlp", "residual"):
             raise ConfigError(f"model.approximator={m.get('approximator')!r}; choose 'mlp' or 'residual'")
@@ -129,14 +142,26 @@ def fit(ctx) -> dict:
 
     results = [o[0] for o in outs]
     J_rep = [r.J_OE[r.best] for r in results]
-    best = int(np.argmin(J_rep))
+    cost_rep = [r.cost[r.best] for r in results]     # J_OE (+ λR): the training cost (SPEC §5)
+    best = int(np.argmin(cost_rep))
     res = results[best]
     model = res.model
     for i, (r, o) in enumerate(zip(results, outs)):
         for it in r.iterates:
             ctx.metric(f"sk_J_OE/restart{i}", it.J_OE, step=it.j)
+            if it.j:
+                ctx.metric(f"sk_param_change/restart{i}", it.change, step=it.j)
+                ctx.metric(f"sk_lm_iter/restart{i}", it.lm_iter, step=it.j)
+                ctx.metric(f"sk_lm_converged/restart{i}", float(it.lm_converged), step=it.j)
         ctx.metric("restart_J_OE", J_rep[i], step=i)
+        ctx.metric("restart_cost", cost_rep[i], step=i)
         ctx.metric("restart_seconds", o[1], step=i)
+        ctx.metric("restart_sk_iterations", len(r.iterates) - 1, step=i)
+        ctx.metric("restart_lm_iterations", r.n_lm_iter, step=i)
+        ctx.metric(f"sk_stopped_on_tol/restart{i}", float(r.converged))
+        ctx.metric(f"sk_inner_capped/restart{i}", r.n_inner_capped)
+        ctx.tag(f"stop_reason.restart{i}", r.stop_reason)           # 'tol' or 'max_iter'
+        ctx.tag(f"stop_detail.restart{i}", r.summary())
     for it in res.iterates:                                   # the kept restart ([K] (7) per j)
         ctx.metric("sk_J_OE", it.J_OE, step=it.j)
         ctx.metric("sk_J_weighted", it.J_weighted, step=it.j)
@@ -145,32 +170,58 @@ def fit(ctx) -> dict:
         ctx.metric("sk_seconds", it.seconds, step=it.j)
         ctx.metric("sk_condition", it.condition, step=it.j)
         ctx.metric("sk_truncated", it.n_truncated, step=it.j)
+        ctx.metric("sk_lm_iter", it.lm_iter, step=it.j)
     ctx.metric("best_restart", best)
     ctx.metric("J_OE_last_iterate", res.iterates[-1].J_OE)        # SPEC §8 K3
     ctx.metric("J_OE_min_iterate", min(res.J_OE))
     ctx.metric("J_OE", J_rep[best])
     ctx.metric("best_iterate", res.best)
     ctx.metric("sk_iterations", len(res.iterates) - 1)
+    ctx.metric("sk_last_change", res.iterates[-1].change)
+    ctx.metric("sk_tol", res.tol)
+    ctx.metric("sk_stopped_on_tol", float(res.converged))
+    ctx.metric("sk_inner_capped", res.n_inner_capped)
+    ctx.metric("sk_inner_all_converged", float(res.inner_converged))
+    ctx.metric("sk_lm_iterations", res.n_lm_iter)
     ctx.metric("sk_seconds_per_iteration", res.seconds_per_iter)
+    ctx.metric("sk_not_converged_restarts", sum(not r.converged for r in results))
+    ctx.metric("sk_inner_capped_restarts", sum(not r.inner_converged for r in results))
+    ctx.tag("stop_reason", res.stop_reason + ("" if res.inner_converged else
+                                              f" (inner capped ×{res.n_inner_capped})"))
+    ctx.metric("stopped_on_cap", float(not res.converged or not res.inner_converged))
+    ctx.tag("stop_detail", res.summary())
     ctx.tag("sk_converged", res.converged)
     ctx.tag("sk_reflected", ",".join(map(str, res.reflected)) or "none")
-    ctx.tag("sk_not_converged_restarts", sum(o[2] for o in outs))
+    ctx.tag("sk_not_converged_restarts", sum(not r.converged for r in results))
 
-    # K3: does a direct LM on J_OE ([K] (7)) from the SK result still improve it?
+    # K3 (SPEC §8): does a direct LM from the SK result still improve the cost SK minimises?
+    # J_OE ([K] (7)) for the rational TF and the unregularised PGNN; J_OE + λR with R frozen at
+    # the last SK step's weighting ([K] (30)) for the regularised PGNN.  At least the inner
+    # solves' budget, the same tolerances.
+    lam_check = kw["lam"] if (is_pgnn and reg == "orthogonal") else 0.0
     t0 = time.perf_counter()
-    oe = output_error_lm(model, rs, fs, max_iter=int(ident.oe_check_iter))
-    ctx.metric("oe_check/J_before", oe.J_before)
-    ctx.metric("oe_check/J_after", oe.J_after)
+    oe = output_error_lm(model, rs, fs, max_iter=max(int(ident.oe_check_iter), int(ident.lm_max_iter)),
+                         ftol=float(ident.lm_ftol), gtol=float(ident.lm_gtol), lam=lam_check,
+                         weighting=res.iterates[-1].weighting, column_scale=bool(ident.column_scale))
+    ctx.metric("oe_check/lam", oe.lam)
+    ctx.metric("oe_check/cost_before", oe.J_before)            # J_OE (+ λR) minimised by the check
+    ctx.metric("oe_check/cost_after", oe.J_after)
     ctx.metric("oe_check/improvement", oe.improvement)
+    ctx.metric("oe_check/J_OE_before", oe.J_OE_before)
+    ctx.metric("oe_check/J_OE_after", oe.J_OE_after)
+    ctx.metric("oe_check/J_OE_improvement", oe.oe_improvement)
+    ctx.metric("oe_check/R_before", oe.R_before)
+    ctx.metric("oe_check/R_after", oe.R_after)
+    ctx.metric("oe_check/J_before", oe.J_OE_before)            # (names of VERSION 1)
+    ctx.metric("oe_check/J_after", oe.J_OE_after)
+    ctx.metric("oe_check/lm_iterations", oe.lm.n_iter)
+    ctx.metric("oe_check/max_iter", max(int(ident.oe_check_iter), int(ident.lm_max_iter)))
+    ctx.metric("oe_check/stopped_on_cap", float(not oe.converged))
     ctx.metric("oe_check/seconds", time.perf_counter() - t0)
-    ctx.tag("oe_check_stop", oe.lm.message)
-    # the same LM budget spent on one more SK iteration instead: separates "SK stops short of
-    # the OE optimum" from "the approximator is not trained to convergence"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", SKNotConvergedWarning)
-        cont = sk_iterations(model, rs, fs, **{**kw, "max_iter": 1, "init": "model",
-                                               "lm_max_iter": int(ident.oe_check_iter)})
-    ctx.metric("oe_check/sk_continued_J", cont.iterates[-1].J_OE)
+    for step, c in enumerate(oe.lm.history):
+        ctx.metric("oe_check/cost", c, step=step)
+    ctx.tag("stop_reason.oe_check", oe.stop_reason)
+    ctx.tag("oe_check_stop", oe.stop_reason)
 
     # interpretability (SPEC §7)
     tt = true_theta(system, model)
@@ -204,7 +255,8 @@ def fit(ctx) -> dict:
     ctx.figure(_sk_figure(results, best), "sk_J_OE.png")
     model.eval()
     return {"model": model, "restart_models": [r.model for r in results], "best": best,
-            "J_OE": J_rep, "spread_f_M": spreads, "theta_true": tt, "oe_check": oe.J_after}
+            "J_OE": J_rep, "spread_f_M": spreads, "theta_true": tt, "oe_check": oe.J_after,
+            "sk_stop_reasons": [r.summary() for r in results], "oe_check_stop": oe.stop_reason}
 
 
 def _f_M(model, rs) -> list[np.ndarray]:
@@ -218,16 +270,33 @@ def _f_M(model, rs) -> list[np.ndarray]:
 
 # ----------------------------------------------------------------------------- figures
 def _sk_figure(results, best):
+    """J_OE ([K] (7)) and the relative parameter change per SK iteration, every restart (open
+    markers: the inner LM of that step stopped on its cap, not on its tolerance)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(6.5, 5.5), sharex=True)
     for i, r in enumerate(results):
-        ax.semilogy([it.j for it in r.iterates], r.J_OE, marker="o", lw=2.0 if i == best else 0.8,
-                    label=f"restart {i}" + (" (kept)" if i == best else ""))
-    ax.set_xlabel("SK iteration j (0 = equation-error initialisation)")
+        j = np.array([it.j for it in r.iterates])
+        capped = np.array([not it.lm_converged for it in r.iterates])
+        lw = 2.0 if i == best else 0.8
+        lab = f"restart {i}" + (" (kept)" if i == best else "") + f": {r.stop_reason}"
+        line, = ax.semilogy(j, r.J_OE, lw=lw, label=lab)
+        c = line.get_color()
+        ax.plot(j[~capped], np.array(r.J_OE)[~capped], "o", color=c, ms=3)
+        ax.plot(j[capped], np.array(r.J_OE)[capped], "o", mfc="none", color=c, ms=5)
+        ch = np.array([it.change for it in r.iterates[1:]])
+        ax2.semilogy(j[1:], ch, lw=lw, color=c)
+        ax2.plot(j[1:][~capped[1:]], ch[~capped[1:]], "o", color=c, ms=3)
+        ax2.plot(j[1:][capped[1:]], ch[capped[1:]], "o", mfc="none", color=c, ms=5)
+    if results:
+        ax2.axhline(results[0].tol, color="k", ls=":", lw=1.0, label=f"tol {results[0].tol:.0e}")
+        ax2.legend(fontsize=7)
     ax.set_ylabel("J_OE [N²]  ([K] (7))")
-    ax.legend(fontsize=7)
+    ax.set_title("SK iterations (open marker: inner LM stopped on its cap)", fontsize=9)
+    ax.legend(fontsize=6)
+    ax2.set_ylabel("relative parameter change")
+    ax2.set_xlabel("SK iteration j (0 = equation-error initialisation)")
     return fig
 
 

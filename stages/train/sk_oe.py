@@ -137,13 +137,24 @@ def fit(ctx) -> dict:
     if not is_pgnn and reg != "none":
         ctx.tag("regularizer_ignored", "the rational model has no approximator")
     t0 = time.perf_counter()
-    outs = sk_restarts(models, rs, fs, n_jobs=int(ident.n_jobs), **kw)
+    screen = n_restarts > 1 and int(ident.screen_max_iter) > 0
+    if screen:   # every restart on a short budget; the best by training cost is then converged
+        outs = sk_restarts(models, rs, fs, n_jobs=int(ident.n_jobs),
+                           **{**kw, "max_iter": int(ident.screen_max_iter),
+                              "lm_max_iter": int(ident.screen_lm_max_iter)})
+    else:
+        outs = sk_restarts(models, rs, fs, n_jobs=1, **kw)
     ctx.metric("restarts_seconds", time.perf_counter() - t0)
 
     results = [o[0] for o in outs]
-    J_rep = [r.J_OE[r.best] for r in results]
     cost_rep = [r.cost[r.best] for r in results]     # J_OE (+ λR): the training cost (SPEC §5)
     best = int(np.argmin(cost_rep))
+    if screen:   # SK to convergence from the kept restart's screened model (init = that model)
+        outs[best] = sk_restarts([results[best].model], rs, fs, n_jobs=1, init="model", **kw)[0]
+        results[best] = outs[best][0]
+        cost_rep[best] = results[best].cost[results[best].best]
+        ctx.metric("screened_restarts", n_restarts)
+    J_rep = [r.J_OE[r.best] for r in results]
     res = results[best]
     model = res.model
     for i, (r, o) in enumerate(zip(results, outs)):

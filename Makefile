@@ -54,7 +54,7 @@ reproduce: install  ## run every paper experiment, then write results/REPORT.md,
 
 ui: install  ## MLflow UI on http://127.0.0.1:5000 over the same store as the runs
 	$(VENV)/bin/mlflow server --backend-store-uri "$${MLFLOW_TRACKING_URI:-$(MLFLOW_DB)}" \
-	  --artifacts-destination "$(ROOT)/mlruns/artifacts" --host 127.0.0.1 --port 5000
+	  --artifacts-destination "$(ROOT)/mlruns/artifacts" --host 127.0.0.1 --port 5000 --workers 1
 
 bench: install  ## print wall times (stages per plant, ILC trials, solvers)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done

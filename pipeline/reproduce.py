@@ -24,7 +24,7 @@ from pathlib import Path
 import pandas as pd
 
 COLUMNS = ["experiment", "jobs", "wall_seconds", "cores_used", "cores_available", "git_sha"]
-_STAGE_LINE = re.compile(r"^\[(?P<run>[^\]]+)\] (?:generate|baseline|train|invert|evaluate|report): ")
+_STAGE_LINE = re.compile(r"^\[(?P<run>.+)\] (?:generate|baseline|train|invert|evaluate|report): ")  # names may hold [ ]
 
 
 def eta_seconds(previous: pd.DataFrame | None, remaining: list[str]) -> float | None:

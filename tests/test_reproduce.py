@@ -27,3 +27,12 @@ def test_driver_times_an_experiment_and_counts_its_jobs(store, capsys):
     assert list(on_disk.columns) == reproduce.COLUMNS and on_disk.loc[0, "experiment"] == "physics_arx"
     assert on_disk.loc[0, "jobs"] == 1 and on_disk.loc[0, "wall_seconds"] > 0
     assert len(table) == 1 and table.loc[0, "wall_seconds"] == on_disk.loc[0, "wall_seconds"]
+
+
+def test_job_lines_with_brackets_in_run_names_are_counted():
+    """Run names such as rot_trans_nmp-fhofc-n[32]-g1e-06-s0 hold brackets: each is one job."""
+    from pipeline.reproduce import _STAGE_LINE
+    lines = ["[rot_trans_nmp-fhofc-n[32]-g1e-06-s0] train: 3.0 s", "[rot_trans_nmp-fhofc-n[]-g1e-06-s0] invert: cached",
+             "[a] evaluate: 0.1 s", "[b] something else", "progress [x] train 10%"]
+    runs = {m.group("run") for m in map(_STAGE_LINE.match, lines) if m}
+    assert runs == {"rot_trans_nmp-fhofc-n[32]-g1e-06-s0", "rot_trans_nmp-fhofc-n[]-g1e-06-s0", "a"}

@@ -240,9 +240,7 @@ def _k3(experiment: str, m: dict, found: dict, rows: list) -> list[str]:
         if reg:
             rows += [row(experiment, key, "oe_check_lam", lam),
                      row(experiment, key, "oe_check_R_before", g("oe_check/R_before")),
-                     row(experiment, key, "oe_check_R_after", g("oe_check/R_after")),
-                     row(experiment, key, "sk_stopped_on_tol", float(on_tol)),
-                     row(experiment, key, "sk_inner_solves_capped", capped)]
+                     row(experiment, key, "oe_check_R_after", g("oe_check/R_after"))]
         # caps beside the claim: SK outer/inner and the check
         cap_parts = []
         if not on_tol:

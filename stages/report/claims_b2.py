@@ -305,9 +305,11 @@ def _il_section(il, rows, figdir) -> list[str]:
         rows.append(_row("n1=32/nn_outputs/noise=True", "rms_over_ideal_rms", q))
         full = curves.get((32, True, "sim_error"))
         q_full = full["trial_rms"][-1] / full["ideal_rms"][-1] if full is not None else float("nan")
+        lin_n = curves.get((0, True, "sim_error"))
+        q_lin = lin_n["trial_rms"][-1] / lin_n["ideal_rms"][-1] if lin_n is not None else float("nan")
         md += ["**Why the noisy B2c row fails, and a remedy tried** (reported whatever it showed): with noise "
                f"the PGNN ends at {q_full:.2f} × the ideal feedforward's rms under the same noise, the linear "
-               "model near 1.3 ×: IL-FHOFC inverts the model on targets that carry the trial's noise, and the "
+               f"model at {q_lin:.2f} ×: IL-FHOFC inverts the model on targets that carry the trial's noise, and the "
                "NN's input path adds a response of its own that this noise excites. An NN that sees the "
                "output window only (`model.nn_inputs=outputs`) cannot add an input-to-output response of its "
                f"own; it ends at {q:.2f} × (criterion 1.5 ×), but it fits the cogging far worse (identification "

@@ -267,3 +267,24 @@ def test_sim_error_fits_stop_on_tolerance_not_on_the_cap(loop):
                              max_iter=2000, ftol=1e-8, seed=0)
     best = fit.restarts[fit.best]
     assert best.message in ("ftol", "gtol", "mu_max", "zero_cost") and best.n_iter < 2000, best.message
+
+
+def test_screened_restarts_continue_only_the_best(loop):
+    """screen_iter: every restart runs the screening budget, the best continues from exactly where
+    it stopped (its loss curve extends the screened one) up to max_iter; the others keep theirs."""
+    lin_plant = RotTransNMP(c=0.0)
+    sim = _closed_loop_data(lin_plant, 400, 4, 1e-6)
+    u_ex = closed_loop_exogenous(sim.u, sim.u_fb)
+    _, ctrl = loop
+
+    def fit(**kw):
+        m = PGNN(4, 4, 0, physics=LinearFeatures(8), hidden=(3,), seed=0, input_transform="raw")
+        return identify_sim_error(m, ctrl, sim.r, u_ex, sim.y, sim.u, theta_star="arx", n_restarts=3, seed=1,
+                                  ftol=0.0, gtol=0.0, **kw)
+    short, screened = fit(max_iter=4), fit(max_iter=12, screen_iter=4)
+    assert screened.best == short.best
+    for i, (a, b) in enumerate(zip(short.restarts, screened.restarts)):
+        if i != short.best:
+            assert b.history == a.history and b.n_iter == 4
+    a, b = short.restarts[short.best], screened.restarts[screened.best]
+    assert b.history[:len(a.history)] == a.history and b.n_iter == 12 and b.cost <= a.cost

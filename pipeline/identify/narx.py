@@ -351,7 +351,7 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
         θ*_phy, the regulariser centre and start of θ_phy; default the physics-only least
         squares [B1] (7) on the same rows (a measured system passes its filtered baseline).
     memo : callable, optional
-        ``memo(i, compute)`` caches restart i (see :func:`best_of_restarts`).
+        ``memo(i, budget, compute)`` caches restart i (see :func:`best_of_restarts`).
 
     Returns
     -------
@@ -423,15 +423,23 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
 
 
 def best_of_restarts(model: PGNN, residual, jacobian, n_restarts: int, seed: int, *, val_fn=None,
-                     progress=None, on_iteration=None, memo=None,
+                     progress=None, on_iteration=None, memo=None, screen_iter: int = 0,
                      **lm_options) -> tuple[list[RestartResult], int]:
     """LM from ``n_restarts`` random NN initialisations ([B1] §VI: best of 10): restart i is
     seeded by SeedSequence([seed, i]), θ_phy starts where the model holds it; the lowest training
     cost is loaded into ``model``. Returns every restart and the index of the best.
 
-    Restart i depends on ``(seed, i)`` only, not on ``n_restarts``: ``memo(i, compute)`` (e.g.
-    the stage cache, :meth:`pipeline.runner.StageContext.memo`) may return a stored result of it."""
+    ``screen_iter`` (0 < screen_iter < max_iter): every restart runs ``screen_iter`` LM
+    iterations, and only the best of them continues (LM again from its θ) up to ``max_iter`` in
+    all; the others stay at the screening budget (their stop reason says so).
+
+    Restart i on a budget depends on ``(seed, i)`` only, not on ``n_restarts``:
+    ``memo(i, budget, compute)`` (e.g. the stage cache, :meth:`pipeline.runner.StageContext.memo`)
+    may return a stored result of it."""
     theta0 = model.parameter_vector()
+    max_iter = int(lm_options.pop("max_iter", 100))
+    screen = 0 < int(screen_iter) < max_iter and n_restarts > 1
+    budget = int(screen_iter) if screen else max_iter
 
     def restart(i: int) -> RestartResult:
         s_i = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
@@ -440,7 +448,7 @@ def best_of_restarts(model: PGNN, residual, jacobian, n_restarts: int, seed: int
         t0 = time.perf_counter()
         cb = None if on_iteration is None else (lambda it, th, c: on_iteration(i, it, c))
         res: LMResult = levenberg_marquardt(residual, model.parameter_vector(), jacobian=jacobian,
-                                            val_cost=val_fn, callback=cb, **lm_options)
+                                            val_cost=val_fn, callback=cb, max_iter=budget, **lm_options)
         return RestartResult(s_i, res.cost, res.val_cost, res.history, res.val_history, res.n_iter,
                              res.message, time.perf_counter() - t0, res.theta)
 
@@ -449,8 +457,17 @@ def best_of_restarts(model: PGNN, residual, jacobian, n_restarts: int, seed: int
     if progress is not None:
         restarts = progress(restarts)
     for i in restarts:
-        out.append(restart(i) if memo is None else memo(i, lambda i=i: restart(i)))
+        out.append(restart(i) if memo is None else memo(i, budget, lambda i=i: restart(i)))
     best = int(np.argmin([r.cost for r in out]))
+    first = out[best]
+    if screen and first.message == "max_iter":     # the kept restart continues to the full budget
+        t0 = time.perf_counter()
+        cb = None if on_iteration is None else (lambda it, th, c: on_iteration(best, first.n_iter + it, c))
+        res = levenberg_marquardt(residual, first.theta, jacobian=jacobian, val_cost=val_fn, callback=cb,
+                                  max_iter=max_iter - first.n_iter, **lm_options)
+        out[best] = RestartResult(first.seed, res.cost, res.val_cost, first.history + res.history[1:],
+                                  first.val_history + res.val_history[1:], first.n_iter + res.n_iter,
+                                  res.message, first.seconds + time.perf_counter() - t0, res.theta)
     model.load_parameter_vector(out[best].theta)
     return out, best
 

@@ -730,7 +730,8 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
                        n_restarts: int = 1, seed: int = 0, val_fraction: float = 0.0, max_iter: int = 100,
                        ftol: float = 1e-10, gtol: float = 1e-10, mu0: float = 1e-3, patience: int = 5,
                        linear_max_iter: int = 50, progress: Callable | None = None,
-                       on_iteration: Callable | None = None, memo: Callable | None = None) -> SimErrorFit:
+                       on_iteration: Callable | None = None, memo: Callable | None = None,
+                       screen_iter: int = 0) -> SimErrorFit:
     """Closed-loop simulation-error identification of a PGNN, [B2] (16), by Levenberg–Marquardt.
 
     Steps: θ*_phy (the linear model identified first), NN input normalisation and output
@@ -850,7 +851,7 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
         restarts_out, best = best_of_restarts(model, res_t, jac_t, n_restarts, seed,
                                               val_fn=val_fn, max_iter=max_iter, ftol=ftol, gtol=gtol, mu0=mu0,
                                               patience=patience, progress=progress, on_iteration=on_iteration,
-                                              memo=memo)
+                                              memo=memo, screen_iter=screen_iter)
     else:   # the linear model (n1 = 0) is θ*_phy: fitting (16) toward itself would only trade it off
         from pipeline.identify.narx import RestartResult
         th = model.parameter_vector()

@@ -47,9 +47,12 @@ def lm_progress(ctx, desc: str = "LM restarts") -> dict:
 
 
 def restart_memo(ctx):
-    """``memo(i, compute)`` for :func:`pipeline.identify.narx.best_of_restarts`: restart i cached on
-    the train key without ``identify.n_restarts`` (its seed is (seed, i) whatever the count)."""
-    return lambda i, compute: ctx.memo(f"restart{i}", compute, exclude=("identify.n_restarts",))
+    """``memo(i, budget, compute)`` for :func:`pipeline.identify.narx.best_of_restarts`: restart i
+    on an LM budget, cached on the train key without ``identify.n_restarts``, ``max_iter`` and
+    ``screen_iter`` (its seed is (seed, i) whatever the count; its budget is in the label)."""
+    return lambda i, budget, compute: ctx.memo(
+        f"restart{i}/max_iter{budget}", compute,
+        exclude=("identify.n_restarts", "identify.max_iter", "identify.screen_iter"))
 
 
 def log_restarts(ctx, restarts) -> None:

@@ -105,7 +105,8 @@ def fit(ctx) -> dict:
                               val_fraction=float(ident.val_fraction), max_iter=int(ident.max_iter),
                               ftol=float(ident.ftol), gtol=float(ident.gtol), mu0=float(ident.mu0),
                               patience=int(ident.patience), linear_max_iter=int(ident.linear_max_iter),
-                              memo=restart_memo(ctx), **lm_progress(ctx))
+                              memo=restart_memo(ctx), screen_iter=int(ident.get("screen_iter", 0)),
+                              **lm_progress(ctx))
     log_restarts(ctx, fit_.restarts)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)

@@ -30,6 +30,7 @@ import os
 import pickle
 import re
 import shutil
+import socket
 import sys
 import time
 import zlib
@@ -163,7 +164,7 @@ class StageContext:
                 except UntrustedCache as exc:
                     _set_aside(final, exc)
             value = compute()
-            tmp = final.with_name(f".tmp-{key}-{os.getpid()}-{time.time_ns()}")
+            tmp = final.with_name(_tmp_name(key))
             tmp.mkdir(parents=True)
             _write_signed(tmp, value)
             os.rename(tmp, final)
@@ -211,6 +212,44 @@ def stage_key(cfg: DictConfig, name: str, mod, upstream_keys: dict[str, str],
     if exclude:
         payload["exclude"] = sorted(exclude)
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
+
+
+#: this machine in temporary names: a shared (cluster) cache is cleaned only of this machine's leftovers
+HOST = re.sub(r"[^A-Za-z0-9.]", "_", socket.gethostname()) or "host"
+_TMP = re.compile(r"^\.tmp-[0-9a-f]+-(?P<host>.+)-(?P<pid>\d+)-\d+$")
+
+
+def _tmp_name(key: str) -> str:
+    """A stage's temporary directory: key, this machine, this process (a stale one is recognisable)."""
+    return f".tmp-{key}-{HOST}-{os.getpid()}-{time.time_ns()}"
+
+
+def pid_alive(pid: int) -> bool:
+    """True if process ``pid`` exists on this machine (a reused pid errs on the safe side)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_temporaries(store: Path) -> list[Path]:
+    """Remove the temporary stage directories left by dead processes of this machine (a SIGKILL
+    or an OOM kill gives no chance to clean up); others' are left alone."""
+    removed = []
+    if not store.is_dir():
+        return removed
+    for stage in store.iterdir():
+        if not stage.is_dir() or stage.name.startswith("."):
+            continue
+        for d in stage.glob(".tmp-*"):
+            m = _TMP.match(d.name)
+            if m and m["host"] == HOST and not pid_alive(int(m["pid"])):
+                shutil.rmtree(d, ignore_errors=True)
+                removed.append(d)
+    return removed
 
 
 def _locked(final: Path) -> FileLock:
@@ -369,6 +408,9 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, 
     names, system, modules = validate(cfg)
     keys = plan(cfg, names, modules)
     store = cache_dir(cfg)
+    for d in remove_stale_temporaries(store):
+        print(f"[{cfg.run_name}] removed {d.parent.name}/{d.name}, left by a process that died",
+              file=sys.stderr, flush=True)
     own_run = run is None
     if own_run:
         tags = {"experiment": cfg.experiment_name, "stages": ",".join(names),
@@ -425,7 +467,7 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, 
 def _compute(cfg, name, mod, key, keys, results, system, store, cacheable):
     """Run one stage into a temporary directory and move it into the cache (atomic)."""
     final = store / name / key[:20]
-    tmp = store / name / f".tmp-{key[:20]}-{os.getpid()}-{time.time_ns()}"
+    tmp = store / name / _tmp_name(key[:20])
     tmp.mkdir(parents=True)
     try:
         ctx = StageContext(cfg, name, {u: results[u] for u in mod.UPSTREAM}, tmp, system, key,

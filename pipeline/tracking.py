@@ -94,7 +94,9 @@ class JobRun:
                  params: Mapping[str, Any]):
         self.client = client()
         exp_id = experiment_id(experiment)
-        all_tags = {"git_sha": git_sha(), **{k: str(v) for k, v in tags.items()}}
+        mark_dead_runs_killed(exp_id)
+        all_tags = {"git_sha": git_sha(), "host": _host(), "pid": str(os.getpid()),
+                    **{k: str(v) for k, v in tags.items()}}
         parent = os.environ.get(PARENT_ENV)
         all_tags["sweep"] = "child" if parent else "single"
         if parent:
@@ -144,6 +146,25 @@ class JobRun:
 
     def end(self, status: str = "FINISHED") -> None:
         self.client.set_terminated(self.run_id, status)
+
+
+def _host() -> str:
+    from pipeline.runner import HOST
+    return HOST
+
+
+def mark_dead_runs_killed(exp_id: str) -> list[str]:
+    """Runs of the experiment left RUNNING by a process of this machine that no longer exists
+    (SIGKILL, OOM) are marked KILLED; returns their ids."""
+    from pipeline.runner import pid_alive
+    c = client()
+    runs = c.search_runs([exp_id], filter_string=f"attributes.status = 'RUNNING' and tags.host = '{_host()}'",
+                         max_results=1000)
+    dead = [r.info.run_id for r in runs
+            if r.data.tags.get("pid", "").isdigit() and not pid_alive(int(r.data.tags["pid"]))]
+    for run_id in dead:
+        c.set_terminated(run_id, "KILLED")
+    return dead
 
 
 def search_runs(experiment: str):

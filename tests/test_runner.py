@@ -316,3 +316,26 @@ def test_cache_entry_from_elsewhere_is_never_unpickled(store, cfg_of, capsys):
         assert "not signed" in capsys.readouterr().err
     finally:
         os.environ["PIPELINE_CACHE_KEY_FILE"] = str(store / "cache.key")
+
+
+def test_leftovers_of_a_killed_process_are_cleaned_on_the_next_start(store, cfg_of):
+    """Issue 13: a SIGKILLed job leaves its MLflow run RUNNING and a temporary stage directory;
+    the next job on this machine marks the run KILLED and removes the directory, and leaves a
+    temporary of another machine (a shared cache) and of a live process alone."""
+    import subprocess
+    import sys
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    cfg = cfg_of(*SHORT_TWO_MASS, "stages=[generate]")
+    gen = store / "cache" / "generate"
+    gen.mkdir(parents=True)
+    stale = gen / f".tmp-{'a' * 20}-{runner.HOST}-{dead.pid}-1"
+    other_host = gen / f".tmp-{'b' * 20}-elsewhere-{dead.pid}-1"
+    live = gen / f".tmp-{'c' * 20}-{runner.HOST}-{__import__('os').getpid()}-1"
+    for d in (stale, other_host, live):
+        d.mkdir()
+    exp_id = tracking.experiment_id("physics_baseline")
+    orphan = tracking.client().create_run(exp_id, tags={"host": runner.HOST, "pid": str(dead.pid)}).info.run_id
+    runner.run_job(cfg)
+    assert not stale.exists() and other_host.exists() and live.exists()
+    assert tracking.client().get_run(orphan).info.status == "KILLED"

@@ -158,11 +158,9 @@ class StageContext:
         key = hashlib.sha256(f"{self.subkey(tuple(exclude))}/{label}".encode()).hexdigest()[:20]
         final = cache_dir(self.cfg) / f"{self.name}.parts" / key
         with _locked(final):
-            if (final / "result.pkl").exists():
-                try:
-                    return _read_signed(final)[0]
-                except UntrustedCache as exc:
-                    _set_aside(final, exc)
+            loaded = _load_trusted(final) if (final / "result.pkl").exists() else None
+            if loaded is not None:
+                return loaded[0]
             value = compute()
             tmp = final.with_name(_tmp_name(key))
             tmp.mkdir(parents=True)
@@ -205,8 +203,7 @@ def stage_key(cfg: DictConfig, name: str, mod, upstream_keys: dict[str, str],
                                "VERSION", 1))
     config = {k: _select(cfg, k) for k in mod.DEPENDS}
     for dotted in exclude:   # a part's key (StageContext.memo) leaves out keys it does not depend on
-        config = _without(config, dotted) if "." in dotted else \
-            {k: v for k, v in config.items() if k != dotted}
+        config = _without(config, dotted)
     payload = {"stage": name, "version": version, "config": config,
                "upstream": {u: upstream_keys[u] for u in mod.UPSTREAM}}
     if exclude:
@@ -306,7 +303,7 @@ class UntrustedCache(Exception):
     """A cache entry not signed with this machine's cache key (written elsewhere, or altered)."""
 
 
-_KEY: bytes | None = None
+_KEYS: dict[Path, bytes] = {}   # signing key per key file, read once
 
 
 def cache_key_file() -> Path:
@@ -317,9 +314,8 @@ def cache_key_file() -> Path:
 
 
 def _signing_key() -> bytes:
-    global _KEY
     path = cache_key_file()
-    if _KEY is None or os.environ.get("PIPELINE_CACHE_KEY_FILE"):
+    if path not in _KEYS:
         path.parent.mkdir(parents=True, exist_ok=True)
         try:
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
@@ -327,8 +323,8 @@ def _signing_key() -> bytes:
                 f.write(os.urandom(32))
         except FileExistsError:
             pass
-        _KEY = path.read_bytes()
-    return _KEY
+        _KEYS[path] = path.read_bytes()
+    return _KEYS[path]
 
 
 def _signature(*blobs: bytes) -> str:
@@ -363,15 +359,16 @@ def _read_signed(entry: Path) -> tuple[Any, dict | None]:
     return pickle.loads(payload), (json.loads(blobs[1]) if len(blobs) > 1 else None)
 
 
-def _set_aside(entry: Path, why: Exception) -> None:
-    """Move an untrusted entry out of the way (never loaded) so it is recomputed."""
-    aside = entry.with_name(f".untrusted-{entry.name}-{time.time_ns()}")
-    os.rename(entry, aside)
-    print(f"warning: {why}; not loaded (moved to {aside.name}), recomputing", file=sys.stderr, flush=True)
-
-
-def _load(stage_dir: Path) -> tuple[dict, dict]:
-    return _read_signed(stage_dir)
+def _load_trusted(entry: Path) -> tuple[Any, dict | None] | None:
+    """The entry's (result, record); None after moving an untrusted entry out of the way (never
+    loaded), so that it is recomputed."""
+    try:
+        return _read_signed(entry)
+    except UntrustedCache as why:
+        aside = entry.with_name(f".untrusted-{entry.name}-{time.time_ns()}")
+        os.rename(entry, aside)
+        print(f"warning: {why}; not loaded (moved to {aside.name}), recomputing", file=sys.stderr, flush=True)
+        return None
 
 
 def _record(ctx: StageContext, seconds: float) -> dict:
@@ -439,14 +436,11 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, 
                           file=sys.stderr, flush=True)
                     lock.acquire()
             try:
-                hit = False
-                if cacheable and (final / "record.json").exists():
-                    try:
-                        results[name], record = _load(final)
-                        hit = True
-                    except UntrustedCache as exc:
-                        _set_aside(final, exc)
-                if not hit:
+                loaded = _load_trusted(final) if cacheable and (final / "record.json").exists() else None
+                hit = loaded is not None
+                if hit:
+                    results[name], record = loaded
+                else:
                     final, results[name], record = _compute(cfg, name, mod, key, keys, results, system,
                                                             store, cacheable)
             finally:

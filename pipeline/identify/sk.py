@@ -56,8 +56,6 @@ _FLAT_RTOL = 1e-11
 #: squared projected/full column norm below which the normal equations' G_ii − ‖C_i‖² (which
 #: loses ~N·eps of G_ii to cancellation) is recomputed from the explicit projected column
 _CANCEL_RTOL2 = 1e-8
-#: LM stop messages that mean "converged" (pipeline.identify.lm; 'max_iter' and 'callback' do not)
-LM_CONVERGED = ("ftol", "gtol", "zero_cost", "mu_max", "closed form")
 #: regularisers of the SK step ([K] Alg. 5 = 'none', Alg. 19 = 'orthogonal')
 REGULARIZERS = ("none", "orthogonal")
 
@@ -413,7 +411,7 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
         Wf = filter_segments(f, [1.0], den, seg)
         sub = model_subspace(WM, column_scale=column_scale, rtol=rank_rtol, names=data["names"],
                              rank_deficient=weighted_rank)
-        lm_iter, lm_msg, reg = 0, "closed form", 0.0
+        lm_iter, lm_msg, lm_conv, reg = 0, "closed form", True, 0.0
         if has_g:
             phi, lmres = _varpro_step(model, data, sub, Wf, den, lam_eff, lm_kw)
             model.set_phi(phi)
@@ -422,7 +420,7 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
             Wg = filter_segments(g, [1.0], den, seg)
             theta = sub.solve(Wf - Wg)                             # θ(φ) = (WM)^+ W (f̂ − g)
             reg = float(orthogonal_regularizer(sub, Wg))
-            lm_iter, lm_msg = lmres.n_iter, lmres.message       # 'ftol'/'gtol'/… or 'max_iter'
+            lm_iter, lm_msg, lm_conv = lmres.n_iter, lmres.message, lmres.converged   # 'ftol'/… or 'max_iter'
         else:
             Wg = 0.0
             theta = sub.solve(Wf)                                  # closed-form LS
@@ -442,7 +440,7 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
         it = SKIterate(j=j, theta=snap[0], phi=snap[1], g_gain=snap[2], J_OE=oe_cost(model, data),
                        J_weighted=J_w, regularizer=reg, change=change, n_reflected=n_ref,
                        condition=sub.condition, n_truncated=sub.n_truncated, lm_iter=lm_iter,
-                       lm_message=lm_msg, lm_converged=lm_msg in LM_CONVERGED, weighting=den.copy(),
+                       lm_message=lm_msg, lm_converged=lm_conv, weighting=den.copy(),
                        seconds=time.perf_counter() - t0)
         iterates.append(it)
         if callback is not None:
@@ -550,7 +548,7 @@ class OEResult:
 
     @property
     def converged(self) -> bool:
-        return self.lm.message in LM_CONVERGED
+        return self.lm.converged
 
 
 def _frozen_subspace(model, data: dict, weighting, *, column_scale: bool = True,

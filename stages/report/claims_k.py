@@ -204,7 +204,7 @@ def _k3(experiment: str, m: dict, found: dict, rows: list) -> list[str]:
         after = g("oe_check/cost_after", g("oe_check/J_after"))
         imp = g("oe_check/improvement")
         lam = g("oe_check/lam", 0.0)
-        chk_stop = str(run.get("tags.stop_reason.oe_check", run.get("tags.oe_check_stop", "?")))
+        chk_stop = str(run.get("tags.stop_reason.oe_check", "?"))
         chk_it, chk_cap = g("oe_check/lm_iterations"), g("oe_check/max_iter")
         sk_stop = str(run.get("tags.stop_reason", "?"))
         ratio = last / mini if mini > 0 else np.nan

@@ -55,7 +55,7 @@ def restart_memo(ctx):
         exclude=("identify.n_restarts", "identify.max_iter", "identify.screen_iter"))
 
 
-def log_restarts(ctx, restarts) -> None:
+def log_restarts(ctx, restarts, best: int) -> None:
     """The loss curve (and validation curve) of every LM restart, and its cost, time and iterations."""
     for i, rr in enumerate(restarts):
         for step, c in enumerate(rr.history):
@@ -66,7 +66,6 @@ def log_restarts(ctx, restarts) -> None:
         ctx.metric("restart_seconds", rr.seconds, step=i)
         ctx.metric("restart_iterations", rr.n_iter, step=i)
         ctx.tag(f"stop_reason.restart{i}", rr.message)       # why it stopped: a tolerance or CAPS
-    best = min(range(len(restarts)), key=lambda i: restarts[i].cost)
     ctx.tag("stop_reason", restarts[best].message)
     ctx.metric("stopped_on_cap", float(restarts[best].message in CAPS))     # the report flags these
 

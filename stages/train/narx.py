@@ -95,7 +95,7 @@ def fit(ctx) -> dict:
                          **lm_progress(ctx),
                          theta_star=ctx.inputs["baseline"]["theta"] if isinstance(system, Recording) else None,
                          memo=restart_memo(ctx))
-    log_restarts(ctx, fit_.restarts)
+    log_restarts(ctx, fit_.restarts, fit_.best)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)
     if best.val_cost is not None:

@@ -107,7 +107,7 @@ def fit(ctx) -> dict:
                               patience=int(ident.patience), linear_max_iter=int(ident.linear_max_iter),
                               memo=restart_memo(ctx), screen_iter=int(ident.get("screen_iter", 0)),
                               **lm_progress(ctx))
-    log_restarts(ctx, fit_.restarts)
+    log_restarts(ctx, fit_.restarts, fit_.best)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)
     ctx.metric("seconds", best.seconds)
@@ -210,7 +210,7 @@ def _fit_measured(ctx) -> dict:
                                    n_train=n_train, n_restarts=int(ident.n_restarts), seed=int(cfg.seed),
                                    max_iter=int(ident.max_iter), ftol=float(ident.ftol), gtol=float(ident.gtol),
                                    mu0=float(ident.mu0), memo=restart_memo(ctx), **lm_progress(ctx))
-    log_restarts(ctx, fit_.restarts)
+    log_restarts(ctx, fit_.restarts, fit_.best)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)
     ctx.metric("seconds", best.seconds)

@@ -232,7 +232,6 @@ def fit(ctx) -> dict:
     for step, c in enumerate(oe.lm.history):
         ctx.metric("oe_check/cost", c, step=step)
     ctx.tag("stop_reason.oe_check", oe.stop_reason)
-    ctx.tag("oe_check_stop", oe.stop_reason)
 
     # interpretability (SPEC §7)
     tt = true_theta(system, model)

@@ -45,7 +45,7 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline import tracking
 
 #: the order stages run in; ``cfg.stages`` selects a subset
-ORDER = ("generate", "baseline", "train", "invert", "evaluate", "report")
+ORDER = ("generate", "baseline", "train", "invert", "evaluate", "export", "report")
 ROOT = tracking.ROOT
 #: config groups whose chosen option is a run tag (DESIGN, Tracking)
 TAG_GROUPS = ("system", "data", "model", "identify", "regularizer", "invert")
@@ -112,6 +112,8 @@ class StageContext:
     figures: list = field(default_factory=list)
     datasets: list = field(default_factory=list)
     artifacts: list = field(default_factory=list)
+    models: list = field(default_factory=list)   # MLflow models to log: {"name", "law", "example"} (export)
+    run_id: str = ""            # the MLflow run this stage computes for (provenance of exports)
 
     def rng(self, purpose: str) -> np.random.Generator:
         """A generator seeded by (cfg.seed, purpose): same config, same draws (SPEC §0)."""
@@ -373,7 +375,7 @@ def _load_trusted(entry: Path) -> tuple[Any, dict | None] | None:
 
 def _record(ctx: StageContext, seconds: float) -> dict:
     return {"metrics": ctx.metrics, "tags": ctx.tags, "figures": ctx.figures,
-            "datasets": ctx.datasets, "artifacts": ctx.artifacts, "seconds": seconds}
+            "datasets": ctx.datasets, "artifacts": ctx.artifacts, "models": ctx.models, "seconds": seconds}
 
 
 def _store(tmp: Path, final: Path, result: dict, ctx: StageContext, seconds: float) -> None:
@@ -442,11 +444,11 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, 
                     results[name], record = loaded
                 else:
                     final, results[name], record = _compute(cfg, name, mod, key, keys, results, system,
-                                                            store, cacheable)
+                                                            store, cacheable, run.run_id)
             finally:
                 if lock is not None and lock.is_locked:
                     lock.release()
-            _log_stage(run, name, record, final, hit)
+            _log_stage(run, name, record, final, hit, cfg)
             print(f"[{cfg.run_name}] {name}: " + ("cached" if hit else f"{record['seconds']:.1f} s"),
                   file=sys.stderr, flush=True)  # one line per stage: a log file shows progress too
             if not cacheable:
@@ -458,14 +460,14 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, 
     return results
 
 
-def _compute(cfg, name, mod, key, keys, results, system, store, cacheable):
+def _compute(cfg, name, mod, key, keys, results, system, store, cacheable, run_id=""):
     """Run one stage into a temporary directory and move it into the cache (atomic)."""
     final = store / name / key[:20]
     tmp = store / name / _tmp_name(key[:20])
     tmp.mkdir(parents=True)
     try:
         ctx = StageContext(cfg, name, {u: results[u] for u in mod.UPSTREAM}, tmp, system, key,
-                           subkey=lambda exclude: stage_key(cfg, name, mod, keys, exclude))
+                           subkey=lambda exclude: stage_key(cfg, name, mod, keys, exclude), run_id=run_id)
         _seed_everything(int(cfg.seed), name)
         t0 = time.perf_counter()
         result = mod.run(ctx) or {}
@@ -488,7 +490,7 @@ def _seed_everything(seed: int, stage: str) -> None:
     torch.manual_seed(s)
 
 
-def _log_stage(run, name: str, record: dict, stage_dir: Path, hit: bool) -> None:
+def _log_stage(run, name: str, record: dict, stage_dir: Path, hit: bool, cfg=None) -> None:
     metrics = [tuple(m) for m in record["metrics"]]
     metrics.append((f"time/{name}_s", record["seconds"], None))
     run.log_metrics(metrics)
@@ -501,3 +503,7 @@ def _log_stage(run, name: str, record: dict, stage_dir: Path, hit: bool) -> None
         import pandas as pd
         path = stage_dir / rel
         run.log_dataset(pd.read_parquet(path), ds_name, str(path), context)
+    register = bool(OmegaConf.select(cfg, "export.register", default=False)) if cfg is not None else False
+    for m in record.get("models", []):   # the exported feedforwards as MLflow pyfunc models
+        run.log_feedforward_model(m["name"], stage_dir / m["law"], stage_dir / m["example"],
+                                  f"{cfg.experiment_name}-{m['name']}" if register else None)

@@ -144,6 +144,40 @@ class JobRun:
                     raise
                 time.sleep(0.2 * (attempt + 1))
 
+    def log_feedforward_model(self, name: str, law_dir: Path, example_csv: Path,
+                              register_as: str | None = None) -> str:
+        """Log an exported feedforward (``pipeline.export``) as an MLflow pyfunc model ``name`` of
+        this run (``runs:/<run id>/<name>``), with signature and input example; register it as
+        ``register_as`` with the run's evaluation metrics as tags.  Returns the model URI."""
+        import warnings
+
+        import mlflow.pyfunc
+
+        from pipeline.export.law import Law
+        from pipeline.export.package import read_column
+        from pipeline.export.pyfunc import signature
+        law = Law.load(law_dir)
+        r = read_column(example_csv)
+        sig, example = signature(law, r if law.family == "table" else r[:200])
+        with warnings.catch_warnings():   # MLflow's notes on environment capture and example conversion
+            warnings.simplefilter("ignore")
+            with mlflow.start_run(run_id=self.run_id):
+                mlflow.pyfunc.log_model(name=name, loader_module="pipeline.export.pyfunc",
+                                        data_path=str(law_dir), signature=sig, input_example=example,
+                                        pip_requirements=["pgnn-feedforward", "numpy", "pandas", "scipy",
+                                                          "numba", "torch"])
+        # leaving start_run() marked the run FINISHED; the job is still running
+        self.client.update_run(self.run_id, status="RUNNING")
+        uri = f"runs:/{self.run_id}/{name}"
+        if register_as:
+            metrics = self.client.get_run(self.run_id).data.metrics
+            version = mlflow.register_model(uri, register_as)
+            for k, v in sorted(metrics.items()):
+                if k.startswith("evaluate/") and k.rsplit("/", 1)[-1] in ("mae", "max_abs", "norm2", "rms"):
+                    self.client.set_model_version_tag(register_as, version.version, k, f"{v:.6g}")
+            self.client.set_model_version_tag(register_as, version.version, "run_id", self.run_id)
+        return uri
+
     def end(self, status: str = "FINISHED") -> None:
         self.client.set_terminated(self.run_id, status)
 

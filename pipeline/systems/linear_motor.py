@@ -253,14 +253,16 @@ class LinearMotorPhysics(PhysicsModel):
             return u
         return 0.5 * (u + np.concatenate([[0.0], u[:-1]]))
 
-    def applied_input(self, w) -> np.ndarray:
+    def applied_input(self, w, w_end: float | None = None) -> np.ndarray:
         """Input to apply for a model input w (SPEC §2.2): identity, or in averaged mode
-        ``u_ff(t) = (w(t) + w(t+1))/2`` with w(N) = w(N-1) (one sample of preview; the
-        recursion u(t) = 2w(t) - u(t-1) would put a pole at z = -1)."""
+        ``u_ff(t) = (w(t) + w(t+1))/2`` (one sample of preview; the recursion u(t) = 2w(t) - u(t-1)
+        would put a pole at z = -1).  w(N) = ``w_end``: the law's next sample on the reference held
+        after its end, as a real-time loop computes it (``pipeline.export``); default w(N-1)."""
         w = check_signal("w", w)
         if not self.averaged_input:
             return w
-        return 0.5 * (w + np.concatenate([w[1:], w[-1:]]))
+        end = w[-1:] if w_end is None else np.array([float(w_end)])
+        return 0.5 * (w + np.concatenate([w[1:], end]))
 
     # ----- forward model
     def phi(self, y, u) -> np.ndarray:
@@ -327,14 +329,15 @@ class LinearMotorPhysics(PhysicsModel):
     def feedforward(self, theta, r) -> np.ndarray:
         """Physics feedforward [N]: the analytic inverse of [B1] (32) (SPEC §6).
 
-        w(k) = m δ²r(k+1) + f_v δr(k) + f_c sign(δr(k)) with r(-1) = 0 and r(N) = r(N-1),
-        then :meth:`applied_input`."""
+        w(k) = m δ²r(k+1) + f_v δr(k) + f_c sign(δr(k)) with r(-1) = 0 and r held after the
+        end, then :meth:`applied_input` (with w(N) on the held reference)."""
         m, f_v, f_c = self.inverse_theta(theta)
         r = check_signal("r", r)
-        rp = np.concatenate([[0.0], r, r[-1:]])                    # r(-1) .. r(N)
-        d2 = (rp[2:] - 2.0 * rp[1:-1] + rp[:-2]) / self.Ts ** 2    # δ²r(k+1)
+        rp = np.concatenate([[0.0], r, r[-1:], r[-1:]])            # r(-1) .. r(N+1)
+        d2 = (rp[2:] - 2.0 * rp[1:-1] + rp[:-2]) / self.Ts ** 2    # δ²r(k+1), k = 0..N
         dr = (rp[1:-1] - rp[:-2]) / self.Ts                         # δr(k)
-        return self.applied_input(m * d2 + f_v * dr + f_c * np.sign(dr))
+        w = m * d2 + f_v * dr + f_c * np.sign(dr)                   # w(0) .. w(N)
+        return self.applied_input(w[:-1], w_end=w[-1])
 
 
 # --------------------------------------------------------------------------- the plant

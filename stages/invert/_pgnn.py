@@ -29,12 +29,15 @@ def trained(ctx):
     return model
 
 
-def applied(ctx, w: np.ndarray) -> np.ndarray:
-    """The input to apply for a feedforward of the model input w (identity unless the
-    physics model averages its input, SPEC §2.2: u_ff(t) = (w(t) + w(t+1))/2)."""
-    if ctx.inputs["train"].get("model_input"):
-        return ctx.system.physics.applied_input(w)
-    return w
+def applied(ctx, law, r: np.ndarray) -> np.ndarray:
+    """The input to apply for the feedforward ``law(r)`` of the model input w: w itself unless
+    the physics model averages its input (SPEC §2.2), then u_ff(t) = (w(t) + w(t+1))/2 with
+    w(N) the law's next sample on the reference held after its end (what a real-time loop
+    computes, ``pipeline.export``)."""
+    if ctx.inputs["train"].get("model_input") and getattr(ctx.system.physics, "averaged_input", False):
+        w = law(np.append(r, r[-1]))
+        return ctx.system.physics.applied_input(w[:-1], w_end=w[-1])
+    return law(r)
 
 
 def log_common(ctx, name: str, model, r: np.ndarray, u_ff: np.ndarray, step, *args) -> None:

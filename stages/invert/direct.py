@@ -4,6 +4,8 @@ from __future__ import annotations
 from pipeline.invert.direct import direct_feedforward, direct_step
 from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
 
+VERSION = 2   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
+
 
 def check(cfg, system) -> None:
     check_structure(cfg, "direct", ("inverse",))
@@ -11,8 +13,7 @@ def check(cfg, system) -> None:
 
 def feedforward(ctx, name, r):
     model = trained(ctx)
-    w = direct_feedforward(model, r)
-    u = applied(ctx, w)
+    u = applied(ctx, lambda rr: direct_feedforward(model, rr), r)
     log_common(ctx, name, model, r, u, direct_step)
     log_diagnostics(ctx, name, model, r)
     return u

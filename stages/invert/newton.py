@@ -12,6 +12,8 @@ from pipeline.invert.newton import newton_feedforward, newton_step
 from pipeline.runner import ConfigError
 from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
 
+VERSION = 2   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
+
 
 def _bounds(cfg):
     lo = cfg.invert.get("u_min")
@@ -35,15 +37,20 @@ def feedforward(ctx, name, r):
     model = trained(ctx)
     k = int(ctx.cfg.invert.k)
     lo, hi = _bounds(ctx.cfg)
-    res = newton_feedforward(model, r, k=k, u_bounds=None if math.isinf(lo) and math.isinf(hi)
-                             else (lo, hi))
+    out = []
+
+    def law(rr):   # the model input w; the diagnostics below are of this run
+        out.append(newton_feedforward(model, rr, k=k, u_bounds=None if math.isinf(lo) and math.isinf(hi)
+                                      else (lo, hi)))
+        return out[-1].u_ff
+    u = applied(ctx, law, r)
+    res = out[-1]
     ctx.metric(f"{name}/newton_bounds", res.n_bounds)
     ctx.metric(f"{name}/newton_singular", res.n_singular)
     ctx.metric(f"{name}/newton_diverged", res.n_diverged)
     ctx.metric(f"{name}/newton_max_residual", float(res.residual.max()))
     if res.n_fallback:
         ctx.tag(f"newton_fallback_{name}", res.n_fallback)
-    u = applied(ctx, res.u_ff)
     log_common(ctx, name, model, r, u, newton_step, k, lo, hi)
     log_diagnostics(ctx, name, model, r)
     return u

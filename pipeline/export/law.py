@@ -1,0 +1,321 @@
+"""A feedforward law as flat data: the one description the C code, the MLflow model and the
+manifest are generated from (issue 12).
+
+A :class:`Law` holds what a per-sample implementation needs and nothing else: integer sizes,
+float constants and float arrays (the same flat arrays the numba kernels run on, see
+:func:`pipeline.models.pgnn.fast_pgnn`), plus the sample time and how the law meets the
+reference:
+
+- ``preview`` P: the step at time t reads r(t), …, r(t+P) (the direct inverse needs
+  r(t+n_k+1), [B1] (13); an averaged model input needs one sample more, SPEC §2.2);
+- ``rest``: before t = 0 the reference was at rest at ``'zero'`` or at its ``'first'`` sample
+  (the study's conventions: the [K] filters and the physics law (8) start from r = 0, the PGNN
+  inversions hold r(0), ``padded_reference``); after its end it is held at the last sample.
+
+Families (``family``):
+
+- ``pgnn``: physics (8), direct inverse (13)-(14), analytic (27), Newton ([B1] Alg. 1) on the
+  ``blob``/``meta`` arrays of ``fast_pgnn``;
+- ``k_filter``: the rational filter and the shared-AR PGNN of [K] (6):
+  f = (A(r) + g_φ(r)) / B(q), run as ``scipy.signal.lfilter`` runs it (direct form II transposed);
+- ``table``: FHOFC / IL-FHOFC ([B2] (17)), a signal optimised offline for one known reference.
+
+:func:`feedforward` evaluates a law in Python with the study's own kernels and classes (the
+numba inversions, :class:`~pipeline.models.shared_ar.SharedARPGNN`), so the MLflow model returns
+the study's numbers.  Stored as ``law.json`` + ``law.npz`` (no pickle: loading runs no code).
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["Law", "ExportError", "LAWS", "from_pgnn", "from_linear_motor_physics", "from_k_filter",
+           "from_table", "feedforward"]
+
+#: every law the exporter covers, by ``invert.kind``
+LAWS = ("physics", "direct", "analytic", "newton", "rational_filter", "fhofc", "il_fhofc")
+_FAMILY = {"physics": "pgnn", "direct": "pgnn", "analytic": "pgnn", "newton": "pgnn",
+           "rational_filter": "k_filter", "fhofc": "table", "il_fhofc": "table"}
+# numba kernel layout of fast_pgnn's meta (pipeline.models.pgnn.FastPGNN)
+_META = ("kind", "p", "H", "n_phi", "u_index", "use_phys", "use_nn", "n_a", "n_b", "n_k", "n_cfg")
+
+
+class ExportError(ValueError):
+    """A feedforward the exporter cannot ship (unsupported law or model shape, no compiler, a
+    package that does not reproduce the study)."""
+
+
+@dataclass
+class Law:
+    """A feedforward law as sizes, constants and arrays (module docstring)."""
+
+    law: str                      # invert.kind
+    family: str                   # pgnn | k_filter | table
+    Ts: float                     # sample time [s]
+    preview: int                  # the step at t reads r(t) … r(t+preview)
+    rest: str                     # 'zero' | 'first': the reference before t = 0
+    averaged: bool = False        # u(t) = (w(t) + w(t+1))/2 of the model input w (SPEC §2.2)
+    ints: dict = field(default_factory=dict)
+    floats: dict = field(default_factory=dict)
+    arrays: dict = field(default_factory=dict)
+    strings: dict = field(default_factory=dict)
+    units: dict = field(default_factory=lambda: {"r": "m", "u_ff": "N"})
+
+    def __post_init__(self):
+        if self.law not in LAWS:
+            raise ExportError(f"unknown feedforward law {self.law!r}; the exporter covers {list(LAWS)}")
+        if self.rest not in ("zero", "first"):
+            raise ExportError(f"rest must be 'zero' or 'first', got {self.rest!r}")
+        for k, a in self.arrays.items():
+            a = np.ascontiguousarray(a, dtype=np.float64) if np.asarray(a).dtype.kind == "f" \
+                else np.ascontiguousarray(a)
+            if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+                raise ExportError(f"law array {k!r} holds NaN/inf: the model is not usable")
+            self.arrays[k] = a
+
+    # ---- storage (json + npz: nothing executes on load) -----------------------------------
+    def save(self, folder: Path) -> None:
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        meta = {k: v for k, v in asdict(self).items() if k != "arrays"}
+        (folder / "law.json").write_text(json.dumps(meta, indent=1, default=_json_float))
+        np.savez(folder / "law.npz", **self.arrays)
+
+    @classmethod
+    def load(cls, folder: Path) -> "Law":
+        folder = Path(folder)
+        for f in ("law.json", "law.npz"):
+            if not (folder / f).is_file():
+                raise ExportError(f"{folder} has no {f}: not an exported feedforward law")
+        meta = json.loads((folder / "law.json").read_text())
+        meta["floats"] = {k: float(v) for k, v in meta.get("floats", {}).items()}
+        with np.load(folder / "law.npz", allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        return cls(arrays=arrays, **meta)
+
+    # ---- figures of the manifest ------------------------------------------------------------
+    @property
+    def n_params(self) -> int:
+        """Number of model parameters the law carries (weights, coefficients; table: samples)."""
+        if self.family == "pgnn":
+            m = self.ints
+            return int(m["p"] + (m["H"] * (m["n_phi"] + 2) + 1 if m["use_nn"] else 0))
+        if self.family == "k_filter":
+            return int(sum(self.arrays[k].size for k in self.arrays if k.startswith(("g_W", "g_b")))
+                       + self.ints["n_a"] + self.ints["n_b"])
+        return int(self.arrays["u"].size)
+
+    def flops_per_sample(self) -> dict:
+        """Floating-point operations per sample (multiply and add counted apart) and elementary
+        function calls (tanh/exp/log), worst case (Newton: every update runs)."""
+        if self.family == "pgnn":
+            m = self.ints
+            nn = 2 * m["H"] * m["n_phi"] + 5 * m["H"] + 1 if m["use_nn"] else 0   # W φ + b, w2 h, (1 - h²)
+            phys = {0: 2 * m["n_phi"], 1: 14, 2: 12}.get(m["kind"], 0)
+            evals = {"newton": self.ints.get("k", 0) + 1}.get(self.law, 1)
+            flops = evals * (nn + 4) + 2 * phys + (3 if self.averaged else 0)
+            calls = evals * m["H"] * int(bool(m["use_nn"]))
+            return {"flops": int(flops), "elementary_calls": int(calls)}
+        if self.family == "k_filter":
+            i = self.ints
+            flops = 2 * (i["n_a"] + i["d_a"] + i["d_w"]) + 2 * 3 * (i["n_b"] + 1)
+            calls = 0
+            if i["has_g"]:
+                widths = [i["n_window"]] + [self.arrays[f"g_W{j}"].shape[0] for j in range(i["n_layers"])]
+                flops += 2 * (i["n_window"]) + sum(2 * a * b for a, b in zip(widths[:-1], widths[1:])) + 1
+                calls = sum(widths[1:-1])
+            return {"flops": int(flops), "elementary_calls": int(calls)}
+        return {"flops": 0, "elementary_calls": 0}
+
+
+def _json_float(x):
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    raise TypeError(f"cannot store {type(x).__name__} in law.json")
+
+
+# --------------------------------------------------------------------------------------------
+# builders
+# --------------------------------------------------------------------------------------------
+def from_pgnn(model, law: str, Ts: float, *, averaged: bool = False, k: int = 5,
+              u_bounds=(-math.inf, math.inf), theta_start=None) -> Law:
+    """The [B1] inversion ``law`` (direct | analytic | newton | physics) of a PGNN, from the
+    flat arrays of :func:`~pipeline.models.pgnn.fast_pgnn` (the numba kernels' own data)."""
+    from pipeline.models.pgnn import fast_pgnn
+    if law not in ("direct", "analytic", "newton", "physics"):
+        raise ExportError(f"a PGNN is exported by law direct | analytic | newton | physics, not {law!r}")
+    fm = fast_pgnn(model, theta_start=theta_start)
+    if fm is None:
+        phys = type(model.physics).__name__ if model.use_physics else "none"
+        raise ExportError(
+            f"the exporter supports a PGNN with no NN or one tanh hidden layer and a built-in physics "
+            f"map (LinearFeatures, RigidBodyForward, RigidBodyInverse); this model has hidden="
+            f"{list(model.hidden)}, activation={model.activation}, physics={phys}: use model.hidden=[H] "
+            "with model.activation=tanh, or keep the Python feedforward")
+    need = {"direct": ("inverse",), "analytic": ("invertible", "forward"),
+            "newton": ("forward", "invertible"), "physics": ("forward", "invertible", "inverse")}[law]
+    if fm.structure not in need:
+        raise ExportError(f"law {law} needs a PGNN of structure {need}, got {fm.structure!r}")
+    ints = {name: int(v) for name, v in zip(_META, fm.meta)}
+    ints["inverse_layout"] = int(fm.structure == "inverse")
+    floats = {}
+    if law == "newton":
+        if int(k) != k or k < 0:
+            raise ExportError(f"Newton needs a non-negative integer k, got {k}")
+        ints["k"] = int(k)
+        floats = {"u_min": float(u_bounds[0]), "u_max": float(u_bounds[1])}
+    return Law(law=law, family="pgnn", Ts=float(Ts), preview=fm.n_k + 1 + int(averaged),
+               rest="zero" if law == "physics" and fm.structure == "inverse" else "first",
+               averaged=bool(averaged), ints=ints, floats=floats, arrays={"blob": fm.blob},
+               strings={"structure": fm.structure,
+                        "model": "physics" if law == "physics" else f"pgnn-{fm.structure}"})
+
+
+def from_linear_motor_physics(physics, theta) -> Law:
+    """The physics feedforward (8) of the linear motor, w(k) = m δ²r(k+1) + f_v δr(k) +
+    f_c sign δr(k) with r(-1) = 0 (``LinearMotorPhysics.feedforward``), as the physics part of
+    an inverse PGNN (the same numba kernel)."""
+    from pipeline.models.pgnn import PGNN, RigidBodyInverse
+    if type(physics).__name__ != "LinearMotorPhysics":
+        raise ExportError(f"the exporter ships the physics feedforward (8) of the linear motor "
+                          f"(LinearMotorPhysics); this system's physics is {type(physics).__name__}")
+    model = PGNN(2, 1, 0, structure="inverse", physics=RigidBodyInverse(physics.Ts), use_nn=False)
+    model.set_physics_estimate(physics.inverse_theta(theta))
+    return from_pgnn(model, "physics", physics.Ts, averaged=bool(physics.averaged_input))
+
+
+def from_k_filter(model, law: str = "rational_filter") -> Law:
+    """The [K] filter f = (A(r) + g_φ(r))/B(q) of a :class:`RationalFeedforward` or
+    :class:`SharedARPGNN` (MLP approximator), with B normalised as ``lfilter`` normalises it."""
+    from torch import nn
+
+    from pipeline.models.shared_ar import MLP, SharedARPGNN
+    model.check_stable()
+    den = model.denominator()
+    num = np.zeros_like(den)
+    num[0] = 1.0
+    arrays = {"a": model.a.detach().numpy().copy(), "b": model.b.detach().numpy().copy(),
+              "num": num / den[0], "den": den / den[0]}   # lfilter divides by den[0] first
+    ints = {"n_a": model.n_a, "n_b": model.n_b, "basis_delta": int(model.basis == "delta"),
+            "d_a": max(model.n_a - 1, 0), "has_g": 0, "d_w": 0, "n_window": 0, "n_layers": 0,
+            "window_delta": 0, "out_bias": 0}
+    strings = {"model": type(model).__name__, "basis": model.basis, "activation": ""}
+    floats = {"g_gain": 1.0}
+    if isinstance(model, SharedARPGNN):
+        g = model.g
+        if not isinstance(g, MLP):
+            raise ExportError(f"the exporter supports the MLP approximator of [K] (4) "
+                              f"(model.approximator=mlp); this model's g_φ is {type(g).__name__}")
+        linear = [m for m in g.net if isinstance(m, nn.Linear)]
+        acts = {type(m).__name__.lower() for m in g.net if not isinstance(m, nn.Linear)}
+        if len(acts) > 1 or not acts <= {"tanh", "relu", "sigmoid", "softplus"}:
+            raise ExportError(f"approximator activations {sorted(acts)} are not supported; "
+                              "supported: tanh, relu, sigmoid, softplus")
+        w = model.window
+        ints.update(has_g=1, d_w=w.q, n_window=w.q + 1, n_layers=len(linear),
+                    window_delta=int(w.basis == "delta"), out_bias=int(linear[-1].bias is not None))
+        strings["activation"] = acts.pop() if acts else "tanh"
+        floats["g_gain"] = float(model.g_gain)
+        arrays["w_mean"] = w.mean.numpy().copy()
+        arrays["w_std"] = w.std.numpy().copy()
+        for j, lin in enumerate(linear):
+            arrays[f"g_W{j}"] = lin.weight.detach().numpy().copy()
+            arrays[f"g_b{j}"] = (lin.bias.detach().numpy().copy() if lin.bias is not None
+                                 else np.zeros(lin.weight.shape[0]))
+        strings["window_basis"] = w.basis
+        strings["normalisation"] = w.normalisation
+        floats["window_Ts"] = w.Ts
+    return Law(law=law, family="k_filter", Ts=float(model.Ts), preview=0, rest="zero",
+               ints=ints, floats=floats, arrays=arrays, strings=strings)
+
+
+def from_table(law: str, Ts: float, r, u) -> Law:
+    """An FHOFC / IL-FHOFC signal u [N] optimised offline for the one reference r [N]."""
+    r, u = np.asarray(r, dtype=np.float64), np.asarray(u, dtype=np.float64)
+    if r.ndim != 1 or r.shape != u.shape:
+        raise ExportError(f"a table needs a reference and a signal of one length, got {r.shape} and {u.shape}")
+    return Law(law=law, family="table", Ts=float(Ts), preview=0, rest="first",
+               ints={"n": int(r.size)}, floats={"r_tol": 1e-9 * float(np.max(np.abs(r)) or 1.0)},
+               arrays={"r": r, "u": u})
+
+
+# --------------------------------------------------------------------------------------------
+# Python evaluation with the study's kernels
+# --------------------------------------------------------------------------------------------
+def padded(law: Law, r: np.ndarray, n_before: int, n_after: int) -> np.ndarray:
+    """r with ``n_before`` samples of rest before t = 0 (0 or r(0), ``law.rest``) and
+    ``n_after`` samples held at r(N-1) after the end."""
+    r0 = 0.0 if law.rest == "zero" else r[0]
+    return np.concatenate([np.full(n_before, r0), r, np.full(n_after, r[-1])])
+
+
+def feedforward(law: Law, r) -> np.ndarray:
+    """u_ff [N] of ``law`` on the reference r [N] (the study's kernels)."""
+    r = np.asarray(r, dtype=np.float64)
+    if r.ndim != 1 or r.size < 1:
+        raise ExportError(f"the reference must be a non-empty 1-D signal, got shape {r.shape}")
+    if not np.all(np.isfinite(r)):
+        raise ExportError(f"the reference holds NaN/inf (first at sample {int(np.flatnonzero(~np.isfinite(r))[0])})")
+    if law.family == "table":
+        R = law.arrays["r"]
+        if r.shape != R.shape or np.max(np.abs(r - R)) > law.floats["r_tol"]:
+            raise ExportError(f"this {law.law} signal was optimised offline for one reference of "
+                              f"{R.size} samples; the given reference ({r.size} samples) differs from it")
+        return law.arrays["u"].copy()
+    if law.family == "k_filter":
+        from pipeline.invert.rational_filter import rational_feedforward
+        return rational_feedforward(_k_model(law), r).f
+    w = _pgnn_run(law, np.append(r, r[-1]) if law.averaged else r)
+    return 0.5 * (w[:-1] + w[1:]) if law.averaged else w
+
+
+def _pgnn_run(law: Law, r: np.ndarray) -> np.ndarray:
+    from pipeline.invert.analytic import _run
+    from pipeline.invert.direct import _direct_run
+    from pipeline.invert.newton import _newton_run
+    m = law.ints
+    blob = law.arrays["blob"]
+    meta = np.array([m[k] for k in _META], dtype=np.int64)
+    n_a, n_k = m["n_a"], m["n_k"]
+    r_ext = padded(law, r, n_a, n_k + 1)
+    state = np.zeros(2 * (n_a + m["n_b"]) + 1)
+    state[:n_a + 1] = [r_ext[n_k - i + n_a] for i in range(n_a + 1)]
+    N = r.size
+    if law.law == "direct":
+        return _direct_run(blob, meta, state, r_ext, N)
+    if law.law == "newton":
+        return _newton_run(blob, meta, state, r_ext, N, m["k"], law.floats["u_min"], law.floats["u_max"])[0]
+    return _run(blob, meta, state, r_ext, N, law.law == "physics", bool(m["inverse_layout"]))
+
+
+def _k_model(law: Law):
+    """The [K] model rebuilt from the law's arrays (the study's class, so the study's numbers)."""
+    import torch
+
+    from pipeline.models.rational import RationalFeedforward
+    from pipeline.models.shared_ar import MLP, ReferenceWindow, SharedARPGNN
+    i, a = law.ints, law.arrays
+    basis, b = law.strings["basis"], a["b"]
+    if not i["has_g"]:
+        return RationalFeedforward(i["n_a"], i["n_b"], basis=basis, Ts=law.Ts, a=a["a"], b=b)
+    hidden = [a[f"g_W{j}"].shape[0] for j in range(i["n_layers"] - 1)]
+    g = MLP(i["n_window"], hidden, law.strings["activation"], out_bias=bool(i["out_bias"]))
+    lin = [m for m in g.net if isinstance(m, torch.nn.Linear)]
+    with torch.no_grad():
+        for j, m in enumerate(lin):
+            m.weight.copy_(torch.from_numpy(a[f"g_W{j}"]))
+            if m.bias is not None:
+                m.bias.copy_(torch.from_numpy(a[f"g_b{j}"]))
+    w = ReferenceWindow(i["d_w"], law.strings["window_basis"], law.floats["window_Ts"],
+                        law.strings["normalisation"])
+    with torch.no_grad():
+        w.mean.copy_(torch.from_numpy(a["w_mean"]))
+        w.std.copy_(torch.from_numpy(a["w_std"]))
+    model = SharedARPGNN(i["n_a"], i["n_b"], g, w, basis=basis, Ts=law.Ts, a=a["a"], b=b)
+    with torch.no_grad():
+        model.g_gain.fill_(law.floats["g_gain"])
+    return model

@@ -1,0 +1,44 @@
+"""The exported feedforward as an MLflow pyfunc model (``loader_module`` flavour: no pickle).
+
+``mlflow models predict -m runs:/<run id>/<package> -i reference.csv -t csv --env-manager local``
+reads a one-column table ``r`` (one reference, in time order) and returns ``u_ff``, computed by
+:func:`pipeline.export.law.feedforward` from the law's ``law.json`` + ``law.npz`` (the data the C
+code was generated from).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from pipeline.export.law import ExportError, Law, feedforward
+
+__all__ = ["FeedforwardModel", "signature", "_load_pyfunc"]
+
+
+class FeedforwardModel:
+    """pyfunc interface: ``predict(DataFrame with column r) -> DataFrame with column u_ff``."""
+
+    def __init__(self, law: Law):
+        self.law = law
+
+    def predict(self, model_input, params=None):
+        if isinstance(model_input, pd.DataFrame):
+            if "r" not in model_input.columns:
+                raise ExportError(f"the input needs a column 'r' (the reference [{self.law.units['r']}], "
+                                  f"one row per sample); got columns {list(model_input.columns)}")
+            r = model_input["r"].to_numpy(np.float64)
+        else:
+            r = np.asarray(model_input, dtype=np.float64).reshape(-1)
+        return pd.DataFrame({"u_ff": feedforward(self.law, r)})
+
+
+def signature(law: Law, r_example: np.ndarray):
+    """Input/output signature and example of the model (the first samples of a reference)."""
+    from mlflow.models import infer_signature
+    ex = pd.DataFrame({"r": np.asarray(r_example, dtype=np.float64)})
+    return infer_signature(ex, pd.DataFrame({"u_ff": np.zeros(len(ex))})), ex
+
+
+def _load_pyfunc(data_path: str) -> FeedforwardModel:
+    """MLflow's entry point: the model from the package's ``law`` folder."""
+    return FeedforwardModel(Law.load(data_path))

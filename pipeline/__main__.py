@@ -1,4 +1,5 @@
-"""Hydra entry point: ``python -m pipeline [experiment=NAME] [key=value ...] [-m]``."""
+"""Hydra entry point: ``python -m pipeline [experiment=NAME] [key=value ...] [-m]``; and
+``python -m pipeline export RUN_ID [--out DIR]`` (:mod:`pipeline.export.cli`)."""
 from __future__ import annotations
 
 import signal
@@ -25,6 +26,9 @@ def _terminate(signum, frame) -> None:  # `kill`: unwind like Ctrl-C (runs end F
 
 def main() -> None:
     signal.signal(signal.SIGTERM, _terminate)
+    if len(sys.argv) > 1 and sys.argv[1] == "export":   # pgnn-ff export RUN_ID [--out DIR]
+        from pipeline.export.cli import main as export_main
+        sys.exit(export_main(sys.argv[2:]))
     _main()
 
 

@@ -497,8 +497,9 @@ def _log_stage(run, name: str, record: dict, stage_dir: Path, hit: bool, cfg=Non
     run.set_tags({**record["tags"], f"cache.{name}": "hit" if hit else "miss"})
     for fig in record["figures"]:
         run.log_artifact(stage_dir / "figures" / fig, "figures")
-    for rel in record.get("artifacts", []):
-        run.log_artifact(stage_dir / "artifacts" / rel, name)
+    for rel in record.get("artifacts", []):   # <stage>/<rel>, sub-folders kept
+        parent = Path(rel).parent
+        run.log_artifact(stage_dir / "artifacts" / rel, name if parent == Path(".") else f"{name}/{parent.as_posix()}")
     for rel, ds_name, context in record.get("datasets", []):
         import pandas as pd
         path = stage_dir / rel

@@ -103,6 +103,17 @@ class JobRun:
             all_tags["mlflow.parentRunId"] = parent
         run = self.client.create_run(exp_id, run_name=run_name, tags=all_tags)
         self.run_id = run.info.run_id
+        self._log_params(params)
+
+    @classmethod
+    def resume(cls, run_id: str) -> "JobRun":
+        """An existing run to log more into (``pgnn-ff export RUN_ID``); its status is left alone."""
+        self = cls.__new__(cls)
+        self.client = client()
+        self.run_id = run_id
+        return self
+
+    def _log_params(self, params: Mapping[str, Any]) -> None:
         flat = _flatten(params)
         items = [Param(k[:250], v) for k, v in sorted(flat.items())]
         for i in range(0, len(items), 100):
@@ -159,6 +170,7 @@ class JobRun:
         law = Law.load(law_dir)
         r = read_column(example_csv)
         sig, example = signature(law, r if law.family == "table" else r[:200])
+        status = self.client.get_run(self.run_id).info.status
         with warnings.catch_warnings():   # MLflow's notes on environment capture and example conversion
             warnings.simplefilter("ignore")
             with mlflow.start_run(run_id=self.run_id):
@@ -166,8 +178,8 @@ class JobRun:
                                         data_path=str(law_dir), signature=sig, input_example=example,
                                         pip_requirements=["pgnn-feedforward", "numpy", "pandas", "scipy",
                                                           "numba", "torch"])
-        # leaving start_run() marked the run FINISHED; the job is still running
-        self.client.update_run(self.run_id, status="RUNNING")
+        # leaving start_run() marked the run FINISHED: back to what it was (RUNNING for a job)
+        self.client.update_run(self.run_id, status=status)
         uri = f"runs:/{self.run_id}/{name}"
         if register_as:
             metrics = self.client.get_run(self.run_id).data.metrics

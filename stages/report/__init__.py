@@ -28,7 +28,7 @@ from pathlib import Path
 import pandas as pd
 
 from pipeline import tracking
-from stages.report._rows import row
+from stages.report._rows import row, run_metrics
 from pipeline.runner import ROOT
 
 UPSTREAM = ()
@@ -85,6 +85,8 @@ def run(ctx) -> dict:
         os.replace(figdir, results / "figures")  # the figures first, then the report that links them
         shutil.rmtree(old, ignore_errors=True)
         _write(results / "REPORT.md", lambda p: p.write_text(text))
+        if not update or SHIPPED[0] in built:
+            _ship(results / "export", SHIPPED)
     finally:
         shutil.rmtree(figdir, ignore_errors=True)
     ctx.metric("n_rows", len(table))
@@ -110,10 +112,10 @@ def _build(cfg, figdir: Path, skip_empty: bool = False) -> tuple[pd.DataFrame, s
         mod = provs.get(str(exp)) or importlib.import_module("stages.report.generic")
         r, md = mod.section(str(exp), runs, figdir)
         rows += r
-        stops = _stop_reasons(str(exp), runs)
-        if stops:
-            rows += stops[0]
-            md += stops[1]
+        for extra in (_stop_reasons(str(exp), runs), _exports(str(exp), runs)):
+            if extra:
+                rows += extra[0]
+                md += extra[1]
         if mixed:
             md += (f"\n\n> Note: run name(s) {', '.join(mixed)} have finished runs with different "
                    "configs in the store; this section uses the latest of each. Run `make reproduce` "
@@ -132,6 +134,65 @@ def _build(cfg, figdir: Path, skip_empty: bool = False) -> tuple[pd.DataFrame, s
             f"`{tracking.git_sha()[:12]}`). One section per experiment; every number is also a row "
             "of `summary.csv`.", ""]
     return table, "\n".join(head + _claim_table(table) + sections) + "\n", built
+
+
+#: the runs whose exported packages results/export/<law>/ holds: experiment, run-name part
+SHIPPED = ("b1_linear_motor", "-equation-")
+
+
+def _exports(experiment: str, runs: pd.DataFrame):
+    """summary.csv rows and a REPORT.md table of the feedforwards the export stage shipped
+    (issue 12): per package, the C code's and the Python law's max|Δu|/max|u| against the study,
+    ns per sample in C, flops and parameters."""
+    col = "metrics.export/max_rel_diff"
+    if col not in runs or runs[col].isna().all():
+        return None
+    rows = []
+    lines = ["", "", "Exported feedforward (the `export` stage; C99 compiled with `cc -std=c99 -O2 -Wall -Wextra "
+             "-Werror`, run by its harness on every evaluation reference; Δu against the study's u_ff):", "",
+             "| run | package | C max Δu / max u | Python max Δu / max u | C ns/sample | flops/sample | parameters |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for _, r in runs[runs[col].notna()].sort_values("tags.mlflow.runName").iterrows():
+        m = run_metrics(r)
+        for pkg in sorted({k.split("/")[1] for k in m if k.startswith("export/ff_")}):
+            get = {k.split("/")[-1]: v for k, v in m.items() if k.startswith(f"export/{pkg}/")}
+            name = r["tags.mlflow.runName"]
+            for k in ("c_max_rel_diff", "python_max_rel_diff", "c_ns_per_sample"):
+                if k in get:
+                    rows.append(row(experiment, f"export/{name}/{pkg}", k, get[k]))
+            fmt = lambda k, f: format(get[k], f) if k in get else "n/a"   # noqa: E731
+            lines.append(f"| `{name}` | `{pkg}` | {fmt('c_max_rel_diff', '.2g')} | {fmt('python_max_rel_diff', '.2g')} "
+                         f"| {fmt('c_ns_per_sample', '.0f')} | {fmt('flops', '.0f')} | {fmt('parameters', '.0f')} |")
+    if experiment == SHIPPED[0]:
+        lines += ["", f"The packages of the `{SHIPPED[1].strip('-')}` runs are in `results/export/<package>/` "
+                  "(README: Deploy the feedforward)."]
+    return rows, "\n".join(lines) + "\n"
+
+
+def _ship(dest: Path, which: tuple[str, str]) -> None:
+    """Copy the export packages of the runs of experiment ``which[0]`` whose name contains
+    ``which[1]`` into ``dest/<package>/`` (swapped in whole)."""
+    import mlflow
+    runs, _ = latest_runs(which[0])
+    col = "metrics.export/max_rel_diff"
+    if runs.empty or col not in runs:
+        return
+    tmp = Path(tempfile.mkdtemp(prefix=".export-tmp-", dir=dest.parent))
+    try:
+        for _, r in runs[runs[col].notna() & runs["tags.mlflow.runName"].str.contains(which[1])].iterrows():
+            for a in tracking.client().list_artifacts(r["run_id"], "export"):
+                if a.is_dir:
+                    mlflow.artifacts.download_artifacts(run_id=r["run_id"], artifact_path=a.path, dst_path=str(tmp))
+        got = tmp / "export"
+        if not got.is_dir():
+            return
+        old = Path(tempfile.mkdtemp(prefix=".export-old-", dir=dest.parent))
+        if dest.exists():
+            os.replace(dest, old / "export")
+        os.replace(got, dest)
+        shutil.rmtree(old, ignore_errors=True)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _stop_reasons(experiment: str, runs: pd.DataFrame):

@@ -1,0 +1,98 @@
+"""``pgnn-ff export RUN_ID [--out DIR]`` (or ``python -m pipeline export …``): export the
+feedforward of an existing MLflow run (issue 12).
+
+The run's resolved config (its ``<run id>.yaml`` artifact) is rerun with the stages up to
+``invert`` plus ``export``: the upstream stages load from the cache (or are recomputed, bit-identical
+for the config), the packages and MLflow models are logged to that run, and the packages are
+copied to ``DIR/<package>/`` (default ``export/``), each appearing whole or not at all.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from pipeline.export.law import LAWS, ExportError
+from pipeline.runner import ORDER, ConfigError
+
+__all__ = ["main", "export_run"]
+
+
+def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool = True) -> dict:
+    """Export the feedforward of run ``run_id`` to ``out``; returns {package: manifest}."""
+    import mlflow
+
+    from pipeline import runner, tracking
+    client = tracking.client()
+    try:
+        run = client.get_run(run_id)
+    except mlflow.exceptions.MlflowException as exc:
+        raise ConfigError(f"no run {run_id!r} in the tracking store {tracking.tracking_uri()} "
+                          "(set MLFLOW_TRACKING_URI to the store the run is in)") from exc
+    tags = run.data.tags
+    if tags.get("sweep") == "parent":
+        raise ConfigError(f"run {run_id} is the parent of a sweep; export one of its children (make ui lists them)")
+    stages = [s for s in tags.get("stages", "").split(",") if s]
+    if "invert" not in stages:
+        raise ConfigError(f"run {run_id} designed no feedforward (stages={stages}): export needs a run with the "
+                          "invert stage")
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            path = mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=f"{run_id}.yaml", dst_path=tmp)
+        except (mlflow.exceptions.MlflowException, OSError) as exc:
+            raise ConfigError(f"run {run_id} has no resolved config artifact ({run_id}.yaml): it was not made by "
+                              "this pipeline") from exc
+        cfg = OmegaConf.load(path)
+    kind = str(OmegaConf.select(cfg, "invert.kind", default=""))
+    if kind not in LAWS:
+        raise ConfigError(f"run {run_id} has invert.kind={kind!r}, which has no feedforward law to ship; "
+                          f"export covers {list(LAWS)}")
+    if "export" not in cfg:   # a run made before the export stage existed
+        cfg.export = OmegaConf.load(runner.ROOT / "conf" / "config.yaml").export
+    cfg.export.register = bool(register)
+    cfg.export.compile = bool(compile)
+    cfg.stages = [s for s in ORDER if s in ("generate", "baseline", "train", "invert", "export")]
+    results = runner.run_job(cfg, run=tracking.JobRun.resume(run_id))
+    packages = results["export"]["packages"]
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in packages:
+        tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{name}-", dir=out))
+        try:
+            got = Path(mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=f"export/{name}",
+                                                           dst_path=str(tmp)))
+            final = out / name
+            if final.exists():
+                old = out / f".old-{name}-{time.time_ns()}"
+                os.rename(final, old)
+                shutil.rmtree(old, ignore_errors=True)
+            os.rename(got, final)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        man = packages[name]
+        c = f"C max|Δu|/max|u| = {man['c_max_rel_diff']:.2g}, {man['c_ns_per_sample']:.0f} ns/sample" \
+            if man["compiled"] else "C not compiled (no compiler)"
+        print(f"{final}: {man['law']} ({c}); MLflow model runs:/{run_id}/{name}")
+    return packages
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="pgnn-ff export", description="Export the feedforward of an MLflow run "
+                                "to C99 code, an MLflow pyfunc model and a manifest (README: Deploy the feedforward).")
+    p.add_argument("run_id", help="the MLflow run id (make ui shows it)")
+    p.add_argument("--out", default="export", help="folder of the packages (default: ./export)")
+    p.add_argument("--register", action="store_true", help="also register the model in the MLflow Model Registry")
+    p.add_argument("--no-compile", action="store_true", help="write the C source without compiling or verifying it")
+    args = p.parse_args(argv)
+    try:
+        export_run(args.run_id, Path(args.out), register=args.register, compile=not args.no_compile)
+    except (ConfigError, ExportError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0

@@ -8,12 +8,14 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from pipeline.runner import ConfigError, run_job
+from pipeline.runner import ConfigError, run_job, run_name_with_overrides
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def _main(cfg: DictConfig) -> None:
     try:
+        from hydra.core.hydra_config import HydraConfig
+        cfg.run_name = run_name_with_overrides(cfg, HydraConfig.get().overrides.task)
         run_job(cfg)
     except ConfigError as exc:  # bad input: one clear line, no traceback, exit code 2
         print(f"error: {exc}", file=sys.stderr)

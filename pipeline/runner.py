@@ -258,6 +258,37 @@ def _locked(final: Path) -> FileLock:
     return FileLock(str(locks / f"{final.parent.name}-{final.name}.lock"))
 
 
+#: overrides that do not change what a run computes or are already its experiment: not in its name
+_NAME_SKIP = ("experiment", "hydra", "stages", "paths", "report", "export", "run_name", "experiment_name")
+
+
+def run_name_with_overrides(cfg: DictConfig, overrides: Iterable[str]) -> str:
+    """The run name: ``cfg.run_name`` (the experiment's template, naming what its sweep varies)
+    plus ``-<key>=<value>`` for every command-line override the template does not interpolate, so
+    two runs of one experiment with different configs never share a name
+    (``experiment=physics_linear_motor model=pgnn`` is not named like the physics run)."""
+    node = cfg._get_node("run_name")
+    template = str(node._value()) if node is not None else ""
+    extra = []
+    for ov in overrides:
+        key, sep, raw = ov.lstrip("+~").partition("=")
+        key = key.replace("/", ".")
+        if not sep or key.split(".")[0] in _NAME_SKIP:
+            continue
+        if "${" + key + "}" in template or "${" + key + "." in template:   # the name shows it already
+            continue
+        val = OmegaConf.select(cfg, key, default=None)
+        if isinstance(val, DictConfig):   # a group option: its name
+            val = val.get("name") or raw
+        elif OmegaConf.is_list(val):
+            val = OmegaConf.to_container(val, resolve=True)
+        shown = str(raw if val is None else val)
+        if len(shown) > 24:   # a list of references: a short digest, not the whole value
+            shown = hashlib.sha256(shown.encode()).hexdigest()[:8]
+        extra.append(f"{key.removeprefix('system.')}={shown}")
+    return "-".join([str(cfg.run_name), *extra])
+
+
 def selected_stages(cfg: DictConfig) -> list[str]:
     raw = cfg.stages
     names = [raw] if isinstance(raw, str) else list(raw)

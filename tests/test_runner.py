@@ -339,3 +339,34 @@ def test_leftovers_of_a_killed_process_are_cleaned_on_the_next_start(store, cfg_
     runner.run_job(cfg)
     assert not stale.exists() and other_host.exists() and live.exists()
     assert tracking.client().get_run(orphan).info.status == "KILLED"
+
+
+def test_run_name_shows_every_override_its_template_does_not(cfg_of):
+    """Issue 14: a run's name says what it is; the experiment's own sweep keys stay as they are."""
+    over = ["model=pgnn", "identify=narx", "invert=newton", "system.c=0"]
+    cfg = cfg_of("experiment=physics_rot_trans", *over)
+    assert runner.run_name_with_overrides(cfg, ["experiment=physics_rot_trans", *over]) == \
+        "rot_trans_nmp-physics-zpetc-s0-model=pgnn-forward-identify=narx-invert=newton-c=0"
+    sweep = ["invert=direct", "system.noise.structure=output", "system.noise.std=1.0e-8", "hydra/launcher=local"]
+    cfg = cfg_of("experiment=b1_noise_sweep", *sweep[:3])
+    assert runner.run_name_with_overrides(cfg, ["experiment=b1_noise_sweep", *sweep]) == \
+        "linear_motor-output-sigma1e-08-direct-s0"      # all in the template: the reproduce names are kept
+
+
+def test_no_two_configs_of_a_sweep_share_a_run_name(store):
+    """Issue 14: a small sweep through the CLI; every run of the experiment has its own name, and one
+    name never covers two configs."""
+    import subprocess
+    import sys
+    from conftest import SHORT_TWO_MASS
+    out = subprocess.run([sys.executable, "-m", "pipeline", "-m", *SHORT_TWO_MASS, "system.noise.std=0,1e-7",
+                          "seed=0,1", "stages=[generate]", f"hydra.sweep.dir={store / 'sweep'}"],
+                         capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-2000:]
+    runs = tracking.search_runs("physics_baseline")
+    runs = runs[runs["tags.sweep"] == "child"]
+    assert len(runs) == 4
+    assert runs["tags.mlflow.runName"].nunique() == 4
+    assert (runs.groupby("tags.mlflow.runName")["tags.config_hash"].nunique() == 1).all()
+    assert any(n.startswith("two_mass_stribeck-physics-s1-data.references=") and n.endswith("-noise.std=1e-07")
+               for n in runs["tags.mlflow.runName"])

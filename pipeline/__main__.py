@@ -15,7 +15,8 @@ from pipeline.runner import ConfigError, run_job, run_name_with_overrides
 def _main(cfg: DictConfig) -> None:
     try:
         from hydra.core.hydra_config import HydraConfig
-        cfg.run_name = run_name_with_overrides(cfg, HydraConfig.get().overrides.task)
+        hc = HydraConfig.get()
+        cfg.run_name = run_name_with_overrides(cfg, hc.overrides.task, hc.sweeper.get("params"))
         run_job(cfg)
     except ConfigError as exc:  # bad input: one clear line, no traceback, exit code 2
         print(f"error: {exc}", file=sys.stderr)

@@ -262,18 +262,22 @@ def _locked(final: Path) -> FileLock:
 _NAME_SKIP = ("experiment", "hydra", "stages", "paths", "report", "export", "run_name", "experiment_name")
 
 
-def run_name_with_overrides(cfg: DictConfig, overrides: Iterable[str]) -> str:
+def run_name_with_overrides(cfg: DictConfig, overrides: Iterable[str], fixed: dict | None = None) -> str:
     """The run name: ``cfg.run_name`` (the experiment's template, naming what its sweep varies)
     plus ``-<key>=<value>`` for every command-line override the template does not interpolate, so
     two runs of one experiment with different configs never share a name
-    (``experiment=physics_linear_motor model=pgnn`` is not named like the physics run)."""
+    (``experiment=physics_linear_motor model=pgnn`` is not named like the physics run).
+    ``fixed``: the experiment's own single-valued sweep parameters (one value for every job: a
+    setting of the experiment, not a variation), left out."""
+    fixed = {k: re.sub(r"^choice\((.*)\)$", r"\1", str(v)) for k, v in (fixed or {}).items()}
+    fixed = {k: v for k, v in fixed.items() if "," not in v}
     node = cfg._get_node("run_name")
     template = str(node._value()) if node is not None else ""
     extra = []
     for ov in overrides:
         key, sep, raw = ov.lstrip("+~").partition("=")
         key = key.replace("/", ".")
-        if not sep or key.split(".")[0] in _NAME_SKIP:
+        if not sep or key.split(".")[0] in _NAME_SKIP or fixed.get(ov.lstrip("+~").partition("=")[0]) == raw:
             continue
         if "${" + key + "}" in template or "${" + key + "." in template:   # the name shows it already
             continue

@@ -47,10 +47,15 @@ def _makefile_experiments() -> list[str]:
 def test_experiment_validates_for_every_swept_value(experiment):
     base = [f"experiment={experiment}", "hydra.mode=RUN"]
     runner.validate(_compose(*base))
+    params = _compose(f"experiment={experiment}", hydra=True).hydra.sweeper.params or {}
     for key, values in _sweep(experiment).items():
         for v in values:  # each swept value on its own (the full product is the sweep itself)
             cfg = _compose(*base, f"{key}={v.strip()}")
             runner.validate(cfg)
+            # the experiment's run-name template shows every key it sweeps: no suffix is added, and
+            # the reported run names (report providers, results/) stay what they were
+            ov = [f"experiment={experiment}", f"{key}={v.strip()}", "hydra/launcher=local"]
+            assert runner.run_name_with_overrides(cfg, ov, params) == str(cfg.run_name), (key, v)
 
 
 def test_noise_sweep_is_the_linear_motor_setup_over_sigma():

@@ -136,8 +136,9 @@ def _build(cfg, figdir: Path, skip_empty: bool = False) -> tuple[pd.DataFrame, s
     return table, "\n".join(head + _claim_table(table) + sections) + "\n", built
 
 
-#: the runs whose exported packages results/export/<law>/ holds: experiment, run-name part
-SHIPPED = ("b1_linear_motor", "-equation-")
+#: the runs whose exported packages results/export/<law>/ holds: experiment, run-name part, and the
+#: reference whose CSVs are kept there (the [B1] Fig. 3 one; the run's artifacts have every reference)
+SHIPPED = ("b1_linear_motor", "-equation-", "v0_15")
 
 
 def _exports(experiment: str, runs: pd.DataFrame):
@@ -164,14 +165,14 @@ def _exports(experiment: str, runs: pd.DataFrame):
             lines.append(f"| `{name}` | `{pkg}` | {fmt('c_max_rel_diff', '.2g')} | {fmt('python_max_rel_diff', '.2g')} "
                          f"| {fmt('c_ns_per_sample', '.0f')} | {fmt('flops', '.0f')} | {fmt('parameters', '.0f')} |")
     if experiment == SHIPPED[0]:
-        lines += ["", f"The packages of the `{SHIPPED[1].strip('-')}` runs are in `results/export/<package>/` "
-                  "(README: Deploy the feedforward)."]
+        lines += ["", f"The packages of the `{SHIPPED[1].strip('-')}` runs are in `results/export/<package>/`, "
+                  f"with the reference `{SHIPPED[2].replace('_', '.')}` (README: Deploy the feedforward)."]
     return rows, "\n".join(lines) + "\n"
 
 
-def _ship(dest: Path, which: tuple[str, str]) -> None:
+def _ship(dest: Path, which: tuple[str, str, str]) -> None:
     """Copy the export packages of the runs of experiment ``which[0]`` whose name contains
-    ``which[1]`` into ``dest/<package>/`` (swapped in whole)."""
+    ``which[1]`` into ``dest/<package>/`` (swapped in whole), with the CSVs of reference ``which[2]``."""
     import mlflow
     runs, _ = latest_runs(which[0])
     col = "metrics.export/max_rel_diff"
@@ -179,13 +180,18 @@ def _ship(dest: Path, which: tuple[str, str]) -> None:
         return
     tmp = Path(tempfile.mkdtemp(prefix=".export-tmp-", dir=dest.parent))
     try:
+        got = tmp / "export"
+        got.mkdir()
         for _, r in runs[runs[col].notna() & runs["tags.mlflow.runName"].str.contains(which[1])].iterrows():
             for a in tracking.client().list_artifacts(r["run_id"], "export"):
-                if a.is_dir:
-                    mlflow.artifacts.download_artifacts(run_id=r["run_id"], artifact_path=a.path, dst_path=str(tmp))
-        got = tmp / "export"
-        if not got.is_dir():
+                if a.is_dir:   # downloaded as got/<package>
+                    mlflow.artifacts.download_artifacts(run_id=r["run_id"], artifact_path=a.path, dst_path=str(got))
+        if not any(got.iterdir()):
+            print(f"warning: no export packages in the {which[0]} runs: results/export not updated", flush=True)
             return
+        for f in got.glob("*/*.csv"):
+            if not f.stem.endswith(f"_{which[2]}"):
+                f.unlink()
         old = Path(tempfile.mkdtemp(prefix=".export-old-", dir=dest.parent))
         if dest.exists():
             os.replace(dest, old / "export")

@@ -53,6 +53,8 @@ reproduce: install  ## run every paper experiment, then write results/REPORT.md,
 	$(PY) -m pipeline stages=[report] experiment_name=report run_name=report report.update=$(REPORT_UPDATE)
 
 ui: install  ## MLflow UI on http://127.0.0.1:5000 over the same store as the runs
+	@echo "The project's experiments (open a link for its runs table):"
+	@$(PY) -c "from pipeline.tracking import experiment_links; print('\n'.join(experiment_links()) or '  none yet: run make reproduce')"
 	$(VENV)/bin/mlflow server --backend-store-uri "$${MLFLOW_TRACKING_URI:-$(MLFLOW_DB)}" \
 	  --artifacts-destination "$(ROOT)/mlruns/artifacts" --host 127.0.0.1 --port 5000 --workers 1
 

@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import signal
 import sys
+from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig
 
+from pipeline import interrupts, resources
 from pipeline.runner import ConfigError, run_job, run_name_with_overrides
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+# an absolute path: the `pgnn-ff` console script imports this module from outside the package folder
+@hydra.main(version_base="1.3", config_path=str(Path(__file__).resolve().parent.parent / "conf"), config_name="config")
 def _main(cfg: DictConfig) -> None:
     try:
         from hydra.core.hydra_config import HydraConfig
@@ -21,18 +24,31 @@ def _main(cfg: DictConfig) -> None:
     except ConfigError as exc:  # bad input: one clear line, no traceback, exit code 2
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
-
-
-def _terminate(signum, frame) -> None:  # `kill`: unwind like Ctrl-C (runs end FAILED, temps removed)
-    raise SystemExit(128 + signum)
+    except Exception as exc:  # disk full, read-only or forbidden folder, tracking server down: one line
+        line = resources.describe(exc, cfg)
+        if line is None:      # anything else is a bug: its traceback
+            raise
+        print(line, file=sys.stderr)
+        sys.exit(1)
 
 
 def main() -> None:
-    signal.signal(signal.SIGTERM, _terminate)
-    if len(sys.argv) > 1 and sys.argv[1] == "export":   # pgnn-ff export RUN_ID [--out DIR]
-        from pipeline.export.cli import main as export_main
-        sys.exit(export_main(sys.argv[2:]))
-    _main()
+    # Ctrl-C (SIGINT) and `kill` (SIGTERM) raise interrupts.Interrupted in the main thread: the stage's
+    # temporary directory is removed, the run ends KILLED; a watchdog ends the process if that takes long
+    interrupts.install()
+    try:
+        if len(sys.argv) > 1 and sys.argv[1] == "export":   # pgnn-ff export RUN_ID [--out DIR]
+            from pipeline.export.cli import main as export_main
+            sys.exit(export_main(sys.argv[2:]))
+        _main()
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", None) or interrupts.received() or signal.SIGINT
+        took = interrupts.seconds_since_signal()
+        print(f"interrupted ({signal.Signals(signum).name}"
+              + (f", stopped in {took:.1f} s" if took is not None else "")
+              + "): an unfinished run is marked KILLED and its temporary files removed; rerun the same "
+              "command to resume from the cache", file=sys.stderr, flush=True)
+        interrupts.exit_now(128 + signum)
 
 
 if __name__ == "__main__":

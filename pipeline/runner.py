@@ -42,7 +42,7 @@ import numpy as np
 from filelock import FileLock
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline import tracking
+from pipeline import interrupts, tracking
 
 #: the order stages run in; ``cfg.stages`` selects a subset
 ORDER = ("generate", "baseline", "train", "invert", "evaluate", "export", "report")
@@ -165,9 +165,13 @@ class StageContext:
                 return loaded[0]
             value = compute()
             tmp = final.with_name(_tmp_name(key))
-            tmp.mkdir(parents=True)
-            _write_signed(tmp, value)
-            os.rename(tmp, final)
+            try:
+                tmp.mkdir(parents=True)
+                _write_signed(tmp, value)
+                os.rename(tmp, final)
+            except BaseException:   # a full disk, Ctrl-C: nothing half-written stays
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise
         return value
 
     def progress(self, iterable: Iterable | None, desc: str = "", total: int | None = None):
@@ -306,19 +310,9 @@ def selected_stages(cfg: DictConfig) -> list[str]:
 
 def validate(cfg: DictConfig) -> tuple[list[str], Any, dict]:
     """Everything that can be checked before work starts (DESIGN: validate configs early)."""
+    from pipeline import schema   # every key's type, range and choices, unknown keys, interpolations
+    schema.check(cfg)
     names = selected_stages(cfg)
-    try:  # every interpolation resolves (a typo in ${...} fails here, not after hours of work)
-        OmegaConf.to_container(cfg, resolve=True)
-    except Exception as exc:  # noqa: BLE001 — OmegaConf raises several error types
-        raise ConfigError(f"config does not resolve: {str(exc).splitlines()[0]}") from exc
-    try:
-        int(cfg.seed)
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"seed={cfg.seed!r} is not an integer; use e.g. seed=0") from exc
-    name = cfg.get("experiment_name")
-    if not isinstance(name, str) or not SAFE_NAME.fullmatch(name):
-        raise ConfigError(f"experiment_name={name!r} is not a name: use letters, digits, '.', '_' and '-' "
-                          "(it names the MLflow experiment and its artifact folder), e.g. experiment_name=my_study")
     system = make_system(cfg) if "system" in cfg and cfg.system is not None else None
     modules = {}
     needed, todo = set(), list(names)
@@ -483,12 +477,18 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, 
             finally:
                 if lock is not None and lock.is_locked:
                     lock.release()
-            _log_stage(run, name, record, final, hit, cfg)
+            try:
+                _log_stage(run, name, record, final, hit, cfg)
+            finally:
+                if not cacheable:   # its temporary directory, logged: removed whatever happens
+                    shutil.rmtree(final, ignore_errors=True)
+                    interrupts.discard(final)
             print(f"[{cfg.run_name}] {name}: " + ("cached" if hit else f"{record['seconds']:.1f} s"),
                   file=sys.stderr, flush=True)  # one line per stage: a log file shows progress too
-            if not cacheable:
-                shutil.rmtree(final, ignore_errors=True)
         status = "FINISHED"
+    except KeyboardInterrupt:   # Ctrl-C or `kill` (pipeline.interrupts): stopped, not failed
+        status = "KILLED"
+        raise
     finally:
         if own_run:
             run.end(status)
@@ -499,22 +499,29 @@ def _compute(cfg, name, mod, key, keys, results, system, store, cacheable, run_i
     """Run one stage into a temporary directory and move it into the cache (atomic)."""
     final = store / name / key[:20]
     tmp = store / name / _tmp_name(key[:20])
-    tmp.mkdir(parents=True)
+    # removed on any exception, Ctrl-C included; by the interrupt watchdog if this thread cannot react
+    interrupts.on_abort(tmp, lambda: shutil.rmtree(tmp, ignore_errors=True))
     try:
+        tmp.mkdir(parents=True)
         ctx = StageContext(cfg, name, {u: results[u] for u in mod.UPSTREAM}, tmp, system, key,
                            subkey=lambda exclude: stage_key(cfg, name, mod, keys, exclude), run_id=run_id)
         _seed_everything(int(cfg.seed), name)
         t0 = time.perf_counter()
         result = mod.run(ctx) or {}
         seconds = time.perf_counter() - t0
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        if cacheable:
+            _store(tmp, final, result, ctx, seconds)
+        else:
+            final = tmp
+            (tmp / "record.json").write_text(json.dumps(_record(ctx, seconds)))
+    except BaseException as exc:
+        shutil.rmtree(tmp, ignore_errors=True)   # nothing half-written stays (a full disk, Ctrl-C)
+        interrupts.discard(tmp)
+        if isinstance(exc, OSError) and not exc.filename:   # a write into an open file: name the entry
+            exc.filename = str(tmp)
         raise
     if cacheable:
-        _store(tmp, final, result, ctx, seconds)
-    else:
-        final = tmp
-        (tmp / "record.json").write_text(json.dumps(_record(ctx, seconds)))
+        interrupts.discard(tmp)    # renamed into place (the non-cacheable one: run_job removes it)
     return final, result, json.loads((final / "record.json").read_text())
 
 

@@ -14,10 +14,13 @@ import subprocess
 import time
 from pathlib import Path
 from typing import Any, Mapping
+from urllib.parse import unquote, urlparse
 
 import mlflow
 from mlflow.entities import Metric, Param, RunTag
 from mlflow.tracking import MlflowClient
+
+from pipeline import interrupts
 
 ROOT = Path(__file__).resolve().parent.parent
 PARENT_ENV = "PIPELINE_PARENT_RUN_ID"
@@ -103,6 +106,8 @@ class JobRun:
             all_tags["mlflow.parentRunId"] = parent
         run = self.client.create_run(exp_id, run_name=run_name, tags=all_tags)
         self.run_id = run.info.run_id
+        # if Ctrl-C cannot unwind the job in time, the interrupt watchdog ends the run KILLED
+        interrupts.on_abort(("run", self.run_id), lambda: self.client.set_terminated(self.run_id, "KILLED"))
         self._log_params(params)
 
     @classmethod
@@ -131,7 +136,17 @@ class JobRun:
             self.client.log_batch(self.run_id, tags=items)
 
     def log_artifact(self, path: Path, subdir: str | None = None) -> None:
-        self.client.log_artifact(self.run_id, str(path), subdir)
+        try:   # MLflow's local store writes a hidden temporary file and renames it: never half-written
+            self.client.log_artifact(self.run_id, str(path), subdir)
+        except OSError as exc:
+            if not exc.filename and not exc.filename2:   # a write into an open file: name the folder
+                exc.filename = self._artifact_dir(subdir)
+            raise
+
+    def _artifact_dir(self, subdir: str | None) -> str:
+        uri = self.client.get_run(self.run_id).info.artifact_uri
+        folder = unquote(urlparse(uri).path) if uri.startswith("file:") else uri
+        return f"{folder}/{subdir}" if subdir else folder
 
     def log_dataset(self, df, name: str, source: str, context: str = "training") -> None:
         """Log a pandas dataset as an MLflow dataset input (DESIGN: ``log_input``)."""
@@ -192,6 +207,7 @@ class JobRun:
 
     def end(self, status: str = "FINISHED") -> None:
         self.client.set_terminated(self.run_id, status)
+        interrupts.discard(("run", self.run_id))
 
 
 def _host() -> str:
@@ -211,6 +227,18 @@ def mark_dead_runs_killed(exp_id: str) -> list[str]:
     for run_id in dead:
         c.set_terminated(run_id, "KILLED")
     return dead
+
+
+def experiment_links(base_url: str = "http://127.0.0.1:5000") -> list[str]:
+    """One line per experiment of the store with runs: its name, run count and the UI page that
+    opens on its runs table (``make ui`` prints them before starting the server)."""
+    c = client()
+    lines = []
+    for exp in c.search_experiments(order_by=["name ASC"]):
+        n = len(c.search_runs([exp.experiment_id], max_results=1000))
+        if n:
+            lines.append(f"  {exp.name:<24} {n:>4} runs  {base_url}/#/experiments/{exp.experiment_id}")
+    return lines
 
 
 def search_runs(experiment: str):
@@ -233,13 +261,14 @@ try:  # the Hydra callback lives here so that tracking stays in one module
         Works with every launcher: the parent's id is set in the environment of the process that
         runs each job (``on_job_start`` runs there: in-process for the basic launcher, in the worker
         for joblib, on the node for submitit, which receive this callback pickled with it).  The
-        parent ends FINISHED when every child finished, FAILED otherwise; if the sweep dies (an
-        exception, Ctrl-C, SIGTERM) an ``atexit`` hook marks it FAILED instead of leaving it
-        RUNNING."""
+        parent ends FINISHED when every child finished, FAILED otherwise; if the sweep dies an
+        ``atexit`` hook marks it FAILED (an exception) or KILLED (Ctrl-C, SIGTERM: with the children
+        still RUNNING, whose workers the launcher killed) instead of leaving it RUNNING."""
 
         def __init__(self) -> None:
             self.failed = 0
             self.parent_run_id: str | None = None
+            self.cache = ""
 
         def on_multirun_start(self, config, **kwargs) -> None:
             import atexit
@@ -251,7 +280,10 @@ try:  # the Hydra callback lives here so that tracking stays in one module
                                      "sweep": "parent"})
             self.parent_run_id = run.info.run_id
             os.environ[PARENT_ENV] = run.info.run_id
+            from pipeline.runner import cache_dir
+            self.cache = str(cache_dir(config))
             atexit.register(self._close, "FAILED")
+            interrupts.on_abort(("run", self.parent_run_id), lambda: self._close("KILLED"))
 
         def on_job_start(self, config, **kwargs) -> None:
             if self.parent_run_id:          # a worker process of a parallel launcher
@@ -277,7 +309,19 @@ try:  # the Hydra callback lives here so that tracking stays in one module
         def _close(self, status: str) -> None:
             run_id, self.parent_run_id = self.parent_run_id, None
             os.environ.pop(PARENT_ENV, None)
-            if run_id:
-                client().set_terminated(run_id, status)
+            if not run_id:
+                return
+            interrupts.discard(("run", run_id))
+            c = client()
+            if status != "FINISHED" and interrupts.received() is not None:   # Ctrl-C / kill
+                status = "KILLED"
+                children = c.search_runs([c.get_run(run_id).info.experiment_id],
+                                         filter_string=f"tags.mlflow.parentRunId = '{run_id}' and "
+                                                       "attributes.status = 'RUNNING'", max_results=10000)
+                for child in children:   # their workers were killed with the sweep
+                    c.set_terminated(child.info.run_id, "KILLED")
+                from pipeline.runner import remove_stale_temporaries
+                remove_stale_temporaries(Path(self.cache))   # and the stage they were computing
+            c.set_terminated(run_id, status)
 except ImportError:  # pragma: no cover
     pass

@@ -52,12 +52,7 @@ def optimal_input(system, r):
 def validate(cfg, system) -> None:
     from stages._common import reference_specs
     measured_data = str(cfg.data.get("kind")) == "measured"
-    if isinstance(system, Recording):
-        from pipeline.identify.measured_loop import CONVENTIONS
-        conv = cfg.evaluate.get("convention", "data")
-        if conv not in CONVENTIONS:
-            raise ConfigError(f"evaluate.convention={conv!r}; choose one of {CONVENTIONS} (data: as recorded, "
-                              "published: the EMPS authors' script, unit delay and time base t(10) - t(9))")
+    if isinstance(system, Recording):   # evaluate.convention's choices: pipeline.schema
         bad = [s["name"] for s in reference_specs(cfg.evaluate.references) if s.get("kind") != "measured"]
         if bad:
             raise ConfigError(f"system '{system.name}' is a recording: it has no plant to run reference(s) {bad}; "

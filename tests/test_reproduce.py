@@ -36,3 +36,22 @@ def test_job_lines_with_brackets_in_run_names_are_counted():
              "[a] evaluate: 0.1 s", "[b] something else", "progress [x] train 10%"]
     runs = {m.group("run") for m in map(_STAGE_LINE.match, lines) if m}
     assert runs == {"rot_trans_nmp-fhofc-n[32]-g1e-06-s0", "rot_trans_nmp-fhofc-n[]-g1e-06-s0", "a"}
+
+
+def test_a_subset_reproduce_updates_the_report_instead_of_replacing_it():
+    """Issue 14: `make reproduce EXPERIMENTS="physics_arx k_two_mass"` runs the report with
+    report.update=true (only those sections, rows and figures rebuilt: tests/test_runner.py
+    test_report_update_rebuilds_only_the_named_sections); the full run replaces it."""
+    import shutil
+    import subprocess
+    from pathlib import Path
+    if shutil.which("make") is None:
+        import pytest
+        pytest.skip("no make")
+    root = Path(__file__).resolve().parents[1]
+
+    def report_line(*args):
+        out = subprocess.run(["make", "-n", "reproduce", *args], cwd=root, capture_output=True, text=True)
+        return [ln for ln in out.stdout.splitlines() if "stages=[report]" in ln][0]
+    assert "report.update=true" in report_line("EXPERIMENTS=physics_arx k_two_mass")
+    assert "report.update=false" in report_line()

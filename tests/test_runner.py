@@ -86,9 +86,9 @@ def test_interrupted_stage_leaves_nothing_trusted(store, cfg_of, monkeypatch):
     assert "held" in out["evaluate"]["per_reference"]
     runs = tracking.search_runs("physics_baseline")
     assert runs.iloc[0]["tags.cache.evaluate"] == "miss"
-    failed = mlflow.search_runs(experiment_names=["physics_baseline"],
-                                filter_string="attributes.status = 'FAILED'")
-    assert len(failed) == 1                               # the interrupted job is marked FAILED
+    killed = mlflow.search_runs(experiment_names=["physics_baseline"],
+                                filter_string="attributes.status = 'KILLED'")
+    assert len(killed) == 1                               # the interrupted job is marked KILLED (issue 13)
 
 
 def test_run_logs_params_tags_metrics_figures_config_dataset(store, cfg_of):

@@ -78,7 +78,8 @@ def _timing(key: str) -> bool:
     return "time/" in key or "seconds" in key
 
 
-@pytest.mark.parametrize("launcher", ["local", "submitit_local"])
+# submitit_local is the SLURM code path run locally: slow (make test-full); joblib stays in the fast suite
+@pytest.mark.parametrize("launcher", ["local", pytest.param("submitit_local", marks=pytest.mark.slow)])
 def test_parallel_launchers_match_the_serial_sweep(sweep_store, tmp_path, launcher):
     """Issue 10: joblib (conf/hydra/launcher/local.yaml) and submitit's local executor run a 2-job
     sweep into one store: parent and both children FINISHED, every metric equal to the serial run."""
@@ -145,6 +146,7 @@ def mlflow_server(tmp_path_factory):
             server.wait()
 
 
+@pytest.mark.slow   # ~30 s: a real server and four workers (make test-full)
 def test_four_parallel_jobs_to_an_mlflow_server_lose_nothing(sweep_store, mlflow_server):
     """Issue 10: a 4-job multirun with 4 parallel workers tracking to a server: the parent and all
     four children FINISHED; every child has the metrics, tags and artifacts of the serial run (read

@@ -23,8 +23,6 @@ def check(cfg, system) -> None:
         system.learning_model()
     except NotImplementedError as exc:
         raise ConfigError(f"data=ilc: {exc}") from exc
-    if not 0 < float(cfg.data.ilc.gain) < 2:
-        raise ConfigError(f"data.ilc.gain={cfg.data.ilc.gain}: the learning gain must be in (0, 2)")
 
 
 def make(cfg, system, ctx) -> Dataset:

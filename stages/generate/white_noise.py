@@ -7,13 +7,6 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.data import Dataset
-from pipeline.runner import ConfigError
-
-
-def check(cfg, system) -> None:
-    n = int(cfg.data.n_samples)
-    if n < 10:
-        raise ConfigError(f"data.n_samples={n} is too short for identification; use >= 10")
 
 
 def make(cfg, system, ctx) -> Dataset:

@@ -38,18 +38,11 @@ def check(cfg, system) -> None:
     if str(cfg.identify.kind) != "sim_error":
         raise ConfigError(f"invert.kind={cfg.invert.kind} needs a closed-loop model identified by "
                           f"identify.kind=sim_error, got identify.kind={cfg.identify.kind}")
-    inv = cfg.invert
-    if not float(inv.gamma) >= 0:
-        raise ConfigError(f"invert.gamma={inv.gamma}; give γ >= 0 [m/N]")
-    h = inv.get("horizon")
-    if h is not None and (not isinstance(h, int) or h < 1):
-        raise ConfigError(f"invert.horizon={h!r}; give null (full horizon) or an integer >= 1")
+    inv = cfg.invert   # gamma, horizon, max_iter, the bounds' types: pipeline.schema
     for key in ("uff_bounds", "u_bounds"):
         b = _bounds(inv.get(key))
         if b is not None and not b[0] < b[1]:
             raise ConfigError(f"invert.{key}: lower {b[0]} must be below upper {b[1]}")
-    if int(inv.max_iter) < 1:
-        raise ConfigError(f"invert.max_iter={inv.max_iter}; give an integer >= 1")
 
 
 def solve(ctx, r, target=None, u_ff0=None, gamma=None):

@@ -23,11 +23,7 @@ from stages.invert.fhofc import check as check_fhofc
 
 def check(cfg, system) -> None:
     check_fhofc(cfg, system)
-    inv = cfg.invert
-    if not 0 < float(inv.alpha) <= 1:
-        raise ConfigError(f"invert.alpha={inv.alpha}; the learning gain must be in (0, 1]")
-    if int(inv.n_trials) < 1:
-        raise ConfigError(f"invert.n_trials={inv.n_trials}; give an integer >= 1")
+    inv = cfg.invert   # alpha, n_trials: pipeline.schema
     if inv.get("horizon") is not None:
         raise ConfigError("invert.kind=il_fhofc solves the full-horizon FHOFC; set invert.horizon=null")
 

@@ -24,10 +24,7 @@ def _bounds(cfg):
 
 
 def check(cfg, system) -> None:
-    check_structure(cfg, "newton", ("forward", "invertible"))
-    k = cfg.invert.get("k")
-    if not isinstance(k, int) or k < 0:
-        raise ConfigError(f"invert.k={k!r}: give a non-negative integer number of Newton updates")
+    check_structure(cfg, "newton", ("forward", "invertible"))   # invert.k, u_min, u_max: pipeline.schema
     lo, hi = _bounds(cfg)
     if not lo < hi:
         raise ConfigError(f"invert.u_min={lo} must be below invert.u_max={hi}")

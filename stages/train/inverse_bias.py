@@ -26,11 +26,7 @@ def check(cfg, system) -> None:
     if system is not None and not hasattr(system, "generate"):
         raise ConfigError(f"identify.kind=inverse_bias needs the arx_bias system (it draws its own "
                           f"data sets), got system '{getattr(system, 'name', system)}'")
-    sizes = OmegaConf.to_container(cfg.identify.sample_sizes, resolve=True)
-    if len(sizes) < 2 or any(int(n) < 10 for n in sizes):
-        raise ConfigError(f"identify.sample_sizes={sizes}: give at least two sizes >= 10")
-    if int(cfg.identify.n_seeds) < 2:
-        raise ConfigError(f"identify.n_seeds={cfg.identify.n_seeds}: give at least 2")
+    # identify.sample_sizes (>= 2 sizes >= 10), identify.n_seeds (>= 2): pipeline.schema
 
 
 def fit(ctx) -> dict:

@@ -54,29 +54,14 @@ def check(cfg, system) -> None:
     if m.get("kind") not in KINDS:
         raise ConfigError(f"identify.kind=sk_oe needs model.kind in {KINDS}, got {m.get('kind')!r} "
                           "(model=rational or model=pgnn_shared_ar)")
-    for k, lo in (("n_a", 1), ("n_b", 0)):
-        if not isinstance(m.get(k), int) or m[k] < lo:
-            raise ConfigError(f"model.{k}={m.get(k)!r}: give an integer >= {lo}")
-    if m.get("basis") not in ("shift", "delta"):
-        raise ConfigError(f"model.basis={m.get('basis')!r}; choose 'shift' or 'delta'")
-    reg = str(cfg.regularizer.name)
+    reg = str(cfg.regularizer.name)   # types, ranges and choices of model.*, identify.*, lam: pipeline.schema
     if reg not in REGULARIZERS:
         raise ConfigError(f"identify.kind=sk_oe supports regularizer in {REGULARIZERS}, got {reg!r}")
-    if reg == "orthogonal" and not float(cfg.regularizer.lam) >= 0:
-        raise ConfigError(f"regularizer.lam={cfg.regularizer.lam}: give λ >= 0")
     ident = cfg.identify
-    for k in ("max_iter", "n_restarts", "n_jobs", "lm_max_iter", "oe_check_iter"):
-        if int(ident[k]) < 1:
-            raise ConfigError(f"identify.{k}={ident[k]}: give an integer >= 1")
-    if int(ident.oe_check_iter) < int(ident.lm_max_iter):
+    if ident.oe_check_iter < ident.lm_max_iter:
         raise ConfigError(f"identify.oe_check_iter={ident.oe_check_iter} < identify.lm_max_iter="
                           f"{ident.lm_max_iter}: the OE check needs at least the budget of SK's inner "
                           "solves (SPEC §8 K3)")
-    if m["kind"] == "pgnn_shared_ar":
-        if m.get("approximator") not in ("mlp", "residual"):
-            raise ConfigError(f"model.approximator={m.get('approximator')!r}; choose 'mlp' or 'residual'")
-        if m.get("window_basis") not in ("shift", "delta"):
-            raise ConfigError(f"model.window_basis={m.get('window_basis')!r}; choose 'shift' or 'delta'")
 
 
 def build_model(m: dict, Ts: float, r_train: list[np.ndarray], seed: int) -> RationalFeedforward:

@@ -1,0 +1,126 @@
+"""Resource errors: a full disk, a read-only or forbidden directory, an unreachable tracking server.
+
+:func:`describe` turns such an error into one line ``error: <what> at <path>: <reason>; <fix>`` for
+the entry point (``python -m pipeline``), instead of a traceback.  Only these errors: an ``OSError``
+whose errno is ENOSPC, EDQUOT, EROFS or EACCES, an SQLite store that is read-only, full or cannot
+be opened, and an MLflow request that could not connect.  Anything else (a programming error) is
+not described and keeps its traceback.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import re
+from pathlib import Path
+
+#: errno -> (reason, what to do)
+ERRNOS = {
+    errno.ENOSPC: ("no space left on the device", "free space there, or"),
+    errno.EDQUOT: ("disk quota exceeded", "free space there, or"),
+    errno.EROFS: ("read-only file system", ""),
+    errno.EACCES: ("permission denied", "make it writable for this user, or"),
+}
+#: SQLite's messages for a store it cannot write (sqlite3 / SQLAlchemy OperationalError)
+SQLITE = {
+    "attempt to write a readonly database": ("read-only database", "make it writable for this user, or"),
+    "database or disk is full": ("no space left on the device", "free space there, or"),
+    "unable to open database file": ("cannot open the database (missing, read-only or forbidden folder)",
+                                     "make the folder writable for this user, or"),
+}
+
+
+def _places(cfg=None) -> list[tuple[str, Path, str]]:
+    """(what, folder, how to choose another) of every place a job writes."""
+    from pipeline import runner, tracking
+    out = []
+    try:
+        out.append(("stage cache", runner.cache_dir(cfg) if cfg is not None else
+                    Path(os.environ.get("PIPELINE_CACHE") or runner.ROOT / ".cache"),
+                    "point PIPELINE_CACHE (or paths.cache=DIR) at a writable folder"))
+    except Exception:  # noqa: BLE001 — a broken cfg: the other places still apply
+        pass
+    out.append(("cache key", runner.cache_key_file().parent,
+                "point PIPELINE_CACHE_KEY_FILE at a writable location"))
+    uri = os.environ.get("MLFLOW_TRACKING_URI") or tracking.default_uri()
+    if uri.startswith("sqlite:///"):
+        out.append(("MLflow store", Path(uri[len("sqlite:///"):]).parent,
+                    "point MLFLOW_TRACKING_URI at a writable store"))
+    elif uri.startswith("file:") or "://" not in uri:
+        out.append(("MLflow store", Path(re.sub(r"^file://", "", uri)),
+                    "point MLFLOW_TRACKING_URI at a writable store"))
+    results = (cfg.get("paths", {}) or {}).get("results") if cfg is not None else None
+    out.append(("report folder", Path(results) if results else runner.ROOT / "results",
+                "set paths.results=DIR to a writable folder"))
+    return out
+
+
+def _where(path: str | None, cfg) -> tuple[str, str]:
+    """(what, how to choose another place) for ``path``: the deepest known place containing it."""
+    if not path:
+        return "file", ""
+    p = Path(os.path.abspath(path))
+    best = ("file", "", -1)
+    for what, folder, fix in _places(cfg):
+        folder = Path(os.path.abspath(folder))
+        if (p == folder or folder in p.parents) and len(folder.parts) > best[2]:
+            best = (what, fix, len(folder.parts))
+    return best[0], best[1]
+
+
+def _chain(exc: BaseException):
+    """``exc`` and its causes (``raise ... from``, and the exception being handled when it was raised)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        yield exc
+        exc = exc.__cause__ or exc.__context__
+
+
+def _os_line(exc: OSError, cfg) -> str | None:
+    if exc.errno not in ERRNOS:
+        return None
+    path = exc.filename2 or exc.filename   # rename / copy: the destination
+    what, fix = _where(str(path) if path else None, cfg)
+    reason, first = ERRNOS[exc.errno]
+    fix = " ".join(x for x in (first, fix) if x).removesuffix(", or").removesuffix(" or") or \
+        "choose a writable location"
+    return f"error: {what} at {path or 'an unnamed file'}: {reason}; {fix}"
+
+
+def describe(exc: BaseException, cfg=None) -> str | None:
+    """One line for a resource error, or None for any other error."""
+    from pipeline import tracking
+    if isinstance(exc, OSError):
+        return _os_line(exc, cfg)
+    try:
+        import mlflow
+        mlflow_error = isinstance(exc, mlflow.exceptions.MlflowException)
+    except ImportError:  # pragma: no cover
+        mlflow_error = False
+    sql_error = type(exc).__name__ == "OperationalError"   # sqlite3 / SQLAlchemy
+    if not (mlflow_error or sql_error):
+        return None
+    uri = os.environ.get("MLFLOW_TRACKING_URI") or tracking.default_uri()
+    for e in _chain(exc):
+        if isinstance(e, OSError) and e.errno in ERRNOS:
+            return _os_line(e, cfg)
+        if _is_connection_error(e):
+            reason = re.search(r"\[Errno -?\d+\] ([^\"')]+)|(timed out|Read timed out)", str(e))
+            why = (reason.group(1) or reason.group(2)).strip() if reason else type(e).__name__
+            return (f"error: MLflow tracking server at {uri}: unreachable ({why}); start it or fix "
+                    "MLFLOW_TRACKING_URI (unset: the local store under mlruns/)")
+        msg = str(e)
+        for key, (reason, first) in SQLITE.items():
+            if key in msg:
+                db = uri[len("sqlite:///"):] if uri.startswith("sqlite:///") else uri
+                return (f"error: MLflow store at {db}: {reason}; {first} point MLFLOW_TRACKING_URI "
+                        "at a writable store")
+    return None
+
+
+def _is_connection_error(e: BaseException) -> bool:
+    try:
+        import requests
+    except ImportError:  # pragma: no cover
+        return False
+    return isinstance(e, (requests.exceptions.ConnectionError, requests.exceptions.Timeout))

@@ -1,0 +1,187 @@
+"""The config schema (pipeline.schema): a bad value of any key fails before any work (no MLflow run,
+no cache entry) with one line naming the key, the value, what is allowed and an example; every
+experiment and every group option of conf/ still passes; the schema covers every stage
+implementation and agrees with the libraries' own lists of choices."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import typing
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline import runner, schema
+from tests.conftest import CONF, ROOT
+
+TWO_MASS = ["experiment=physics_two_mass",
+            "data.references=[{name:short,kind:out_and_back,distance:0.02,v_max:0.05,a_max:5,j_max:200}]",
+            "stages=[generate]"]
+PGNN = ["experiment=physics_linear_motor", "model=pgnn", "identify=narx", "invert=newton"]
+
+#: (overrides, the message must contain these)
+PROBES = [
+    pytest.param([*TWO_MASS, "evaluate.noise=maybe"],
+                 ["evaluate.noise='maybe' is not true or false", "e.g. evaluate.noise=false"], id="noise-maybe"),
+    pytest.param([*TWO_MASS, "evaluate.noise=1"], ["evaluate.noise=1 is not true or false"], id="noise-1"),
+    pytest.param([*TWO_MASS, "seed=1.5"], ["seed=1.5 is not an integer", ">= 0", "e.g. seed=0"], id="seed-1.5"),
+    pytest.param([*TWO_MASS, "seed=-1"], ["seed=-1: give an integer >= 0", "e.g. seed=0"], id="seed-negative"),
+    pytest.param([*TWO_MASS, "seed=abc"], ["seed='abc' is not an integer"], id="seed-abc"),
+    pytest.param([*TWO_MASS[:2], "stages=[]"], ["stages=[]", "non-empty list of stages", "generate"],
+                 id="stages-empty"),
+    pytest.param([*TWO_MASS[:2], "stages=[generate,fly]"], ["unknown stage(s) ['fly']"], id="stages-unknown"),
+    pytest.param([*PGNN, "model.hidden=[-3]"],
+                 ["model.hidden=[-3]: widths must be positive integers (e.g. model.hidden=[16])"],
+                 id="hidden-negative"),
+    pytest.param([*PGNN, "model.hidden=abc"], ["model.hidden='abc' is not a list of integers"], id="hidden-abc"),
+    pytest.param([*PGNN, "identify.max_iter=abc"], ["identify.max_iter='abc' is not an integer"],
+                 id="max_iter-abc"),
+    pytest.param([*PGNN, "model.use_physics=false", "model.hidden=abc"],
+                 ["model.hidden='abc' is not a list of integers"], id="black-box-hidden-abc"),
+    pytest.param([*PGNN, "invert.k=1.5"], ["invert.k=1.5 is not an integer"], id="newton-k"),
+    pytest.param([*PGNN, "identify.val_fraction=-0.1"], ["identify.val_fraction=-0.1", ">= 0 and < 1"],
+                 id="val_fraction"),
+    pytest.param(["experiment=physics_arx", "data.u_std=nan"], ["data.u_std=nan: not finite"], id="u_std-nan"),
+    pytest.param(["experiment=physics_arx", "data.u_std=inf"], ["data.u_std=inf: not finite"], id="u_std-inf"),
+    pytest.param(["experiment=physics_arx", "data.n_samples=5"], ["data.n_samples=5", ">= 10"], id="n_samples"),
+    pytest.param([*TWO_MASS, "system.noise.std=inf"], ["system.noise.std=inf: not finite", "< 1 [m]"],
+                 id="two_mass-noise-inf"),
+    pytest.param([*TWO_MASS, "system.noise.std=1e300"],
+                 ["system.noise.std=1e+300: implausible magnitude", ">= 0 and < 1 [m]"], id="two_mass-noise-1e300"),
+    pytest.param([*PGNN, "system.noise.std=1e300"], ["system.noise.std=1e+300: implausible magnitude"],
+                 id="motor-noise-1e300"),
+    pytest.param(["experiment=physics_rot_trans", "system.noise.std=nan"], ["system.noise.std=nan"],
+                 id="rot_trans-noise-nan"),
+    pytest.param(["experiment=physics_arx", "system.noise.std=-1"], ["system.noise.std=-1"], id="arx-noise"),
+    pytest.param([*TWO_MASS, "system.m1=1e300"], ["system.m1=1e+300: implausible magnitude", "[kg]"], id="mass"),
+    pytest.param([*TWO_MASS, "system.Ts=0"], ["system.Ts=0", "> 0"], id="Ts"),
+    pytest.param(["experiment=physics_rot_trans", "data=ilc", "data.ilc.gain=3"],
+                 ["data.ilc.gain=3: the learning gain must be in (0, 2)"], id="ilc-gain"),
+    pytest.param([*TWO_MASS, "export.rtol=2"], ["export.rtol=2"], id="export-rtol"),
+    pytest.param([*TWO_MASS, "+system.foo=1"], ["system.foo: unknown key", "allowed keys: _target_, name, m1"],
+                 id="unknown-key"),
+    pytest.param([*TWO_MASS, "invert.kind=teleport"], ["no 'invert' implementation for kind 'teleport'"],
+                 id="unknown-kind"),
+    pytest.param([*TWO_MASS, "experiment_name=../../evil"], ["experiment_name='../../evil' is not a name"],
+                 id="experiment-name"),
+    pytest.param(["experiment=b2_rot_trans", "hydra.mode=RUN", "identify.theta_star=ls"],
+                 ["identify.theta_star='ls'; choose one of ('arx', 'sim_error', 'oracle')"], id="theta_star"),
+    pytest.param([*TWO_MASS, "system.alpha=${oops}"], ["config does not resolve"], id="interpolation"),
+]
+
+
+def _nothing_written(store: Path) -> None:
+    """No cache entry and no MLflow run (the store is not even created)."""
+    cache = store / "cache"
+    assert not cache.exists() or not any(p for p in cache.glob("*/*") if p.parent.name != ".locks"), \
+        sorted(cache.glob("*/*"))
+    db = store / "mlflow.db"
+    if db.exists():
+        import mlflow
+        mlflow.set_tracking_uri(f"sqlite:///{db}")
+        assert mlflow.search_runs(search_all_experiments=True).empty
+
+
+@pytest.mark.parametrize("overrides, expected", PROBES)
+def test_bad_value_fails_before_any_work_with_one_line(store, cfg_of, overrides, expected):
+    with pytest.raises(runner.ConfigError) as err:
+        runner.run_job(cfg_of(*overrides))
+    msg = str(err.value)
+    assert "\n" not in msg
+    for part in expected:
+        assert part in msg, msg
+    _nothing_written(store)
+
+
+def _measured(tmp_path, frame: pd.DataFrame, name: str) -> list[str]:
+    path = tmp_path / name
+    frame.to_parquet(path) if name.endswith(".parquet") else frame.to_csv(path, index=False)
+    return ["experiment=physics_two_mass", "data=measured", f"data.path={tmp_path}", f"data.file={name}",
+            "stages=[generate]"]
+
+
+def _record(n: int = 50) -> pd.DataFrame:
+    return pd.DataFrame({"t": np.arange(n) * 1e-3, "r": np.zeros(n), "u": np.zeros(n), "y": np.zeros(n)})
+
+
+def test_measured_format_is_one_the_loader_reads(store, cfg_of, tmp_path):
+    from stages.generate.measured import FORMATS
+    with pytest.raises(runner.ConfigError, match=r"data\.format='bogus'; choose one of \('table', 'emps'\)"):
+        runner.run_job(cfg_of(*_measured(tmp_path, _record(), "rec.csv"), "data.format=bogus"))
+    with pytest.raises(runner.ConfigError, match=r"^data\.path is not set"):
+        runner.run_job(cfg_of("experiment=physics_two_mass", "data=measured", "stages=[generate]"))
+    _nothing_written(store)
+    assert typing.get_args(typing.get_type_hints(schema.MeasuredData)["format"]) == FORMATS
+
+
+@pytest.mark.parametrize("name", ["rec.parquet", "rec.csv"])
+def test_text_column_in_a_measured_file_is_named(store, cfg_of, tmp_path, name):
+    df = _record()
+    df["u"] = df["u"].astype(object)
+    df.loc[4, "u"] = "3 N"
+    if name.endswith(".parquet"):
+        df["u"] = df["u"].astype(str)
+    with pytest.raises(runner.ConfigError) as err:
+        runner.run_job(cfg_of(*_measured(tmp_path, df, name)))
+    msg = str(err.value)
+    assert "\n" not in msg and f"{name}: column 'u' is not numeric" in msg and "'3 N' at row 4" in msg, msg
+    _nothing_written(store)
+
+
+@pytest.mark.parametrize("override, expected", [
+    ("evaluate.noise=maybe", "error: evaluate.noise='maybe' is not true or false"),
+    ("system.noise.std=1e300", "error: system.noise.std=1e+300: implausible magnitude"),
+])
+def test_cli_prints_one_error_line_and_exits_2(tmp_path, override, expected):
+    env = {**os.environ, "PIPELINE_CACHE": str(tmp_path / "cache"),
+           "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}",
+           "PIPELINE_CACHE_KEY_FILE": str(tmp_path / "cache.key")}
+    out = subprocess.run([sys.executable, "-m", "pipeline", *TWO_MASS, override,
+                          f"hydra.run.dir={tmp_path / 'hydra'}"], cwd=ROOT, env=env,
+                         capture_output=True, text=True, timeout=120)
+    lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
+    assert out.returncode == 2, out.stderr
+    assert len(lines) == 1 and lines[0].startswith(expected), out.stderr
+    _nothing_written(tmp_path)
+
+
+EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
+OPTIONS = [f"{g}={p.stem}" for g in ("system", "data", "model", "identify", "regularizer", "invert", "evaluate")
+           for p in sorted((CONF / g).glob("*.yaml"))]
+#: the mandatory values (???) of the templates
+NEEDS = {"system=measured": ["system.controller.kp=160.18", "system.controller.kv=243.45"],
+         "data=measured": ["data.path=/nowhere"]}
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_every_experiment_passes(cfg_of, experiment):
+    schema.check(cfg_of(f"experiment={experiment}", "hydra.mode=RUN"))
+
+
+@pytest.mark.parametrize("option", OPTIONS)
+def test_every_group_option_passes(cfg_of, option):
+    schema.check(cfg_of(option, *NEEDS.get(option, [])))
+
+
+def test_schema_covers_every_implementation_and_the_libraries_choices():
+    from pipeline.identify.measured_loop import CONVENTIONS
+    from pipeline.models.pgnn import _ACTIVATIONS, _STRUCTURES
+    from stages.train.sim_error import THETA_STAR
+
+    def impl(stage):
+        return {p.stem for p in (ROOT / "stages" / stage).glob("*.py") if not p.stem.startswith("_")}
+    assert set(schema.DATA) == impl("generate")
+    assert set(schema.IDENTIFY) == impl("train")
+    assert set(schema.INVERT) == impl("invert")
+    assert {f"pipeline.systems.{p.stem}" for p in (ROOT / "pipeline" / "systems").glob("*.py")} >= \
+        {t.rsplit(".", 1)[0] for t in schema.SYSTEMS}
+
+    def choices(cls, key):
+        return typing.get_args(typing.get_type_hints(cls)[key])
+    assert choices(schema.Evaluate, "convention") == CONVENTIONS
+    assert choices(schema.Pgnn, "structure") == _STRUCTURES
+    assert set(choices(schema.Pgnn, "activation")) == set(_ACTIVATIONS)
+    assert choices(schema.SimError, "theta_star") == THETA_STAR

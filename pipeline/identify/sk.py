@@ -481,7 +481,8 @@ def _sk_restart(job: tuple) -> tuple[SKResult, float, bool]:
     return res, time.perf_counter() - t0, warned
 
 
-def sk_restarts(models, r, f_hat, *, n_jobs: int = 1, **kw) -> list[tuple[SKResult, float, bool]]:
+def sk_restarts(models, r, f_hat, *, n_jobs: int = 1, progress: Callable | None = None,
+                **kw) -> list[tuple[SKResult, float, bool]]:
     """:func:`sk_iterations` from several initial models (random restarts, SPEC §5).
 
     Parameters
@@ -492,6 +493,8 @@ def sk_restarts(models, r, f_hat, *, n_jobs: int = 1, **kw) -> list[tuple[SKResu
         Training data, as :func:`sk_iterations`.
     n_jobs : int
         Worker processes (joblib, loky backend); 1 runs the restarts in this process.
+    progress : callable, optional
+        ``progress(iterable, total)`` wraps the results as they arrive, in order (a progress bar).
     **kw
         Passed to :func:`sk_iterations`.
 
@@ -503,11 +506,14 @@ def sk_restarts(models, r, f_hat, *, n_jobs: int = 1, **kw) -> list[tuple[SKResu
     """
     jobs = [(m, r, f_hat, kw) for m in models]
     if int(n_jobs) <= 1 or len(jobs) == 1:
-        return [_sk_restart(j) for j in jobs]
-    # joblib's loky processes (never fork a process that holds torch threads); inside a worker of
-    # Hydra's joblib launcher joblib itself decides how far to nest
-    from joblib import Parallel, delayed
-    return Parallel(n_jobs=min(int(n_jobs), len(jobs)), backend="loky")(delayed(_sk_restart)(j) for j in jobs)
+        out = (_sk_restart(j) for j in jobs)
+    else:
+        # joblib's loky processes (never fork a process that holds torch threads); inside a worker of
+        # Hydra's joblib launcher joblib itself decides how far to nest; results in order as they end
+        from joblib import Parallel, delayed
+        out = Parallel(n_jobs=min(int(n_jobs), len(jobs)), backend="loky",
+                       return_as="generator")(delayed(_sk_restart)(j) for j in jobs)
+    return list(progress(out, len(jobs)) if progress is not None else out)
 
 
 # ----------------------------------------------------------------------------- direct OE

@@ -123,19 +123,27 @@ def fit(ctx) -> dict:
         ctx.tag("regularizer_ignored", "the rational model has no approximator")
     t0 = time.perf_counter()
     screen = n_restarts > 1 and int(ident.screen_max_iter) > 0
+    def bar(desc):   # progress over restarts (stderr, quiet in tests and logs)
+        return lambda it, n: ctx.progress(it, desc=desc, total=n)
     if screen:   # every restart on a short budget; the best by training cost is then converged
-        outs = sk_restarts(models, rs, fs, n_jobs=int(ident.n_jobs),
+        outs = sk_restarts(models, rs, fs, n_jobs=int(ident.n_jobs), progress=bar("SK restarts (screening)"),
                            **{**kw, "max_iter": int(ident.screen_max_iter),
                               "lm_max_iter": int(ident.screen_lm_max_iter)})
     else:
-        outs = sk_restarts(models, rs, fs, n_jobs=1, **kw)
+        outs = sk_restarts(models, rs, fs, n_jobs=1, progress=bar("SK restarts"), **kw)
     ctx.metric("restarts_seconds", time.perf_counter() - t0)
 
     results = [o[0] for o in outs]
     cost_rep = [r.cost[r.best] for r in results]     # J_OE (+ λR): the training cost (SPEC §5)
     best = int(np.argmin(cost_rep))
     if screen:   # SK to convergence from the kept restart's screened model (init = that model)
-        outs[best] = sk_restarts([results[best].model], rs, fs, n_jobs=1, init="model", **kw)[0]
+        its = ctx.progress(None, desc=f"SK iterations of restart {best}", total=int(ident.max_iter) + 1)   # + the start
+
+        def step(it):   # one SK iteration of the kept restart done: J_OE and parameter change
+            its.update(1)
+            its.set_postfix(J_OE=f"{it.J_OE:.4e}", change=f"{it.change:.1e}")
+        outs[best] = sk_restarts([results[best].model], rs, fs, n_jobs=1, init="model", callback=step, **kw)[0]
+        its.close()
         results[best] = outs[best][0]
         cost_rep[best] = results[best].cost[results[best].best]
         ctx.metric("screened_restarts", n_restarts)

@@ -194,7 +194,8 @@ def test_export_stage_logs_a_verified_package_and_a_pyfunc_model(invert, noise, 
     import mlflow
 
     from pipeline import runner, tracking
-    cfg = cfg_of(*SHORT_B1, f"invert={invert}", f"system.noise.structure={noise}")
+    register = noise == "output"     # one case also registers the model (export.register=true)
+    cfg = cfg_of(*SHORT_B1, f"invert={invert}", f"system.noise.structure={noise}", f"export.register={register}")
     res = runner.run_job(cfg)
     name = f"ff_{invert}"
     man = res["export"]["packages"][name]
@@ -209,6 +210,10 @@ def test_export_stage_logs_a_verified_package_and_a_pyfunc_model(invert, noise, 
     u_py = model.predict(pd.DataFrame({"r": res["invert"]["r"]["v0.15"]}))["u_ff"].to_numpy()
     assert np.max(np.abs(u_py - u_study)) <= 1e-9 * np.max(np.abs(u_study))
     assert run["status"] == "FINISHED"
+    if register:
+        (version,) = tracking.client().search_model_versions(f"name='b1_linear_motor-{name}'")
+        assert version.run_id == run["run_id"] and version.tags["run_id"] == run["run_id"]
+        assert float(version.tags["evaluate/v0.15/mae"]) == pytest.approx(run["metrics.evaluate/v0.15/mae"], rel=1e-5)
 
 
 @needs_cc

@@ -55,3 +55,18 @@ def test_a_subset_reproduce_updates_the_report_instead_of_replacing_it():
         return [ln for ln in out.stdout.splitlines() if "stages=[report]" in ln][0]
     assert "report.update=true" in report_line("EXPERIMENTS=physics_arx k_two_mass")
     assert "report.update=false" in report_line()
+
+
+def test_committed_summary_has_one_row_per_key():
+    """Issue 14: no (experiment, claim, variant, metric) key twice in results/summary.csv (the report
+    stage refuses to write one; this checks the committed file)."""
+    from pathlib import Path
+
+    import pandas as pd
+
+    from stages.report import KEY
+    table = pd.read_csv(Path(__file__).resolve().parents[1] / "results" / "summary.csv", dtype=str,
+                        keep_default_na=False)
+    dup = table[table.duplicated(KEY, keep=False)]
+    assert dup.empty, dup[KEY].to_string()
+    assert len(table) > 100

@@ -152,6 +152,8 @@ def test_bad_input_is_refused_by_name(tmp_path):
     m = _pgnn("inverse", RigidBodyInverse(Ts), theta=(5.0, 10.0, 2.0))
     with pytest.raises(ExportError, match="law newton needs a PGNN of structure"):
         from_pgnn(m, "newton", Ts)
+    with pytest.raises(ExportError, match="law analytic needs an invertible PGNN"):
+        from_pgnn(_pgnn("forward", RigidBodyForward(Ts, 2)), "analytic", Ts)
     r = _reference()
     u = direct_feedforward(m, r)
     bad = u.copy()

@@ -160,6 +160,9 @@ def from_pgnn(model, law: str, Ts: float, *, averaged: bool = False, k: int = 5,
             "newton": ("forward", "invertible"), "physics": ("forward", "invertible", "inverse")}[law]
     if fm.structure not in need:
         raise ExportError(f"law {law} needs a PGNN of structure {need}, got {fm.structure!r}")
+    if law == "analytic" and not model.analytically_invertible:   # [B1] (26): the NN is blind to u(t-n_k-1)
+        raise ExportError("law analytic needs an invertible PGNN ([B1] (26)) or a physics-only forward model; "
+                          "export a forward PGNN with law newton")
     ints = {name: int(v) for name, v in zip(_META, fm.meta)}
     ints["inverse_layout"] = int(fm.structure == "inverse")
     floats = {}

@@ -59,12 +59,15 @@ def validate(cfg, system) -> None:
     # export.rtol in (0, 1), export.timing_repeats >= 0: pipeline.schema
 
 
-def build_laws(ctx) -> dict[str, "laws.Law"]:
-    """{package name: law} of the job's feedforward (one per reference for a table)."""
+def build_laws(ctx) -> dict[str, tuple["laws.Law", list[str]]]:
+    """{package name: (law, the evaluation references it is verified on)}: every reference, or for
+    FHOFC / IL-FHOFC one table package per reference."""
     cfg, train = ctx.cfg, ctx.inputs["train"]
+    every = list(ctx.inputs["invert"]["r"])
     kind, Ts = str(cfg.invert.kind), float(ctx.system.Ts)
     if kind == "physics":
-        return {"ff_physics": laws.from_linear_motor_physics(ctx.system.physics, ctx.inputs["baseline"]["theta"])}
+        return {"ff_physics": (laws.from_linear_motor_physics(ctx.system.physics, ctx.inputs["baseline"]["theta"]),
+                               every)}
     if kind in ("direct", "analytic", "newton"):
         model = train.get("model")
         if model is None:
@@ -76,14 +79,14 @@ def build_laws(ctx) -> dict[str, "laws.Law"]:
             kw = {"k": int(cfg.invert.k), "u_bounds": (-math.inf if lo is None else float(lo),
                                                        math.inf if hi is None else float(hi))}
         try:
-            return {f"ff_{kind}": laws.from_pgnn(model, kind, Ts, averaged=averaged, **kw)}
+            return {f"ff_{kind}": (laws.from_pgnn(model, kind, Ts, averaged=averaged, **kw), every)}
         except laws.ExportError as exc:
             raise ConfigError(f"export: {exc}") from exc
     if kind == "rational_filter":
         model = train["model"]
-        return {f"ff_{'pgnn_shared_ar' if hasattr(model, 'g') else 'rational'}": laws.from_k_filter(model)}
-    u = ctx.inputs["invert"]["u_ff"]
-    return {f"ff_{kind}_{ref}": laws.from_table(kind, Ts, r, u[ref]) for ref, r in ctx.inputs["invert"]["r"].items()}
+        return {f"ff_{'pgnn_shared_ar' if hasattr(model, 'g') else 'rational'}": (laws.from_k_filter(model), every)}
+    inv = ctx.inputs["invert"]
+    return {f"ff_{kind}_{ref}": (laws.from_table(kind, Ts, r, inv["u_ff"][ref]), [ref]) for ref, r in inv["r"].items()}
 
 
 def run(ctx) -> dict:
@@ -99,11 +102,8 @@ def run(ctx) -> dict:
               "config_hash": ctx.key[:20]}
     out = ctx.workdir / "artifacts"
     manifests, worst = {}, 0.0
-    for name, law in build_laws(ctx).items():
-        refs = {ref: (r, inv["u_ff"][ref]) for ref, r in inv["r"].items()}
-        if law.family == "table":
-            ref = name.split(f"ff_{law.law}_", 1)[1]
-            refs = {ref: refs[ref]}
+    for name, (law, names) in build_laws(ctx).items():
+        refs = {ref: (inv["r"][ref], inv["u_ff"][ref]) for ref in names}
         man = write_package(law, name, out, refs, source=source, cc=cc, rtol=float(e.rtol),
                             timing_repeats=int(e.timing_repeats))
         manifests[name] = man

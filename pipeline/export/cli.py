@@ -9,16 +9,15 @@ copied to ``DIR/<package>/`` (default ``export/``), each appearing whole or not 
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 from omegaconf import OmegaConf
 
 from pipeline.export.law import LAWS, ExportError
+from pipeline.export.package import replace_dir
 from pipeline.runner import ORDER, ConfigError
 
 __all__ = ["main", "export_run"]
@@ -68,11 +67,7 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
             got = Path(mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=f"export/{name}",
                                                            dst_path=str(tmp)))
             final = out / name
-            if final.exists():
-                old = out / f".old-{name}-{time.time_ns()}"
-                os.rename(final, old)
-                shutil.rmtree(old, ignore_errors=True)
-            os.rename(got, final)
+            replace_dir(got, final)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         man = packages[name]

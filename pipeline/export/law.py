@@ -278,15 +278,15 @@ def feedforward(law: Law, r) -> np.ndarray:
 
 def _pgnn_run(law: Law, r: np.ndarray) -> np.ndarray:
     from pipeline.invert.analytic import _run
-    from pipeline.invert.direct import _direct_run
+    from pipeline.invert.direct import _direct_run, initial_state
     from pipeline.invert.newton import _newton_run
+    from pipeline.models.pgnn import FastPGNN
     m = law.ints
     blob = law.arrays["blob"]
     meta = np.array([m[k] for k in _META], dtype=np.int64)
-    n_a, n_k = m["n_a"], m["n_k"]
-    r_ext = padded(law, r, n_a, n_k + 1)
-    state = np.zeros(2 * (n_a + m["n_b"]) + 1)
-    state[:n_a + 1] = [r_ext[n_k - i + n_a] for i in range(n_a + 1)]
+    fm = FastPGNN(blob, meta, law.strings["structure"], m["n_a"], m["n_b"], m["n_k"])
+    r_ext = padded(law, r, m["n_a"], m["n_k"] + 1)
+    state = initial_state(fm, r_ext)
     N = r.size
     if law.law == "direct":
         return _direct_run(blob, meta, state, r_ext, N)

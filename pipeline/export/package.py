@@ -24,7 +24,7 @@ from pipeline.export.c_code import CFLAGS, c_name, write_c
 from pipeline.export.law import ExportError, Law, feedforward
 
 __all__ = ["find_compiler", "compile_harness", "run_harness", "time_harness", "write_package",
-           "rel_diff"]
+           "replace_dir", "rel_diff"]
 
 
 def find_compiler(cc: str | None = None) -> str | None:
@@ -93,6 +93,16 @@ def rel_diff(a: np.ndarray, b: np.ndarray) -> float:
     return d / scale if scale > 0 else d
 
 
+def replace_dir(src: Path, final: Path) -> None:
+    """Move the complete folder ``src`` to ``final``, replacing an existing one: the old one is moved
+    aside first, so ``final`` is always a whole package (or absent)."""
+    if final.exists():
+        old = final.with_name(f".old-{final.name}-{time.time_ns()}")
+        os.rename(final, old)
+        shutil.rmtree(old, ignore_errors=True)
+    os.rename(src, final)
+
+
 def write_package(law: Law, name: str, out: Path, references: dict, *, source: dict,
                   cc: str | None = "cc", rtol: float = 1e-9, timing_repeats: int = 21,
                   keep_exe: bool = False) -> dict:
@@ -113,12 +123,7 @@ def write_package(law: Law, name: str, out: Path, references: dict, *, source: d
     try:
         manifest = _build(law, name, tmp, references, source, cc, rtol, timing_repeats, keep_exe)
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1))
-        final = out / name
-        if final.exists():   # replace: move the old one aside first, so a package is always whole
-            old = out / f".old-{name}-{time.time_ns()}"
-            os.rename(final, old)
-            shutil.rmtree(old, ignore_errors=True)
-        os.rename(tmp, final)
+        replace_dir(tmp, out / name)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

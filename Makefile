@@ -7,7 +7,7 @@ ROOT := $(abspath .)
 MLFLOW_DB ?= sqlite:///$(ROOT)/mlruns/mlflow.db
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help install test test-full lint reproduce ui bench clean
+.PHONY: help install test test-full lint reproduce reproduce-check ui bench clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-10s %s\n", $$1, $$2}'
@@ -52,6 +52,18 @@ reproduce: install  ## run every paper experiment, then write results/REPORT.md,
 	$(PY) -m pipeline.reproduce $(if $(JOBS),--jobs $(JOBS)) $(EXPERIMENTS)
 	$(PY) -m pipeline stages=[report] experiment_name=report run_name=report report.update=$(REPORT_UPDATE)
 
+# a second machine, emulated (issue 19): every LM step's normal equations perturbed at relative
+# PERTURB (pipeline/perturbation.py), own cache and store under .perturbed/; compared key by key
+# with results/summary.csv into results/PERTURBATION.md and results/perturbation.csv
+PERTURB ?= 1e-13
+PERTURBED := $(ROOT)/.perturbed
+reproduce-check: install  ## rerun every experiment perturbed (another machine, emulated) and compare with results/
+	PIPELINE_PERTURB=$(PERTURB) PIPELINE_CACHE=$(PERTURBED)/cache MLFLOW_TRACKING_URI=sqlite:///$(PERTURBED)/mlflow.db \
+	  $(PY) -m pipeline.reproduce --results $(PERTURBED)/results $(if $(JOBS),--jobs $(JOBS)) $(EXPERIMENTS)
+	PIPELINE_PERTURB=$(PERTURB) PIPELINE_CACHE=$(PERTURBED)/cache MLFLOW_TRACKING_URI=sqlite:///$(PERTURBED)/mlflow.db \
+	  $(PY) -m pipeline stages=[report] experiment_name=report run_name=report paths.results=$(PERTURBED)/results
+	PIPELINE_PERTURB=$(PERTURB) $(PY) -m pipeline.perturbation results/summary.csv $(PERTURBED)/results/summary.csv --out results
+
 ui: install  ## MLflow UI on http://127.0.0.1:5000 over the same store as the runs
 	@echo "The project's experiments (open a link for its runs table):"
 	@$(PY) -c "from pipeline.tracking import experiment_links; print('\n'.join(experiment_links()) or '  none yet: run make reproduce')"
@@ -62,4 +74,4 @@ bench: install  ## print wall times (stages per plant, ILC trials, solvers)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:  ## remove caches and stores (keeps results/)
-	rm -rf .cache outputs multirun mlruns .pytest_cache
+	rm -rf .cache .perturbed outputs multirun mlruns .pytest_cache

@@ -440,7 +440,10 @@ class Narx:
     gtol: float = spec(1e-10, ge=0, lt=1)
     mu0: float = spec(1e-3, gt=0, le=1e12)
     val_fraction: float = spec(0.2, ge=0, lt=1)
-    patience: int = spec(20, ge=0, le=ITER_MAX)
+    patience: int = spec(20, ge=1, le=ITER_MAX)
+    geodesic: bool = False
+    stat_window: int = spec(0, ge=0, le=ITER_MAX)
+    stat_tol: float = spec(0.1, ge=0, le=100)
 
 
 @schema
@@ -450,13 +453,16 @@ class SimError:
     theta_star: Literal["arx", "sim_error", "oracle"] = "sim_error"
     linear_max_iter: int = spec(500, ge=0, le=ITER_MAX)
     n_restarts: int = spec(3, ge=1, le=COUNT_MAX)
-    max_iter: int = spec(800, ge=0, le=ITER_MAX)
-    screen_iter: int = spec(0, ge=0, le=ITER_MAX)
+    max_iter: int = spec(5000, ge=0, le=ITER_MAX)
+    screen_iter: int = spec(300, ge=0, le=ITER_MAX)
     ftol: float = spec(1e-10, ge=0, lt=1)
     gtol: float = spec(1e-10, ge=0, lt=1)
     mu0: float = spec(1e-3, gt=0, le=1e12)
     val_fraction: float = spec(0.0, ge=0, lt=0.5)
-    patience: int = spec(5, ge=0, le=ITER_MAX)
+    patience: int = spec(5, ge=1, le=ITER_MAX)
+    geodesic: bool = False
+    stat_window: int = spec(0, ge=0, le=ITER_MAX)
+    stat_tol: float = spec(0.1, ge=0, le=100)
 
 
 @schema

@@ -10,9 +10,28 @@ cheaper than a QR of the tall Jacobian when n >> p (120,000 × 100 in [B1] §VI)
 to the scaling, well behaved for columns of very different magnitude.  μ follows Nielsen's
 gain-ratio rule (H. B. Nielsen, "Damping parameter in Marquardt's method", IMM-REP-1999-05).
 
+Geodesic acceleration (``geodesic=True``; Transtrum & Sethna, "Improvements to the
+Levenberg-Marquardt algorithm for nonlinear least-squares minimization", arXiv:1201.5885, §3):
+the damped step δv is the first-order term of a geodesic on the model manifold; the second-order
+term ``a = -(JᵀJ + μD)⁻¹ Jᵀ r_vv`` with the directional second derivative
+
+    r_vv ≈ (2/h) [ (r(θ + h δv) - r(θ)) / h - J δv ]                    (Transtrum (20))
+
+(one extra residual evaluation, the Cholesky factor reused) gives the step ``δ = δv + a/2``,
+taken only when ``2‖a‖/‖δv‖ ≤ α`` (scaled norms, Transtrum (23)); otherwise the step is
+rejected and μ raised.  Where steps are limited by curvature rather than by damping (μ small,
+few rejections: the closed-loop simulation error of [B2]) this cuts the number of Jacobians
+several-fold.  It needs ``J δv`` and ``Jᵀ w``: from the dense J, or from ``jacobian.jvp(θ, v)``
+and ``jacobian.vjp(θ, w)`` where the Jacobian is given as normal equations only.
+
 Stopping (``LMResult.message``):
 
 - ``'ftol'``: an accepted step changed the cost by at most ``ftol · C`` (relative change);
+- ``'stat'``: the statistical stop (``stat_window`` W > 0): the cost fell by at most
+  ``stat_tol · sqrt(2/N) · C`` over the last W accepted steps.  For a residual of N independent
+  noise samples C ≈ Nσ², whose sampling standard deviation is sqrt(2N)σ² = sqrt(2/N)·C: a decrease
+  below a fraction of it is not resolved by the data (N = ``n_data``, default the residual length).
+  On noise-free data C keeps falling geometrically and the rule does not fire;
 - ``'gtol'``: the scaled gradient ``max_i |J_iᵀ r| / (||J_i|| ||r||)`` (cosine between each
   Jacobian column and the residual, as in MINPACK/scipy) is at most ``gtol``;
 - ``'zero_cost'``: the cost is exactly zero;
@@ -26,6 +45,7 @@ Stopping (``LMResult.message``):
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -33,9 +53,21 @@ import numpy as np
 import torch
 from scipy.linalg.blas import dsyrk as _dsyrk
 
-__all__ = ["LMResult", "levenberg_marquardt", "autodiff_jacobian", "normal_equations_from_blocks"]
+__all__ = ["CONVERGED", "LMResult", "levenberg_marquardt", "autodiff_jacobian", "normal_equations_from_blocks"]
 
 _MU_MAX = 1e20
+#: relative size of the rounding-level perturbation of every JᵀJ and Jᵀr (0: off); set from the
+#: environment variable PIPELINE_PERTURB by ``make reproduce-check`` to emulate a second machine
+#: (another BLAS summation order perturbs the normal equations at the last bits, at every step)
+_PERTURB = float(os.environ.get("PIPELINE_PERTURB", "0") or 0)
+
+
+def _perturb_normal_equations(A: torch.Tensor, g: torch.Tensor, k: int):
+    """A and g times (1 + _PERTURB·u), u uniform in [-1, 1], symmetric, seeded by the step k."""
+    gen = np.random.default_rng([k, A.shape[0]])
+    U = gen.uniform(-1.0, 1.0, A.shape)
+    U = torch.from_numpy((U + U.T) / 2.0)
+    return A * (1.0 + _PERTURB * U), g * (1.0 + _PERTURB * torch.from_numpy(gen.uniform(-1.0, 1.0, g.shape)))
 
 
 @dataclass
@@ -54,7 +86,8 @@ class LMResult:
     n_iter : int
         Number of damped linear systems solved (accepted plus rejected steps).
     converged : bool
-        True when stopped by ``ftol``, ``gtol``, ``zero_cost``, ``mu_max`` or ``early_stop``.
+        True when stopped by ``ftol``, ``stat``, ``gtol``, ``zero_cost``, ``mu_max`` or
+        ``early_stop``.
     message : str
         Why it stopped (see the module docstring).
     val_history : list of float
@@ -71,6 +104,11 @@ class LMResult:
     message: str
     val_history: list[float] = field(default_factory=list)
     val_cost: float | None = None
+    n_jac: int = 0              # Jacobians (or normal equations) evaluated
+    n_accel: int = 0            # accepted steps that carried a geodesic acceleration
+
+
+CONVERGED = ("ftol", "stat", "gtol", "zero_cost", "mu_max", "early_stop")
 
 
 def autodiff_jacobian(residual: Callable[[torch.Tensor], torch.Tensor], theta: torch.Tensor,
@@ -128,7 +166,9 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
                         max_iter: int = 100, ftol: float = 1e-12, gtol: float = 1e-12,
                         mu0: float = 1e-3, val_cost: Callable[[torch.Tensor], float] | None = None,
                         patience: int = 5,
-                        callback: Callable[[int, torch.Tensor, float], bool | None] | None = None
+                        callback: Callable[[int, torch.Tensor, float], bool | None] | None = None,
+                        geodesic: bool = False, geodesic_h: float = 0.1, geodesic_alpha: float = 0.75,
+                        stat_window: int = 0, stat_tol: float = 0.1, n_data: int | None = None
                         ) -> LMResult:
     """Minimise ``||residual(θ)||²`` by Levenberg–Marquardt.
 
@@ -158,6 +198,20 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
         See ``val_cost``.
     callback : callable, optional
         ``callback(it, θ, cost)`` after every accepted step; returning True stops the run.
+    geodesic : bool
+        Add the geodesic acceleration (module docstring) to every damped step.
+    geodesic_h : float
+        Finite-difference step of r_vv, relative to δv (Transtrum: 0.1).
+    geodesic_alpha : float
+        Largest accepted ``2‖a‖/‖δv‖`` (Transtrum: 0.75).
+    stat_window : int
+        Accepted steps W of the statistical stop (0: off).
+    stat_tol : float
+        Fraction of the cost's sampling standard deviation sqrt(2/N)·C below which a decrease
+        over W accepted steps counts as converged.
+    n_data : int, optional
+        N of the statistical stop: the number of noisy samples in the residual (default: its
+        length).
 
     Returns
     -------
@@ -168,6 +222,10 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
         raise ValueError(f"max_iter must be >= 0, got {max_iter}")
     if patience < 1:
         raise ValueError(f"patience must be >= 1, got {patience}")
+    if stat_window < 0 or not stat_tol >= 0:
+        raise ValueError(f"stat_window must be >= 0 and stat_tol >= 0, got {stat_window}, {stat_tol}")
+    if geodesic and not (geodesic_h > 0 and geodesic_alpha > 0):
+        raise ValueError(f"geodesic_h and geodesic_alpha must be > 0, got {geodesic_h}, {geodesic_alpha}")
 
     def eval_res(th: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():
@@ -207,12 +265,20 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
     need_jac = True
     eye = torch.eye(n_par, dtype=torch.float64)
     normal = getattr(jacobian, "normal_equations", None)
+    if geodesic and normal is not None and not (hasattr(jacobian, "jvp") and hasattr(jacobian, "vjp")):
+        raise ValueError("geodesic acceleration needs J δv and Jᵀw: give jacobian.jvp(θ, v) and "
+                         "jacobian.vjp(θ, w) beside jacobian.normal_equations, or set geodesic=False")
+    n_stat = int(n_data) if n_data is not None else r.numel()
+    stat_scale = stat_tol * math.sqrt(2.0 / max(n_stat, 1))
+    n_jac = n_accel = 0
+    J = None
 
     while True:
         if cost == 0.0:
             message = "zero_cost"
             break
         if need_jac:
+            n_jac += 1
             if normal is not None:
                 A, g = normal(theta, r)
                 if A.shape != (n_par, n_par) or g.shape != (n_par,):
@@ -222,6 +288,8 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
                 J = eval_jac(theta, r.numel())
                 A = _gram(J)
                 g = J.T @ r
+            if _PERTURB:            # emulate another machine's rounding (pipeline.perturb)
+                A, g = _perturb_normal_equations(A, g, n_jac)
             diag = torch.diagonal(A).clone()
             # gradient test, scale-free (cosine of each column with the residual)
             col = torch.sqrt(diag)
@@ -255,6 +323,17 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
             message = "mu_max"
             break
         step_s = -torch.cholesky_solve(g_s[:, None], L)[:, 0]
+        accel, v_s = False, step_s
+        if geodesic:
+            step_s, accel = _geodesic_step(eval_res, jacobian, J, normal is not None, theta, r, step_s, s, L,
+                                           geodesic_h, geodesic_alpha)
+            if step_s is None:          # acceleration too large or not finite: reject, raise μ
+                mu *= nu
+                nu *= 2.0
+                if mu > _MU_MAX:
+                    message = "mu_max"
+                    break
+                continue
         step = step_s * s
         theta_new = theta + step
         r_new = eval_res(theta_new)
@@ -263,12 +342,14 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
         # actual decrease as (r - r_new)ᵀ(r + r_new): free of the cancellation in
         # cost - cost_new, so steps below the cost's rounding level are still judged right
         decrease = float((r - r_new) @ (r + r_new)) if finite else -math.inf
-        # predicted decrease of the Gauss–Newton model ||r + J δ||²
-        pred = float(-(2.0 * (step_s @ g_s) + step_s @ (A_s @ step_s)))
+        # predicted decrease of the Gauss–Newton model ||r + J δ||² at the velocity δv (with an
+        # acceleration the full step leaves that quadratic model: its gain is judged on δv)
+        pred = float(-(2.0 * (v_s @ g_s) + v_s @ (A_s @ v_s)))
         rho = decrease / pred if pred > 0 else -1.0
         if rho > 0 and decrease > 0:
             theta, r, cost_old, cost = theta_new, r_new, cost, cost_new
             history.append(cost)
+            n_accel += accel
             mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)  # Nielsen
             nu = 2.0
             need_jac = True
@@ -289,6 +370,12 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
             if decrease <= ftol * cost_old:
                 message = "ftol"
                 break
+            # statistical stop: the decrease over W accepted steps is below stat_tol of the
+            # cost's sampling standard deviation sqrt(2/N)·C (module docstring)
+            if stat_window and len(history) > stat_window and \
+                    history[-1 - stat_window] - cost <= stat_scale * cost:
+                message = "stat"
+                break
         else:
             mu *= nu
             nu *= 2.0
@@ -301,7 +388,24 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
         val_best = best_val
     else:
         val_best = None
-    converged = message in ("ftol", "gtol", "zero_cost", "mu_max", "early_stop")
     return LMResult(theta=theta.clone(), cost=cost, history=history, n_iter=n_iter,
-                    converged=converged, message=message, val_history=val_history,
-                    val_cost=val_best)
+                    converged=message in CONVERGED, message=message, val_history=val_history,
+                    val_cost=val_best, n_jac=n_jac, n_accel=n_accel)
+
+
+def _geodesic_step(eval_res, jacobian, J, normal: bool, theta, r, v_s, s, L, h: float, alpha: float):
+    """δv + a/2 in scaled variables (Transtrum & Sethna (20), (23)), or (None, False) when the
+    acceleration is not finite or ``2‖a‖/‖δv‖ > alpha``.  ``L`` is the Cholesky factor of the
+    damped scaled system, reused for the acceleration."""
+    v = v_s * s
+    r_h = eval_res(theta + h * v)
+    if not bool(torch.all(torch.isfinite(r_h))):
+        return None, False
+    Jv = jacobian.jvp(theta, v) if normal else J @ v
+    r_vv = (2.0 / h) * ((r_h - r) / h - Jv)                     # Transtrum (20)
+    Jt_rvv = jacobian.vjp(theta, r_vv) if normal else J.T @ r_vv
+    a_s = -torch.cholesky_solve((Jt_rvv * s)[:, None], L)[:, 0]
+    nv = float(v_s.norm())
+    if not nv > 0 or not bool(torch.all(torch.isfinite(a_s))) or 2.0 * float(a_s.norm()) > alpha * nv:
+        return None, False                                    # Transtrum (23)
+    return v_s + 0.5 * a_s, True

@@ -246,7 +246,24 @@ def criterion(model: PGNN, prep: Prepared, target: torch.Tensor, sigma: float,
             blocks = itertools.chain(blocks, [(M, J_reg)])
         return normal_equations_from_blocks(blocks, r, model.n_params)
 
+    def jvp(theta, v):            # J v, block by block (geodesic acceleration, lm.py)
+        out = torch.empty(M + n_reg, dtype=torch.float64)
+        for a, J in model.jacobian_blocks(theta, prep, scale=-c, block=_BLOCK):
+            out[a:a + J.shape[0]] = J @ v
+        if reg:
+            out[M:] = J_reg @ v
+        return out
+
+    def vjp(theta, w):            # Jᵀ w, block by block
+        out = torch.zeros(model.n_params, dtype=torch.float64)
+        for a, J in model.jacobian_blocks(theta, prep, scale=-c, block=_BLOCK):
+            out += J.T @ w[a:a + J.shape[0]]
+        if reg:
+            out += J_reg.T @ w[M:]
+        return out
+
     jacobian.normal_equations = normal_equations
+    jacobian.jvp, jacobian.vjp = jvp, vjp
     return residual, jacobian
 
 
@@ -318,6 +335,7 @@ def _split_tail(y, u, val_fraction):
 def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: int = 0,
                   val_fraction: float = 0.2, max_iter: int = 100, ftol: float = 1e-10,
                   gtol: float = 1e-10, mu0: float = 1e-3, patience: int = 5,
+                  geodesic: bool = False, stat_window: int = 0, stat_tol: float = 0.1,
                   progress: Callable | None = None,
                   on_iteration: Callable[[int, int, float], None] | None = None,
                   theta_star=None, memo: Callable | None = None) -> NarxFit:
@@ -341,8 +359,9 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
     val_fraction : float
         Length of the validation block at the end of the record(s) (0 disables early
         stopping).
-    max_iter, ftol, gtol, mu0, patience
-        Passed to :func:`pipeline.identify.lm.levenberg_marquardt`.
+    max_iter, ftol, gtol, mu0, patience, geodesic, stat_window, stat_tol
+        Passed to :func:`pipeline.identify.lm.levenberg_marquardt` (the statistical stop's N is
+        the number of training rows).
     progress : callable, optional
         Wraps the restart iterable (e.g. ``ctx.progress``).
     on_iteration : callable, optional
@@ -417,7 +436,8 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
     restarts, fit.best = best_of_restarts(model, residual, jacobian, n_restarts, seed, val_fn=val_fn,
                                           max_iter=max_iter, ftol=ftol, gtol=gtol, mu0=mu0,
                                           patience=patience, progress=progress, on_iteration=on_iteration,
-                                          memo=memo)
+                                          memo=memo, geodesic=geodesic, stat_window=stat_window,
+                                          stat_tol=stat_tol, n_data=M)
     fit.restarts.extend(restarts)
     return fit
 

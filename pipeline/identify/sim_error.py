@@ -729,7 +729,8 @@ def closed_loop_exogenous(u, u_fb) -> np.ndarray:
 def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, lam=1.0, theta_star="arx",
                        n_restarts: int = 1, seed: int = 0, val_fraction: float = 0.0, max_iter: int = 100,
                        ftol: float = 1e-10, gtol: float = 1e-10, mu0: float = 1e-3, patience: int = 5,
-                       linear_max_iter: int = 50, progress: Callable | None = None,
+                       linear_max_iter: int = 50, geodesic: bool = False, stat_window: int = 0,
+                       stat_tol: float = 0.1, progress: Callable | None = None,
                        on_iteration: Callable | None = None, memo: Callable | None = None,
                        screen_iter: int = 0) -> SimErrorFit:
     """Closed-loop simulation-error identification of a PGNN, [B2] (16), by Levenberg–Marquardt.
@@ -766,8 +767,9 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
     val_fraction : float
         Contiguous tail of the record for early stopping (0 = none); the simulation still
         runs through it.
-    max_iter, ftol, gtol, mu0, patience
-        Passed to :func:`pipeline.identify.lm.levenberg_marquardt`.
+    max_iter, ftol, gtol, mu0, patience, geodesic, stat_window, stat_tol
+        Passed to :func:`pipeline.identify.lm.levenberg_marquardt` (the statistical stop's N is
+        the number of training samples; the θ*_phy refinement uses them too).
     linear_max_iter : int
         LM iterations of the ``'sim_error'`` θ*_phy refinement.
     progress : callable, optional
@@ -819,7 +821,9 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
             res_l, jac_l = sim_error_criterion(lin, ctrl, r, u_ex, y, ts, 0.0, train, sigma)
             out = levenberg_marquardt(lambda th: torch.from_numpy(res_l(th.numpy())), torch.from_numpy(ts),
                                       jacobian=lambda th: torch.from_numpy(jac_l(th.numpy())),
-                                      max_iter=linear_max_iter, ftol=ftol, gtol=gtol, mu0=mu0)
+                                      max_iter=linear_max_iter, ftol=ftol, gtol=gtol, mu0=mu0,
+                                      geodesic=geodesic, stat_window=stat_window, stat_tol=stat_tol,
+                                      n_data=N - n_val)
             ts = out.theta.numpy().copy()
             linear_stop, linear_history, linear_iter = out.message, out.history, out.n_iter
     else:
@@ -851,7 +855,8 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
         restarts_out, best = best_of_restarts(model, res_t, jac_t, n_restarts, seed,
                                               val_fn=val_fn, max_iter=max_iter, ftol=ftol, gtol=gtol, mu0=mu0,
                                               patience=patience, progress=progress, on_iteration=on_iteration,
-                                              memo=memo, screen_iter=screen_iter)
+                                              memo=memo, screen_iter=screen_iter, geodesic=geodesic,
+                                              stat_window=stat_window, stat_tol=stat_tol, n_data=N - n_val)
     else:   # the linear model (n1 = 0) is θ*_phy: fitting (16) toward itself would only trade it off
         from pipeline.identify.narx import RestartResult
         th = model.parameter_vector()

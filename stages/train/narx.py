@@ -82,7 +82,8 @@ def fit(ctx) -> dict:
                          seed=int(cfg.seed), val_fraction=float(ident.val_fraction),
                          max_iter=int(ident.max_iter), ftol=float(ident.ftol),
                          gtol=float(ident.gtol), mu0=float(ident.mu0),
-                         patience=int(ident.patience),
+                         patience=int(ident.patience), geodesic=bool(ident.geodesic),
+                         stat_window=int(ident.stat_window), stat_tol=float(ident.stat_tol),
                          **lm_progress(ctx),
                          theta_star=ctx.inputs["baseline"]["theta"] if isinstance(system, Recording) else None,
                          memo=restart_memo(ctx))

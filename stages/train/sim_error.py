@@ -98,6 +98,8 @@ def fit(ctx) -> dict:
                               val_fraction=float(ident.val_fraction), max_iter=int(ident.max_iter),
                               ftol=float(ident.ftol), gtol=float(ident.gtol), mu0=float(ident.mu0),
                               patience=int(ident.patience), linear_max_iter=int(ident.linear_max_iter),
+                              geodesic=bool(ident.geodesic), stat_window=int(ident.stat_window),
+                              stat_tol=float(ident.stat_tol),
                               memo=restart_memo(ctx), screen_iter=int(ident.get("screen_iter", 0)),
                               **lm_progress(ctx))
     log_restarts(ctx, fit_.restarts, fit_.best)
@@ -197,7 +199,9 @@ def _fit_measured(ctx) -> dict:
     fit_ = identify_loop_sim_error(model, bool(system.physics.averaged_input), system.ctrl, sig, u, lam=lam,
                                    n_train=n_train, n_restarts=int(ident.n_restarts), seed=int(cfg.seed),
                                    max_iter=int(ident.max_iter), ftol=float(ident.ftol), gtol=float(ident.gtol),
-                                   mu0=float(ident.mu0), memo=restart_memo(ctx), **lm_progress(ctx))
+                                   mu0=float(ident.mu0), memo=restart_memo(ctx), geodesic=bool(ident.geodesic),
+                                   stat_window=int(ident.stat_window), stat_tol=float(ident.stat_tol),
+                                   n_data=n_train, **lm_progress(ctx))
     log_restarts(ctx, fit_.restarts, fit_.best)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)

@@ -1,0 +1,48 @@
+"""The perturbation check (issue 19): the comparison of two summaries, and the LM hook."""
+import os
+import subprocess
+import sys
+
+import pandas as pd
+import pytest
+
+from pipeline.perturbation import compare
+
+
+def _summary(values, holds="True"):
+    return pd.DataFrame({"experiment": ["e1", "e1", "e2", "e2"], "claim": ["C1", "", "", ""],
+                         "variant": ["a", "a", "b", "b"],
+                         "metric": ["mae", "train/seconds", "cost", "theta/M"],
+                         "value": values, "paper_value": [None] * 4, "claim_holds": [holds, None, None, None]})
+
+
+def test_compare_reports_the_largest_change_per_experiment_and_skips_timings():
+    ref = _summary([1.0, 10.0, 2.0, 5.0])
+    per = _summary([1.0, 99.0, 2.1, 5.0], holds="False")
+    keys, summ = compare(ref, per, rtol=0.02)
+    assert "train/seconds" not in set(keys["metric"])              # a timing is not a result
+    s = summ.set_index("experiment")
+    assert s.loc["e1", "max_rel_change"] == 0.0 and s.loc["e1", "verdicts_changed"] == 1
+    assert s.loc["e2", "max_rel_change"] == pytest.approx(0.1 / 2.1)
+    assert s.loc["e2", "worst_key"] == "b|cost" and s.loc["e2", "n_above_rtol"] == 1
+    # a key on one side only counts as moved
+    keys, summ = compare(ref, per.iloc[:3], rtol=0.02)
+    assert summ.set_index("experiment").loc["e2", "max_rel_change"] == 1.0
+
+
+@pytest.mark.parametrize("eps", ["0", "1e-13"])
+def test_perturbation_reaches_the_lm_and_a_converged_fit_stays(eps):
+    # the same LM problem in a subprocess with PIPELINE_PERTURB: the perturbed fit differs from the
+    # unperturbed one in the last digits only (a converged linear least-squares problem)
+    code = ("import torch\nfrom pipeline.identify.lm import levenberg_marquardt as lm\n"
+            "g = torch.Generator().manual_seed(0)\n"
+            "A = torch.randn(50, 4, generator=g, dtype=torch.float64); b = torch.randn(50, generator=g, dtype=torch.float64)\n"
+            "r = lm(lambda t: A @ t - b, torch.zeros(4, dtype=torch.float64), jacobian=lambda t: A)\n"
+            "print(repr(r.theta.tolist()))\n")
+    out = [eval(subprocess.run([sys.executable, "-c", code], env={**os.environ, "PIPELINE_PERTURB": e},
+                               capture_output=True, text=True, check=True).stdout) for e in ("0", eps)]
+    diff = max(abs(x - y) for x, y in zip(*out))
+    if eps == "0":
+        assert diff == 0.0
+    else:
+        assert 0.0 < diff < 1e-10

@@ -435,7 +435,8 @@ class Narx:
     kind: Literal["narx"]
     name: str = "narx"
     n_restarts: int = spec(10, ge=1, le=COUNT_MAX)
-    max_iter: int = spec(200, ge=0, le=ITER_MAX)
+    max_iter: int = spec(2000, ge=0, le=ITER_MAX)
+    screen_iter: int = spec(50, ge=0, le=ITER_MAX)
     ftol: float = spec(1e-10, ge=0, lt=1)
     gtol: float = spec(1e-10, ge=0, lt=1)
     mu0: float = spec(1e-3, gt=0, le=1e12)

@@ -481,6 +481,7 @@ class SkOe:
     n_restarts: int = spec(5, ge=1, le=COUNT_MAX)
     n_jobs: int = spec(5, ge=1, le=1024)
     oe_check_iter: int = spec(3000, ge=1, le=ITER_MAX)
+    geodesic: bool = False
 
 
 @schema

@@ -264,10 +264,16 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
             res = np.concatenate([res, sq * sub.coordinates(Wg)])
         return torch.from_numpy(res)
 
+    last: dict = {}     # the filtered Jacobian of g (and J) at the last φ asked for
+
     def filtered(phi: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-        _, Jg = model.g_and_jacobian(inp, phi)
-        WJ = filter_segments(Jg.numpy(), [1.0], den, seg)     # W ∂g/∂φ, column by column
-        return WJ, U1.T @ WJ                                  # and U1ᵀ W ∂g/∂φ  [p, n_φ]
+        key = phi.numpy().tobytes()
+        if last.get("key") != key:
+            last.clear()
+            _, Jg = model.g_and_jacobian(inp, phi)
+            WJ = filter_segments(Jg.numpy(), [1.0], den, seg)     # W ∂g/∂φ, column by column
+            last.update(key=key, WJ_C=(WJ, U1.T @ WJ))            # and U1ᵀ W ∂g/∂φ  [p, n_φ]
+        return last["WJ_C"]
 
     def jacobian(phi: torch.Tensor) -> torch.Tensor:
         WJ, C = filtered(phi)
@@ -314,7 +320,15 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
             g = g + K.T @ rn[n:]
         return torch.from_numpy(A), torch.from_numpy(g)
 
+    def explicit(phi: torch.Tensor) -> torch.Tensor:          # J at φ, formed once per φ
+        filtered(phi)
+        if "J" not in last:
+            last["J"] = jacobian(phi)
+        return last["J"]
+
     jacobian.normal_equations = normal_equations              # type: ignore[attr-defined]
+    jacobian.jvp = lambda phi, v: explicit(phi) @ v           # type: ignore[attr-defined]  (geodesic LM)
+    jacobian.vjp = lambda phi, w: explicit(phi).T @ w         # type: ignore[attr-defined]
     res = levenberg_marquardt(residual, model.phi, jacobian=jacobian, **lm_kw)
     return res.theta, res
 
@@ -322,7 +336,7 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
 def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, tol: float = 1e-8,
                   regularizer: str = "orthogonal", lam: float = 1.0, column_scale: bool = True,
                   init: str = "equation_error", lm_max_iter: int = 100, lm_ftol: float = 1e-10,
-                  lm_gtol: float = 1e-10, rank_rtol: float | None = None,
+                  lm_gtol: float = 1e-10, geodesic: bool = False, rank_rtol: float | None = None,
                   weighted_rank: str = "truncate",
                   callback: Callable[[SKIterate], None] | None = None) -> SKResult:
     """Identify a [K] feedforward by SK iterations ([K] Alg. 5; Alg. 19 with the regulariser).
@@ -351,6 +365,8 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
     lm_max_iter, lm_ftol, lm_gtol : int, float, float
         LM settings of each PGNN step (:func:`pipeline.identify.lm.levenberg_marquardt`): the
         inner solve converges on ``lm_ftol``/``lm_gtol``; ``lm_max_iter`` is its safety cap.
+    geodesic : bool
+        Geodesic acceleration in the PGNN's inner LM solves (:mod:`pipeline.identify.lm`).
     rank_rtol : float, optional
         Rank tolerance of [K] Assumption 10 (see :func:`model_subspace`).
     weighted_rank : {'truncate', 'raise'}
@@ -383,7 +399,7 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
     lam_eff = lam if (has_g and regularizer == "orthogonal") else 0.0
     data = prepare_data(model, r, f_hat)
     seg, M, f = data["segments"], data["M"], data["f"]
-    lm_kw = dict(max_iter=lm_max_iter, ftol=lm_ftol, gtol=lm_gtol)
+    lm_kw = dict(max_iter=lm_max_iter, ftol=lm_ftol, gtol=lm_gtol, geodesic=geodesic)
 
     # j = 0: best linear approximation by equation error, B^0 = 1 ([K] Alg. 5, Remark 7)
     t0 = time.perf_counter()

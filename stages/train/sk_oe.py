@@ -115,7 +115,7 @@ def fit(ctx) -> dict:
               regularizer=reg if is_pgnn else "none",
               lam=float(cfg.regularizer.lam) if reg == "orthogonal" else 0.0,
               lm_max_iter=int(ident.lm_max_iter), lm_ftol=float(ident.lm_ftol),
-              lm_gtol=float(ident.lm_gtol))
+              lm_gtol=float(ident.lm_gtol), geodesic=bool(ident.geodesic))
     n_restarts = int(ident.n_restarts) if is_pgnn else 1
     seeds = [int(ctx.rng(f"train/restart{i}").integers(2**31 - 1)) for i in range(n_restarts)]
     models = [build_model(m, ds.Ts, rs, s) for s in seeds]

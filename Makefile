@@ -52,17 +52,25 @@ reproduce: install  ## run every paper experiment, then write results/REPORT.md,
 	$(PY) -m pipeline.reproduce $(if $(JOBS),--jobs $(JOBS)) $(EXPERIMENTS)
 	$(PY) -m pipeline stages=[report] experiment_name=report run_name=report report.update=$(REPORT_UPDATE)
 
-# a second machine, emulated (issue 19): every LM step's normal equations perturbed at relative
-# PERTURB (pipeline/perturbation.py), own cache and store under .perturbed/; compared key by key
-# with results/summary.csv into results/PERTURBATION.md and results/perturbation.csv
+# is a result pinned down by its fit's tolerances? (issue 19; pipeline/perturbation.py)
+#   CHECK=perturb: a second machine, emulated: every LM step's normal equations perturbed at relative
+#                  PERTURB (another BLAS summation order); values must move by < 2 %
+#   CHECK=tighten: every LM and SK tolerance divided by TIGHTEN; values must move by < 1 %
+# Own cache and store under .perturbed/<CHECK>/; compared key by key with results/summary.csv into
+# results/check-<CHECK>.md and .csv
+CHECK ?= perturb
 PERTURB ?= 1e-13
-PERTURBED := $(ROOT)/.perturbed
-reproduce-check: install  ## rerun every experiment perturbed (another machine, emulated) and compare with results/
-	PIPELINE_PERTURB=$(PERTURB) PIPELINE_CACHE=$(PERTURBED)/cache MLFLOW_TRACKING_URI=sqlite:///$(PERTURBED)/mlflow.db \
-	  $(PY) -m pipeline.reproduce --results $(PERTURBED)/results $(if $(JOBS),--jobs $(JOBS)) $(EXPERIMENTS)
-	PIPELINE_PERTURB=$(PERTURB) PIPELINE_CACHE=$(PERTURBED)/cache MLFLOW_TRACKING_URI=sqlite:///$(PERTURBED)/mlflow.db \
-	  $(PY) -m pipeline stages=[report] experiment_name=report run_name=report paths.results=$(PERTURBED)/results
-	PIPELINE_PERTURB=$(PERTURB) $(PY) -m pipeline.perturbation results/summary.csv $(PERTURBED)/results/summary.csv --out results
+TIGHTEN ?= 10
+CHECK_ENV = $(if $(filter tighten,$(CHECK)),PIPELINE_TIGHTEN=$(TIGHTEN),PIPELINE_PERTURB=$(PERTURB))
+CHECK_RTOL = $(if $(filter tighten,$(CHECK)),0.01,0.02)
+CHECKED := $(ROOT)/.perturbed/$(CHECK)
+reproduce-check: install  ## rerun every experiment perturbed (CHECK=perturb) or tightened (CHECK=tighten), compare with results/
+	$(CHECK_ENV) PIPELINE_CACHE=$(CHECKED)/cache MLFLOW_TRACKING_URI=sqlite:///$(CHECKED)/mlflow.db \
+	  $(PY) -m pipeline.reproduce --results $(CHECKED)/results $(if $(JOBS),--jobs $(JOBS)) $(EXPERIMENTS)
+	$(CHECK_ENV) PIPELINE_CACHE=$(CHECKED)/cache MLFLOW_TRACKING_URI=sqlite:///$(CHECKED)/mlflow.db \
+	  $(PY) -m pipeline stages=[report] experiment_name=report run_name=report paths.results=$(CHECKED)/results
+	$(PY) -m pipeline.perturbation results/summary.csv $(CHECKED)/results/summary.csv --out results \
+	  --check $(CHECK) --rtol $(CHECK_RTOL) --setting "$(CHECK_ENV)"
 
 ui: install  ## MLflow UI on http://127.0.0.1:5000 over the same store as the runs
 	@echo "The project's experiments (open a link for its runs table):"

@@ -7,10 +7,13 @@ order on a second machine (ε = 1e-13: a few hundred ulps, larger than any machi
 A fit that stopped on a tolerance lands where the reference landed; a fit that stopped on a slope
 (an iteration cap, an unresolved choice between restarts) lands elsewhere, and its values move.
 
-    python -m pipeline.perturbation REFERENCE.csv PERTURBED.csv [--out DIR] [--rtol 0.02]
+    python -m pipeline.perturbation REFERENCE.csv PERTURBED.csv [--out DIR] [--rtol 0.02] [--check perturb|tighten]
 
-writes ``DIR/perturbation.csv`` (per summary key: both values and the relative change) and
-``DIR/PERTURBATION.md`` (per experiment: values compared, the largest relative change and its key,
+``make reproduce-check CHECK=tighten`` does the same with every LM and SK tolerance divided by 10
+(``PIPELINE_TIGHTEN``): a converged fit's values must not move (by more than 1 %).
+
+writes ``DIR/check-<check>.csv`` (per summary key: both values and the relative change) and
+``DIR/check-<check>.md`` (per experiment: values compared, the largest relative change and its key,
 how many moved by more than ``rtol``, and the claim verdicts that changed).  Timings are left out.
 """
 from __future__ import annotations
@@ -66,12 +69,18 @@ def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02
     return m[cols], pd.DataFrame(rows)
 
 
-def markdown(summary: pd.DataFrame, rtol: float, eps: str) -> str:
-    lines = [f"# Perturbation check (a second machine, emulated)", "",
-             f"Every LM step's normal equations perturbed at relative {eps} (`PIPELINE_PERTURB`); "
-             f"values compared key by key with the reference `summary.csv` (timings left out). "
-             f"A value that moves by more than {rtol:.0%} comes from a fit that is not pinned down "
-             f"by its tolerance: ill-determined, with the spread below.", "",
+_WHAT = {"perturb": ("Perturbation check (a second machine, emulated)",
+                    "every LM step's normal equations perturbed at relative rounding level"),
+         "tighten": ("Tightening check (are the tolerances adequate?)",
+                     "every LM and SK tolerance divided by the factor")}
+
+
+def markdown(summary: pd.DataFrame, rtol: float, check: str, setting: str) -> str:
+    title, what = _WHAT[check]
+    lines = [f"# {title}", "",
+             f"The whole `make reproduce` rerun with {what} (`{setting}`); values compared key by "
+             f"key with the reference `summary.csv` (timings left out). A value that moves by more "
+             f"than {rtol:.0%} comes from a fit that its tolerance does not pin down.", "",
              "| experiment | values | largest relative change | at | moved > rtol | claim verdicts changed |",
              "| --- | --- | --- | --- | --- | --- |"]
     for r in summary.itertuples():
@@ -92,6 +101,8 @@ def main(argv=None) -> int:
     ap.add_argument("perturbed")
     ap.add_argument("--out", default="results")
     ap.add_argument("--rtol", type=float, default=0.02)
+    ap.add_argument("--check", choices=sorted(_WHAT), default="perturb")
+    ap.add_argument("--setting", default="PIPELINE_PERTURB=1e-13")
     args = ap.parse_args(argv)
     for f in (args.reference, args.perturbed):
         if not Path(f).is_file():
@@ -100,9 +111,10 @@ def main(argv=None) -> int:
     keys, summary = compare(pd.read_csv(args.reference), pd.read_csv(args.perturbed), args.rtol)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    _atomic_write(out / "perturbation.csv", keys.to_csv(index=False))
-    _atomic_write(out / "PERTURBATION.md", markdown(summary, args.rtol, os.environ.get("PIPELINE_PERTURB", "1e-13")))
-    print(markdown(summary, args.rtol, os.environ.get("PIPELINE_PERTURB", "1e-13")))
+    md = markdown(summary, args.rtol, args.check, args.setting)
+    _atomic_write(out / f"check-{args.check}.csv", keys.to_csv(index=False))
+    _atomic_write(out / f"check-{args.check}.md", md)
+    print(md)
     return 0
 
 

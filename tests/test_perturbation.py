@@ -46,3 +46,40 @@ def test_perturbation_reaches_the_lm_and_a_converged_fit_stays(eps):
         assert diff == 0.0
     else:
         assert 0.0 < diff < 1e-10
+
+
+_FIT = """
+import json, torch
+from pipeline.identify.lm import levenberg_marquardt as lm
+x = torch.linspace(-2, 2, 400, dtype=torch.float64)
+y = torch.sin(2 * x) * torch.exp(-0.3 * x ** 2) + 0.3 * x
+th0 = torch.randn(25, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+net = lambda th: torch.tanh(x[:, None] * th[:8] + th[8:16]) @ th[16:24] + th[24]
+A = torch.randn(50, 4, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+b = torch.randn(50, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+loose = lm(lambda t: net(t) - y, th0, ftol=0.2, gtol=0.0, max_iter=3000)       # deliberately unconverged
+tight = lm(lambda t: A @ t - b, torch.zeros(4, dtype=torch.float64), jacobian=lambda t: A, ftol=1e-10)
+print(json.dumps({"loose": loose.cost, "converged": tight.cost, "n_loose": loose.n_iter}))
+"""
+
+
+def test_tightening_check_flags_a_deliberately_unconverged_fit():
+    """The check's logic on two fits: tightening every tolerance 10x (PIPELINE_TIGHTEN) moves the
+    cost of a fit stopped on a loose ftol by far more than the 1 % rtol, and leaves a converged
+    least-squares fit where it was; compare() flags exactly the first."""
+    import json
+    runs = []
+    for t in ("1", "10"):
+        out = subprocess.run([sys.executable, "-c", _FIT], env={**os.environ, "PIPELINE_TIGHTEN": t},
+                             capture_output=True, text=True, check=True).stdout
+        runs.append(json.loads(out))
+    assert runs[1]["n_loose"] > runs[0]["n_loose"]                  # the tolerance reached the LM
+
+    def frame(r):
+        return pd.DataFrame({"experiment": ["loose", "converged"], "claim": ["", ""], "variant": ["a", "a"],
+                             "metric": ["cost", "cost"], "value": [r["loose"], r["converged"]],
+                             "paper_value": [None, None], "claim_holds": [None, None]})
+    _, summ = compare(frame(runs[0]), frame(runs[1]), rtol=0.01)
+    s = summ.set_index("experiment")
+    assert s.loc["loose", "n_above_rtol"] == 1 and s.loc["loose", "max_rel_change"] > 0.01
+    assert s.loc["converged", "n_above_rtol"] == 0 and s.loc["converged", "max_rel_change"] < 1e-9

@@ -62,6 +62,12 @@ _MU_MAX = 1e20
 _PERTURB = float(os.environ.get("PIPELINE_PERTURB", "0") or 0)
 
 
+#: factor by which every LM tolerance (ftol, gtol, stat_tol; SK's tol too) is divided (1: off);
+#: set from PIPELINE_TIGHTEN by ``make reproduce-check CHECK=tighten``: a converged fit's reported
+#: values must not move when its tolerances are tightened (issue 19)
+TIGHTEN = float(os.environ.get("PIPELINE_TIGHTEN", "1") or 1)
+
+
 def _perturb_normal_equations(A: torch.Tensor, g: torch.Tensor, k: int):
     """A and g times (1 + _PERTURB·u), u uniform in [-1, 1], symmetric, seeded by the step k."""
     gen = np.random.default_rng([k, A.shape[0]])
@@ -218,6 +224,7 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
     LMResult
     """
     theta = _check_vector("theta0", theta0).detach().clone()
+    ftol, gtol, stat_tol = ftol / TIGHTEN, gtol / TIGHTEN, stat_tol / TIGHTEN
     if max_iter < 0:
         raise ValueError(f"max_iter must be >= 0, got {max_iter}")
     if patience < 1:

@@ -43,7 +43,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from pipeline.identify.lm import LMResult, levenberg_marquardt
+from pipeline.identify.lm import TIGHTEN, LMResult, levenberg_marquardt
 from pipeline.identify.orthogonal import ModelSubspace, model_subspace, orthogonal_regularizer
 from pipeline.models.rational import RationalFeedforward, Segments, filter_segments
 
@@ -400,6 +400,7 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
     data = prepare_data(model, r, f_hat)
     seg, M, f = data["segments"], data["M"], data["f"]
     lm_kw = dict(max_iter=lm_max_iter, ftol=lm_ftol, gtol=lm_gtol, geodesic=geodesic)
+    tol = tol / TIGHTEN                          # make reproduce-check CHECK=tighten (lm.TIGHTEN)
 
     # j = 0: best linear approximation by equation error, B^0 = 1 ([K] Alg. 5, Remark 7)
     t0 = time.perf_counter()

@@ -30,8 +30,8 @@
  * [θ̂_phy (P) | θ*_phy, the physics start (P) | W, first layer with the input map folded in (H x NPHI) |
  *  b (H) | w2 = output weights x output scale (H) | b2 | physics map configuration] */
 static const double BLOB[8] = {
-    20.100243861280035, 8.795315568588403, 12.190681381301424, 20.100243861280035,
-    8.795315568588403, 12.190681381301424, 0.0, 0.001
+    20.10024386128005, 8.795315568590485, 12.190681381301255, 20.10024386128005,
+    8.795315568590485, 12.190681381301255, 0.0, 0.001
 };
 #define TH (BLOB + 0)
 #define TS (BLOB + 3)

@@ -241,6 +241,11 @@ def criterion(model: PGNN, prep: Prepared, target: torch.Tensor, sigma: float,
 
     def normal_equations(theta, r):
         h = hidden if hidden_at[0] is not None and torch.equal(hidden_at[0], theta) else None
+        # one hidden layer: the blocks formed and reduced in one numba kernel, the same sums to the bit
+        fused = model.normal_equations(theta, prep, r, scale=-c, block=_BLOCK, hidden=h,
+                                       extra=[(M, J_reg)] if reg else ())
+        if fused is not None:
+            return fused
         blocks = model.jacobian_blocks(theta, prep, scale=-c, block=_BLOCK, hidden=h)
         if reg:
             blocks = itertools.chain(blocks, [(M, J_reg)])

@@ -253,16 +253,30 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
                  lam: float, lm_kw: dict) -> tuple[torch.Tensor, LMResult]:
     """φ^j of [K] (30) with θ eliminated (variable projection), by LM with exact Jacobian."""
     seg, inp = data["segments"], data["inputs"]
-    U1 = sub.U1
+    U1 = np.ascontiguousarray(sub.U1)
     Wf_perp = sub.project_out(Wf)
     sq = math.sqrt(lam)
+    # a tanh MLP g_φ: the residual keeps its layer outputs, and W ∂g/∂φ is formed from them in closed
+    # form and filtered in one numba pass (SharedARPGNN.filtered_jacobian[_gram]); otherwise ∂g/∂φ by
+    # per-sample backpropagation (torch) and filter_segments column by column
+    closed = bool(getattr(model, "closed_form_jacobian", False))
+    acts: dict = {}     # the activations of the last residual and its φ
 
     def residual(phi: torch.Tensor) -> torch.Tensor:
-        Wg = filter_segments(model.g_value(inp, phi).numpy(), [1.0], den, seg)
+        acts.clear()
+        if closed:
+            g, a = model.g_forward(inp, phi)                   # the bits of g_value
+            acts.update(key=phi.numpy().tobytes(), acts=a)
+        else:
+            g = model.g_value(inp, phi)
+        Wg = filter_segments(g.numpy(), [1.0], den, seg)
         res = Wf_perp - sub.project_out(Wg)                    # (I − U1U1ᵀ) W (f̂ − g)
         if lam > 0:   # [K] (23): extra rows √λ (ΣVᵀ)^{-1} U1ᵀ W g_φ
             res = np.concatenate([res, sq * sub.coordinates(Wg)])
         return torch.from_numpy(res)
+
+    def activations(phi: torch.Tensor, key: bytes):
+        return acts["acts"] if acts.get("key") == key else None
 
     last: dict = {}     # the filtered Jacobian of g (and J) at the last φ asked for
 
@@ -270,8 +284,11 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
         key = phi.numpy().tobytes()
         if last.get("key") != key:
             last.clear()
-            _, Jg = model.g_and_jacobian(inp, phi)
-            WJ = filter_segments(Jg.numpy(), [1.0], den, seg)     # W ∂g/∂φ, column by column
+            if closed:
+                WJ = model.filtered_jacobian(inp, phi, [1.0], den, seg, activations(phi, key))
+            else:
+                _, Jg = model.g_and_jacobian(inp, phi)
+                WJ = filter_segments(Jg.numpy(), [1.0], den, seg)     # W ∂g/∂φ, column by column
             last.update(key=key, WJ_C=(WJ, U1.T @ WJ))            # and U1ᵀ W ∂g/∂φ  [p, n_φ]
         return last["WJ_C"]
 
@@ -294,17 +311,24 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
         subtraction loses ~N·eps of ‖WJ_i‖² to cancellation, so columns whose projected norm is
         below √_CANCEL_RTOL2 of the full one are recomputed from the explicit projected column
         (and tested for flatness exactly as :func:`jacobian` does)."""
-        WJ, C = filtered(phi)
-        WJt = WJ.T                                            # [n_φ, N], C-contiguous
         rn = r.numpy()
-        n = WJ.shape[0]
+        n = seg.n
         r1 = rn[:n]
-        G = WJt @ WJ                                          # syrk
+        key = phi.numpy().tobytes()
+        if closed and last.get("key") != key:
+            # G, C and WJᵀr block by block while the filtered rows are in cache (WJ is not stored)
+            G, C, WJr = model.filtered_jacobian_gram(inp, phi, [1.0], den, seg, U1, r1, activations(phi, key))
+        else:
+            WJ, C = filtered(phi)
+            G = WJ.T @ WJ                                     # syrk
+            WJr = WJ.T @ r1
         A = G - C.T @ C
-        g = C.T @ (U1.T @ r1) - WJt @ r1
+        g = C.T @ (U1.T @ r1) - WJr
         full2 = np.diag(G).copy()
         sus = np.flatnonzero(np.diag(A) <= _CANCEL_RTOL2 * full2)
         if sus.size:
+            WJ = filtered(phi)[0]                             # the explicit columns (rare)
+            WJt = WJ.T
             J_s = U1 @ C[:, sus] - WJ[:, sus]                 # explicit projected columns
             A_s = C.T @ (U1.T @ J_s) - WJt @ J_s              # Jᵀ J_s, no cancellation
             A[:, sus] = A_s

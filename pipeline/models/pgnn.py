@@ -31,9 +31,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import llvmlite.binding as _llvm
 import numba
 import numpy as np
 import torch
+from numba import types as _nbt
+from numba.extending import get_cython_function_address as _cython_address
+from scipy.linalg.blas import dsyrk as _dsyrk
 from torch import nn
 
 __all__ = ["PhysicsFeatures", "LinearFeatures", "RigidBodyForward", "RigidBodyInverse",
@@ -51,6 +55,8 @@ _ACTIVATIONS = {
     "gelu": nn.functional.gelu,
     "identity": lambda x: x,
 }
+#: in-place forms of the activations that have one (the same elementwise function)
+_ACTIVATIONS_INPLACE = {"tanh": torch.tanh_, "sigmoid": torch.sigmoid_, "relu": torch.relu_}
 _STRUCTURES = ("forward", "inverse", "invertible")
 # numba kernel ids of the built-in physics maps (see _fast_physics)
 _KIND_LINEAR, _KIND_RIGID_FWD, _KIND_RIGID_INV = 0, 1, 2
@@ -316,6 +322,128 @@ def _one_hidden_jacobian_rows(J, T, x, h, w2s, s, act, scale):
 
 
 # --------------------------------------------------------------------------------------------
+# BLAS from numba kernels: scipy's own BLAS (the library behind scipy.linalg.blas), so a kernel
+# that reduces row blocks of J calls the very routine a Python loop over the blocks would call
+# --------------------------------------------------------------------------------------------
+def _blas_function(name: str, n_args: int):
+    """scipy.linalg.cython_blas ``name`` (Fortran convention: every argument a pointer) as a numba
+    external function; the symbol is registered with LLVM at import, so cached kernels resolve it."""
+    symbol = f"pipeline_scipy_blas_{name}"
+    _llvm.add_symbol(symbol, _cython_address("scipy.linalg.cython_blas", name))
+    return _nbt.ExternalFunction(symbol, _nbt.void(*([_nbt.voidptr] * n_args)))
+
+
+_blas_dsyrk = _blas_function("dsyrk", 10)
+_blas_dgemv = _blas_function("dgemv", 11)
+
+
+@numba.njit(cache=True)
+def blas_syrk_lower(n, k, a, c):
+    """c += a aᵀ on the lower triangle of the Fortran-ordered n×n ``c``; ``a`` holds an n×k
+    Fortran-ordered matrix (i.e. k C-ordered rows of length n: c += JᵀJ for a row block J)."""
+    ch = np.empty(2, np.uint8)
+    ch[0], ch[1] = 76, 78                              # 'L', 'N'
+    iv = np.empty(3, np.int32)
+    iv[0], iv[1], iv[2] = n, k, n
+    dv = np.ones(2)
+    _blas_dsyrk(ch[0:].ctypes, ch[1:].ctypes, iv[0:].ctypes, iv[1:].ctypes, dv[0:].ctypes, a.ctypes,
+                iv[2:].ctypes, dv[1:].ctypes, c.ctypes, iv[2:].ctypes)
+
+
+@numba.njit(cache=True)
+def blas_gemv_n(m, n, a, x, beta, y):
+    """y = a x + beta y for the Fortran-ordered m×n ``a`` (n C-ordered rows of length m: y = Jᵀx for a
+    row block J); ``x`` holds n entries, ``y`` m."""
+    ch = np.empty(1, np.uint8)
+    ch[0] = 78                                         # 'N'
+    iv = np.empty(3, np.int32)
+    iv[0], iv[1], iv[2] = m, n, 1
+    dv = np.empty(2)
+    dv[0], dv[1] = 1.0, beta
+    _blas_dgemv(ch.ctypes, iv[0:].ctypes, iv[1:].ctypes, dv[0:].ctypes, a.ctypes, iv[0:].ctypes,
+                x.ctypes, iv[2:].ctypes, dv[1:].ctypes, y.ctypes, iv[2:].ctypes)
+
+
+@numba.njit(cache=True)
+def _one_hidden_rows_input_major(J, T, x, h, a, w2s, s, act, scale, G):
+    """Rows a, a+1, … (as many as ``J`` has) of :func:`_one_hidden_jacobian_rows`, the same
+    products, with the W1 columns input-major (column p + k H + j holds ∂ŷ/∂W1[j, k], not
+    p + j n + k): every inner loop runs over the H hidden units, contiguous in J, h and G, with
+    unsigned offsets (no negative-index fix-up), so it is vectorised."""
+    u = np.uint64
+    n = x.shape[1]
+    H = h.shape[1]
+    p = T.shape[1]
+    c = u(p + H * n)
+    for i in range(J.shape[0]):
+        m = a + i
+        row = J[i]
+        for q in range(p):
+            row[q] = T[m, q] * scale
+        hm = h[m]
+        if act == 0:
+            for j in range(H):
+                G[j] = (1.0 - hm[j] * hm[j]) * w2s[j]
+        elif act == 1:
+            for j in range(H):
+                G[j] = (hm[j] * (1.0 - hm[j])) * w2s[j]
+        else:
+            for j in range(H):
+                G[j] = w2s[j]
+        for k in range(n):
+            xk = x[m, k]
+            q = u(p + k * H)
+            for j in range(H):
+                row[q + u(j)] = (G[j] * xk) * scale
+        for j in range(H):
+            row[c + u(j)] = G[j] * scale
+        for j in range(H):
+            row[c + u(H + j)] = (hm[j] * s) * scale
+        row[c + u(2 * H)] = s * scale
+
+
+@numba.njit(cache=True)
+def _one_hidden_normal_equations(T, x, h, w2s, s, act, scale, r, block, A, g):
+    """A += JᵀJ (lower triangle, Fortran order) and g += Jᵀr for the rows of
+    :func:`_one_hidden_jacobian_rows`, ``block`` rows at a time in one reused buffer: per block
+    one BLAS syrk and one gemv (Jᵀr of the block, then added to g), the calls and the order of
+    :func:`pipeline.identify.lm.normal_equations_from_blocks` over :meth:`PGNN.jacobian_blocks`;
+    no Python between the blocks.
+
+    The blocks hold the columns of J permuted (:func:`_one_hidden_rows_input_major`), and the
+    sums are permuted back at the end.  Entry (i, j) of syrk and entry i of gemv are the same
+    sequence of operations on the same numbers wherever the columns i and j sit (BLAS vectorises
+    over them), and the product J_li J_lj is commutative, so the result is the unpermuted one to
+    the bit."""
+    M, n = x.shape
+    H = h.shape[1]
+    p = T.shape[1]
+    P = A.shape[0]
+    J = np.empty((min(block, M), P))
+    G = np.empty(H)
+    Ap = np.zeros((P, P)).T                            # Fortran order
+    gp = np.zeros(P)
+    gb = np.empty(P)
+    for a in range(0, M, block):
+        k = min(block, M - a)
+        _one_hidden_rows_input_major(J[:k], T, x, h, a, w2s, s, act, scale, G)
+        blas_syrk_lower(P, k, J, Ap)
+        blas_gemv_n(P, k, J, r[a:a + k], 0.0, gb)
+        for i in range(P):
+            gp[i] += gb[i]
+    perm = np.arange(P)                                # perm[original column] = column in the blocks
+    for j in range(H):
+        for kk in range(n):
+            perm[p + j * n + kk] = p + kk * H + j
+    for j in range(P):
+        pj = perm[j]
+        g[j] += gp[pj]
+        for i in range(j, P):
+            pi = perm[i]
+            A[i, j] += Ap[pi, pj] if pi >= pj else Ap[pj, pi]
+
+
+# --------------------------------------------------------------------------------------------
 # the PGNN
 # --------------------------------------------------------------------------------------------
 @dataclass
@@ -575,6 +703,8 @@ class PGNN(nn.Module):
         ``hidden``: a [M, H] buffer that receives the activations of a single hidden layer, for
         :meth:`jacobian_blocks` at the same θ and ``block``."""
         th_phy, layers = self._unflatten(theta)
+        if hidden is not None and self.use_nn and len(layers) == 2:
+            return self._predict_one_hidden(th_phy, layers, prep, block, hidden)
         if block is None:
             return self._predict_rows(th_phy, layers, prep, hidden)
         M = len(prep)
@@ -583,6 +713,33 @@ class PGNN(nn.Module):
             out[a:a + block] = self._predict_rows(th_phy, layers, prep.rows(slice(a, a + block)),
                                                   None if hidden is None else hidden[a:a + block])
         return out
+
+    def _predict_one_hidden(self, th_phy, layers, prep: Prepared, block: int | None,
+                            hidden: torch.Tensor) -> torch.Tensor:
+        """:meth:`predict` of one hidden layer into the activation buffer ``hidden``: the same torch
+        operations as :meth:`_predict_rows` (each row's arithmetic does not depend on the rows
+        beside it), the pre-activation written into ``hidden`` and activated in place (no
+        temporaries, no copy), the physics part in one pass, the NN in blocks of at least
+        :attr:`_PREDICT_BLOCK` rows (fewer Python calls)."""
+        M = len(prep)
+        (W1, b1), (W2, b2) = layers
+        inplace = _ACTIVATIONS_INPLACE.get(self.activation)
+        act = _ACTIVATIONS[self.activation]
+        nn_out = torch.empty(M, 1, dtype=torch.float64)
+        step = M if block is None else max(int(block), self._PREDICT_BLOCK)
+        for a in range(0, M, step):
+            z = hidden[a:a + step]
+            torch.addmm(b1, prep.x[a:a + step], W1.T, out=z)
+            if inplace is not None:
+                inplace(z)
+            else:
+                z.copy_(act(z))
+            torch.addmm(b2, z, W2.T, out=nn_out[a:a + step])
+        out = nn_out[:, 0] * self.out_scale
+        return (prep.offset + prep.T @ th_phy) + out if self.use_physics else 0.0 + out
+
+    #: smallest row block of :meth:`_predict_one_hidden`
+    _PREDICT_BLOCK = 8192
 
     def _predict_rows(self, th_phy, layers, prep: Prepared, hidden=None) -> torch.Tensor:
         out = 0.0
@@ -639,6 +796,39 @@ class PGNN(nn.Module):
                 if scale is not None:
                     J.mul_(scale)
             yield a, J
+
+    def normal_equations(self, theta: torch.Tensor, prep: Prepared, r: torch.Tensor,
+                         scale: float | None = None, block: int = 2048,
+                         hidden: torch.Tensor | None = None, extra=()) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """(JᵀJ, Jᵀr) of J = ∂ŷ/∂θ (times ``scale``) over the rows of ``prep``, followed by the
+        ``extra`` row blocks ``(a, J_extra)`` (e.g. constant regulariser rows; ``r`` covers them
+        all), for one hidden layer with a closed-form Jacobian (None otherwise): equal to the bit to
+        :func:`pipeline.identify.lm.normal_equations_from_blocks` over :meth:`jacobian_blocks` (same
+        ``block``) and ``extra``.
+
+        The rows of each block are formed and reduced by syrk and gemv while in cache by one numba
+        kernel (:func:`_one_hidden_normal_equations`); ``hidden``: the activations at this θ from
+        :meth:`predict` (computed here otherwise)."""
+        if not (self.use_nn and len(self.layers) == 2 and self._closed_form()):
+            return None
+        P = self.n_params
+        A = np.zeros((P, P), order="F")
+        g = np.zeros(P)
+        rn = r.numpy()
+        _, ((W1, b1), (W2, b2)) = self._unflatten(theta)
+        if hidden is None:
+            hidden = _ACTIVATIONS[self.activation](torch.addmm(b1, prep.x, W1.T))
+        s = self.out_scale
+        T = prep.T if self.use_physics else prep.x[:, :0]
+        _one_hidden_normal_equations(np.ascontiguousarray(T.numpy()), prep.x.numpy(), hidden.numpy(),
+                                     (s * W2[0]).numpy(), float(s), _DERIVATIVE_FROM_VALUE[self.activation],
+                                     1.0 if scale is None else float(scale), rn, int(block), A, g)
+        for a, J in extra:               # the steps of normal_equations_from_blocks
+            Jt = J.numpy().T
+            A = _dsyrk(1.0, Jt, beta=1.0, c=A, trans=0, lower=1, overwrite_c=1)
+            g += Jt @ rn[a:a + Jt.shape[1]]
+        A = np.tril(A) + np.tril(A, -1).T
+        return torch.from_numpy(A), torch.from_numpy(g)
 
     def _jacobian_rows(self, layers, prep: Prepared, J: torch.Tensor, scale: float | None,
                        h: torch.Tensor | None = None) -> None:

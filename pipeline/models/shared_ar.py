@@ -14,10 +14,12 @@ from __future__ import annotations
 import math
 from typing import Sequence
 
+import numba
 import numpy as np
 import torch
 from torch import nn
 
+from pipeline.models.pgnn import blas_syrk_lower
 from pipeline.models.rational import BASES, RationalFeedforward, Segments, basis_columns
 
 __all__ = ["ReferenceWindow", "MLP", "ResidualMLP", "SharedARPGNN", "make_approximator",
@@ -286,6 +288,158 @@ def _func_jacobian(module, X, params):
     return y, JT.T
 
 
+# ----------------------------------------------------------------------------- filtered Jacobian (numba)
+# W ∂g/∂φ of a tanh MLP (:class:`MLP`) in one pass over time: per sample the row of ∂g/∂φ in closed
+# form from the forward activations (backpropagation of one output), then every column filtered by
+# num/den exactly as scipy.signal.lfilter does it (direct form II transposed, coefficients divided by
+# den[0], state at rest at every segment start), so W ∂g/∂φ needs no [N, n_φ] temporary and no pass
+# per column.
+def _lfilter_coefficients(num, den) -> tuple[np.ndarray, np.ndarray]:
+    """(b, a) as scipy's lfilter uses them: padded to one length, divided by a[0] (in that order)."""
+    num = np.atleast_1d(np.asarray(num, dtype=np.float64))
+    den = np.atleast_1d(np.asarray(den, dtype=np.float64))
+    L = max(num.size, den.size)
+    b = np.zeros(L)
+    a = np.zeros(L)
+    b[:num.size] = num
+    a[:den.size] = den
+    a0 = a[0]
+    for n in range(L):           # scipy: b[n] /= a0 then a[n] /= a0, n = 0 … L-1
+        b[n] = b[n] / a0
+        a[n] = a[n] / a0
+    return b, a
+
+
+@numba.njit(cache=True)
+def _mlp_jacobian_row(acts, Ws, w_out, out_bias, k, gain, jr, d, t):
+    """Row k of ∂g/∂φ of g = w_outᵀ h_L (+ b_out), h_l = tanh(W_l h_{l-1} + b_l), h_0 = x, into ``jr``
+    (φ order: W_1, b_1, …, W_L, b_L, w_out[, b_out]) times ``gain``; ``acts`` = (x, h_1, …, h_L) [N, ·],
+    ``d``, ``t``: scratch of the widest layer.  The offsets into ``jr`` are unsigned, so numba adds no
+    negative-index fix-up and the inner loops are vectorised."""
+    u = np.uint64
+    L = len(Ws)
+    hL = acts[L][k]
+    wL = hL.shape[0]
+    o = u(jr.shape[0] - wL - (1 if out_bias else 0))
+    for i in range(wL):
+        jr[o + u(i)] = hL[i]                           # ∂g/∂w_out = h_L
+    if out_bias:
+        jr[o + u(wL)] = 1.0
+    for i in range(wL):
+        d[i] = w_out[i] * (1.0 - hL[i] * hL[i])        # ∂g/∂(pre-activation of layer L)
+    end = o
+    for l in range(L - 1, -1, -1):
+        W = Ws[l]
+        n_out, n_in = W.shape
+        a_in = acts[l][k]
+        start = end - u(n_out * n_in + n_out)
+        bias = start + u(n_out * n_in)
+        for i in range(n_out):
+            di = d[i]
+            q = start + u(i * n_in)
+            for j in range(n_in):
+                jr[q + u(j)] = di * a_in[j]            # ∂g/∂W_l[i, j]
+            jr[bias + u(i)] = di                       # ∂g/∂b_l[i]
+        if l > 0:                                      # back through W_l and the tanh of layer l-1
+            for j in range(n_in):
+                t[j] = 0.0
+            for i in range(n_out):
+                di = d[i]
+                for j in range(n_in):
+                    t[j] += di * W[i, j]
+            for j in range(n_in):
+                d[j] = t[j] * (1.0 - a_in[j] * a_in[j])
+        end = start
+    if gain != 1.0:
+        for c in range(jr.shape[0]):
+            jr[c] *= gain
+
+
+@numba.njit(cache=True)
+def _lfilter_step(x, y, Z, b, a):
+    """One sample of scipy's lfilter (DOUBLE_filt) for every column at once, the same operations in
+    the same order: y = Z_0 + b_0 x, Z_n = (Z_{n+1} + x b_{n+1}) - y a_{n+1}, Z_last = x b_last - y a_last."""
+    L = b.shape[0]
+    m = x.shape[0]
+    b0 = b[0]
+    if L == 1:
+        for c in range(m):
+            y[c] = x[c] * b0
+    elif L == 3:                                       # second order (n_b = 2): one pass
+        b1, a1, b2, a2 = b[1], a[1], b[2], a[2]
+        Z0, Z1 = Z[0], Z[1]
+        for c in range(m):
+            xc = x[c]
+            yc = Z0[c] + b0 * xc
+            Z0[c] = Z1[c] + xc * b1 - yc * a1
+            Z1[c] = xc * b2 - yc * a2
+            y[c] = yc
+    else:
+        for c in range(m):
+            y[c] = Z[0, c] + b0 * x[c]
+        for n in range(L - 2):
+            bn, an = b[n + 1], a[n + 1]
+            Zn, Zn1 = Z[n], Z[n + 1]
+            for c in range(m):
+                Zn[c] = Zn1[c] + x[c] * bn - y[c] * an
+        bl, al = b[L - 1], a[L - 1]
+        Zl = Z[L - 2]
+        for c in range(m):
+            Zl[c] = x[c] * bl - y[c] * al
+
+
+@numba.njit(cache=True)
+def _mlp_filtered_jacobian(acts, Ws, w_out, out_bias, gain, b, a, bounds, WJ):
+    """WJ [N, n_φ] (C order) = (num/den) ∂g/∂φ filtered along time, per segment from rest."""
+    n_phi = WJ.shape[1]
+    width = 1
+    for l in range(len(acts)):
+        width = max(width, acts[l].shape[1])
+    jr = np.empty(n_phi)
+    d = np.empty(width)
+    t = np.empty(width)
+    Z = np.zeros((max(b.shape[0] - 1, 1), n_phi))
+    for s in range(bounds.shape[0]):
+        Z[:] = 0.0
+        for k in range(bounds[s, 0], bounds[s, 1]):
+            _mlp_jacobian_row(acts, Ws, w_out, out_bias, k, gain, jr, d, t)
+            _lfilter_step(jr, WJ[k], Z, b, a)
+
+
+@numba.njit(cache=True)
+def _mlp_filtered_gram(acts, Ws, w_out, out_bias, gain, b, a, bounds, U1, r, block, G):
+    """The reductions of WJ = (num/den) ∂g/∂φ without storing it: ``block`` rows at a time in one
+    buffer (in cache), each row [WJ_k, U1_k, r_k], reduced by one BLAS syrk per block into G (lower
+    triangle, Fortran order, n_φ + p + 1 square): WJᵀWJ, and below it U1ᵀWJ = C, rᵀWJ, U1ᵀU1, rᵀU1, rᵀr
+    (the p + 1 extra columns cost less than a gemm and a gemv of the block)."""
+    n_phi = G.shape[0] - U1.shape[1] - 1
+    p = U1.shape[1]
+    width = 1
+    for l in range(len(acts)):
+        width = max(width, acts[l].shape[1])
+    jr = np.empty(n_phi)
+    d = np.empty(width)
+    t = np.empty(width)
+    Z = np.zeros((max(b.shape[0] - 1, 1), n_phi))
+    N = bounds[bounds.shape[0] - 1, 1]
+    w = G.shape[0]
+    Jb = np.empty((min(block, N), w))
+    i = 0
+    for s in range(bounds.shape[0]):
+        Z[:] = 0.0
+        for k in range(bounds[s, 0], bounds[s, 1]):
+            _mlp_jacobian_row(acts, Ws, w_out, out_bias, k, gain, jr, d, t)
+            row = Jb[i]
+            _lfilter_step(jr, row[:n_phi], Z, b, a)
+            for q in range(p):
+                row[n_phi + q] = U1[k, q]
+            row[n_phi + p] = r[k]
+            i += 1
+            if i == Jb.shape[0] or k == N - 1:
+                blas_syrk_lower(w, i, Jb, G)
+                i = 0
+
+
 class SharedARPGNN(RationalFeedforward):
     """Feedforward F_θ,φ of [K] (6): model M_θ and approximator C_φ sharing B(q).
 
@@ -374,3 +528,91 @@ class SharedARPGNN(RationalFeedforward):
         Xn = self.window(inputs["X"]).detach()
         with torch.no_grad():
             return self.g_gain * self._functional_g(Xn)(torch.as_tensor(phi, dtype=torch.float64), Xn)
+
+    # -- closed-form filtered Jacobian (tanh MLP) ------------------------------------------
+    def _mlp_layers(self) -> list[nn.Linear] | None:
+        """The Linear layers of a tanh :class:`MLP` approximator with at least one hidden layer
+        (biases in every hidden layer), or None for any other approximator."""
+        if type(self.g) is not MLP:
+            return None
+        mods = list(self.g.net)
+        lin, act = mods[0::2], mods[1::2]
+        if len(lin) != len(act) + 1 or len(act) < 1 or not all(type(m) is nn.Linear for m in lin) \
+                or not all(type(m) is nn.Tanh for m in act) or lin[-1].out_features != 1 \
+                or any(m.bias is None for m in lin[:-1]):
+            return None
+        return lin
+
+    @property
+    def closed_form_jacobian(self) -> bool:
+        """g_φ has the closed-form (filtered) Jacobian of :meth:`g_forward` / :meth:`filtered_jacobian`."""
+        return self._mlp_layers() is not None
+
+    def _mlp_parameters(self, phi, lin) -> list[tuple[torch.Tensor, torch.Tensor | None]]:
+        """(W, b) of every Linear layer as views of the flat φ (the split of :meth:`_functional_g`)."""
+        phi = torch.as_tensor(phi, dtype=torch.float64)
+        shapes = [p.shape for p in self.g.parameters()]
+        chunks = iter(c.view(sh) for c, sh in zip(torch.split(phi, [math.prod(sh) for sh in shapes]), shapes))
+        return [(next(chunks), next(chunks) if m.bias is not None else None) for m in lin]
+
+    def g_forward(self, inputs: dict, phi: torch.Tensor):
+        """(g(r) at φ [N], the activations (x, h_1, …, h_L) as numpy arrays [N, ·]) of a tanh MLP
+        (None for another approximator): the operations of :meth:`g_value` (the same bits), with the
+        layer outputs kept for :meth:`filtered_jacobian` at the same φ."""
+        lin = self._mlp_layers()
+        if lin is None:
+            return None
+        x = self.window(inputs["X"]).detach()
+        params = self._mlp_parameters(phi, lin)
+        acts = [x]
+        with torch.no_grad():
+            for W, b in params[:-1]:
+                x = torch.tanh(nn.functional.linear(x, W, b))
+                acts.append(x)
+            W, b = params[-1]
+            g = self.g_gain * nn.functional.linear(x, W, b).squeeze(-1).reshape(-1)
+        return g, tuple(a.numpy() for a in acts)
+
+    def _filtered_jacobian_args(self, inputs, phi, num, den, segments, acts):
+        lin = self._mlp_layers()
+        if acts is None:
+            acts = self.g_forward(inputs, phi)[1]
+        params = self._mlp_parameters(phi, lin)
+        Ws = tuple(np.ascontiguousarray(W.numpy()) for W, _ in params[:-1])
+        w_out = np.ascontiguousarray(params[-1][0].numpy()[0])
+        b, a = _lfilter_coefficients(num, den)
+        bounds = np.array(segments.bounds, dtype=np.int64)
+        return (tuple(np.ascontiguousarray(x) for x in acts), Ws, w_out, params[-1][1] is not None,
+                float(self.g_gain), b, a, bounds)
+
+    def filtered_jacobian(self, inputs: dict, phi: torch.Tensor, num, den, segments: Segments,
+                          acts=None) -> np.ndarray | None:
+        """(num/den)(q) ∂g/∂φ [N, n_φ] (C order), each column filtered per segment from rest as
+        :func:`~pipeline.models.rational.filter_segments` does (scipy's lfilter arithmetic), in one
+        numba pass over time (:func:`_mlp_filtered_jacobian`); ``acts``: the activations of
+        :meth:`g_forward` at this φ.  None when g_φ has no closed form (:attr:`closed_form_jacobian`).
+
+        ∂g/∂φ is the exact Jacobian of :meth:`g_and_jacobian` (backpropagation in closed form, in
+        another order of the sums: equal to rounding, not to the bit)."""
+        if not self.closed_form_jacobian:
+            return None
+        args = self._filtered_jacobian_args(inputs, phi, num, den, segments, acts)
+        WJ = np.empty((segments.n, self.n_phi))
+        _mlp_filtered_jacobian(*args, WJ)
+        return WJ
+
+    def filtered_jacobian_gram(self, inputs: dict, phi: torch.Tensor, num, den, segments: Segments,
+                               U1: np.ndarray, r: np.ndarray, acts=None, block: int = 256):
+        """(G, C, WJᵀr) of WJ = :meth:`filtered_jacobian` without storing WJ: G = WJᵀWJ [n_φ, n_φ]
+        (symmetric), C = U1ᵀ WJ [p, n_φ], WJᵀr [n_φ], reduced ``block`` rows at a time while they are
+        in cache (:func:`_mlp_filtered_gram`: one BLAS syrk per block of the rows [WJ, U1, r]).  None
+        when g_φ has no closed form."""
+        if not self.closed_form_jacobian:
+            return None
+        args = self._filtered_jacobian_args(inputs, phi, num, den, segments, acts)
+        n, p = self.n_phi, U1.shape[1]
+        Ga = np.zeros((n + p + 1, n + p + 1), order="F")
+        _mlp_filtered_gram(*args, np.ascontiguousarray(U1), np.ascontiguousarray(r, dtype=np.float64),
+                           int(block), Ga)
+        G = np.tril(Ga[:n, :n]) + np.tril(Ga[:n, :n], -1).T
+        return G, Ga[n:n + p, :n].copy(), Ga[n + p, :n].copy()

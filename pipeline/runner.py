@@ -23,14 +23,11 @@ of the 10 restarts another job trained loads them.
 from __future__ import annotations
 
 import hashlib
-import hmac
 import importlib
 import json
 import os
-import pickle
 import re
 import shutil
-import socket
 import sys
 import time
 import zlib
@@ -39,29 +36,16 @@ from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
-from filelock import FileLock
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline import interrupts, tracking
+from pipeline.cache import (HOST, UntrustedCache, _load_trusted, _locked, _tmp_name, _write_signed,  # noqa: F401
+                            cache_dir, cache_key_file, pid_alive, remove_stale_temporaries)
+from pipeline.errors import ORDER, SAFE_NAME, ConfigError  # noqa: F401  (re-exported)
 
-#: the order stages run in; ``cfg.stages`` selects a subset
-ORDER = ("generate", "baseline", "train", "invert", "evaluate", "export", "report")
 ROOT = tracking.ROOT
 #: config groups whose chosen option is a run tag (DESIGN, Tracking)
 TAG_GROUPS = ("system", "data", "model", "identify", "regularizer", "invert")
-
-
-#: an experiment name: it is also a folder of the artifact store, so no path separators or '..'
-SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
-
-
-class ConfigError(ValueError):
-    """A bad config key or value, raised before any work is done."""
-
-
-def cache_dir(cfg: DictConfig) -> Path:
-    p = cfg.get("paths", {}).get("cache") or os.environ.get("PIPELINE_CACHE") or ROOT / ".cache"
-    return Path(p)
 
 
 def make_system(cfg: DictConfig):
@@ -217,51 +201,6 @@ def stage_key(cfg: DictConfig, name: str, mod, upstream_keys: dict[str, str],
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
 
 
-#: this machine in temporary names: a shared (cluster) cache is cleaned only of this machine's leftovers
-HOST = re.sub(r"[^A-Za-z0-9.]", "_", socket.gethostname()) or "host"
-_TMP = re.compile(r"^\.tmp-[0-9a-f]+-(?P<host>.+)-(?P<pid>\d+)-\d+$")
-
-
-def _tmp_name(key: str) -> str:
-    """A stage's temporary directory: key, this machine, this process (a stale one is recognisable)."""
-    return f".tmp-{key}-{HOST}-{os.getpid()}-{time.time_ns()}"
-
-
-def pid_alive(pid: int) -> bool:
-    """True if process ``pid`` exists on this machine (a reused pid errs on the safe side)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def remove_stale_temporaries(store: Path) -> list[Path]:
-    """Remove the temporary stage directories left by dead processes of this machine (a SIGKILL
-    or an OOM kill gives no chance to clean up); others' are left alone."""
-    removed = []
-    if not store.is_dir():
-        return removed
-    for stage in store.iterdir():
-        if not stage.is_dir() or stage.name.startswith("."):
-            continue
-        for d in stage.glob(".tmp-*"):
-            m = _TMP.match(d.name)
-            if m and m["host"] == HOST and not pid_alive(int(m["pid"])):
-                shutil.rmtree(d, ignore_errors=True)
-                removed.append(d)
-    return removed
-
-
-def _locked(final: Path) -> FileLock:
-    """The lock of one cache entry (``<cache>/.locks/<stage>-<key>.lock``): held while it is computed."""
-    locks = final.parent.parent / ".locks"
-    locks.mkdir(parents=True, exist_ok=True)
-    return FileLock(str(locks / f"{final.parent.name}-{final.name}.lock"))
-
-
 #: overrides that do not change what a run computes or are already its experiment: not in its name
 _NAME_SKIP = ("experiment", "hydra", "stages", "paths", "report", "export", "run_name", "experiment_name")
 
@@ -328,78 +267,6 @@ def validate(cfg: DictConfig) -> tuple[list[str], Any, dict]:
         if hasattr(modules[n], "validate"):
             modules[n].validate(cfg, system)
     return names, system, modules
-
-
-class UntrustedCache(Exception):
-    """A cache entry not signed with this machine's cache key (written elsewhere, or altered)."""
-
-
-_KEYS: dict[Path, bytes] = {}   # signing key per key file, read once
-
-
-def cache_key_file() -> Path:
-    """The secret that signs this user's cache entries (``$PIPELINE_CACHE_KEY_FILE``, else
-    ``~/.config/pgnn-feedforward/cache.key``; created with mode 600 on first use)."""
-    return Path(os.environ.get("PIPELINE_CACHE_KEY_FILE")
-                or Path.home() / ".config" / "pgnn-feedforward" / "cache.key")
-
-
-def _signing_key() -> bytes:
-    path = cache_key_file()
-    if path not in _KEYS:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-            with os.fdopen(fd, "wb") as f:
-                f.write(os.urandom(32))
-        except FileExistsError:
-            pass
-        _KEYS[path] = path.read_bytes()
-    return _KEYS[path]
-
-
-def _signature(*blobs: bytes) -> str:
-    mac = hmac.new(_signing_key(), digestmod=hashlib.sha256)
-    for b in blobs:
-        mac.update(hashlib.sha256(b).digest())
-    return mac.hexdigest()
-
-
-def _write_signed(entry: Path, result, record: dict | None = None) -> None:
-    """``result.pkl`` (+ ``record.json``) and ``signature``: HMAC-SHA256 of both with the cache key."""
-    payload = pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL)
-    (entry / "result.pkl").write_bytes(payload)
-    blobs = [payload]
-    if record is not None:
-        rec = json.dumps(record, indent=1).encode()
-        (entry / "record.json").write_bytes(rec)
-        blobs.append(rec)
-    (entry / "signature").write_text(_signature(*blobs))
-
-
-def _read_signed(entry: Path) -> tuple[Any, dict | None]:
-    """The entry's result (and record), unpickled only after its signature checked out."""
-    payload = (entry / "result.pkl").read_bytes()
-    blobs = [payload]
-    rec = entry / "record.json"
-    if rec.exists():
-        blobs.append(rec.read_bytes())
-    sig = entry / "signature"
-    if not sig.exists() or not hmac.compare_digest(sig.read_text().strip(), _signature(*blobs)):
-        raise UntrustedCache(f"{entry} is not signed with this machine's cache key ({cache_key_file()})")
-    return pickle.loads(payload), (json.loads(blobs[1]) if len(blobs) > 1 else None)
-
-
-def _load_trusted(entry: Path) -> tuple[Any, dict | None] | None:
-    """The entry's (result, record); None after moving an untrusted entry out of the way (never
-    loaded), so that it is recomputed."""
-    try:
-        return _read_signed(entry)
-    except UntrustedCache as why:
-        aside = entry.with_name(f".untrusted-{entry.name}-{time.time_ns()}")
-        os.rename(entry, aside)
-        print(f"warning: {why}; not loaded (moved to {aside.name}), recomputing", file=sys.stderr, flush=True)
-        return None
 
 
 def _record(ctx: StageContext, seconds: float) -> dict:

@@ -35,7 +35,7 @@ from typing import Any, Callable, Literal, Optional, Union
 
 from omegaconf import OmegaConf
 
-from pipeline.runner import ORDER, SAFE_NAME, ConfigError
+from pipeline.errors import ORDER, SAFE_NAME, ConfigError
 
 #: every schema class: keyword-only fields, so a mandatory field may follow defaulted ones
 schema = dataclass(kw_only=True)

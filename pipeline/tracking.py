@@ -21,6 +21,7 @@ from mlflow.entities import Metric, Param, RunTag
 from mlflow.tracking import MlflowClient
 
 from pipeline import interrupts
+from pipeline.cache import HOST, cache_dir, pid_alive, remove_stale_temporaries
 
 ROOT = Path(__file__).resolve().parent.parent
 PARENT_ENV = "PIPELINE_PARENT_RUN_ID"
@@ -211,14 +212,12 @@ class JobRun:
 
 
 def _host() -> str:
-    from pipeline.runner import HOST
     return HOST
 
 
 def mark_dead_runs_killed(exp_id: str) -> list[str]:
     """Runs of the experiment left RUNNING by a process of this machine that no longer exists
     (SIGKILL, OOM) are marked KILLED; returns their ids."""
-    from pipeline.runner import pid_alive
     c = client()
     runs = c.search_runs([exp_id], filter_string=f"attributes.status = 'RUNNING' and tags.host = '{_host()}'",
                          max_results=1000)
@@ -280,7 +279,6 @@ try:  # the Hydra callback lives here so that tracking stays in one module
                                      "sweep": "parent"})
             self.parent_run_id = run.info.run_id
             os.environ[PARENT_ENV] = run.info.run_id
-            from pipeline.runner import cache_dir
             self.cache = str(cache_dir(config))
             atexit.register(self._close, "FAILED")
             interrupts.on_abort(("run", self.parent_run_id), lambda: self._close("KILLED"))
@@ -320,7 +318,6 @@ try:  # the Hydra callback lives here so that tracking stays in one module
                                                        "attributes.status = 'RUNNING'", max_results=10000)
                 for child in children:   # their workers were killed with the sweep
                     c.set_terminated(child.info.run_id, "KILLED")
-                from pipeline.runner import remove_stale_temporaries
                 remove_stale_temporaries(Path(self.cache))   # and the stage they were computing
             c.set_terminated(run_id, status)
 except ImportError:  # pragma: no cover

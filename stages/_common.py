@@ -5,7 +5,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline import references
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 
 
 def reference_specs(node) -> list[dict]:

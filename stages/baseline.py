@@ -12,7 +12,7 @@ from __future__ import annotations
 import warnings
 
 from pipeline.identify.least_squares import fit_physics
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 from pipeline.systems.measured import Recording
 
 UPSTREAM = ("generate",)

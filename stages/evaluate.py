@@ -32,7 +32,7 @@ import numpy as np
 
 from pipeline import plots
 from pipeline.metrics import phase_ff_errors, phase_peaks, tracking_metrics
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 from pipeline.systems.measured import Recording
 
 UPSTREAM = ("invert",)

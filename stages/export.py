@@ -22,7 +22,7 @@ import sys
 from pipeline import tracking
 from pipeline.export import law as laws
 from pipeline.export.package import find_compiler, write_package
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 from pipeline.systems.measured import Recording
 
 UPSTREAM = ("generate", "baseline", "train", "invert")

@@ -36,7 +36,8 @@ def test_perturbation_reaches_the_lm_and_a_converged_fit_stays(eps):
     # unperturbed one in the last digits only (a converged linear least-squares problem)
     code = ("import torch\nfrom pipeline.identify.lm import levenberg_marquardt as lm\n"
             "g = torch.Generator().manual_seed(0)\n"
-            "A = torch.randn(50, 4, generator=g, dtype=torch.float64); b = torch.randn(50, generator=g, dtype=torch.float64)\n"
+            "A = torch.randn(50, 4, generator=g, dtype=torch.float64)\n"
+            "b = torch.randn(50, generator=g, dtype=torch.float64)\n"
             "r = lm(lambda t: A @ t - b, torch.zeros(4, dtype=torch.float64), jacobian=lambda t: A)\n"
             "print(repr(r.theta.tolist()))\n")
     out = [eval(subprocess.run([sys.executable, "-c", code], env={**os.environ, "PIPELINE_PERTURB": e},

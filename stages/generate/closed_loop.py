@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.data import Dataset
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 from stages._common import check_references, reference_specs
 
 

@@ -12,7 +12,7 @@ import numpy as np
 from pipeline import plots
 from pipeline.data import Dataset
 from pipeline.invert.ilc import make_update, norm_optimal_ilc, system_trial
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 from stages._common import check_references, reference_specs
 from stages.generate.closed_loop import check as check_closed_loop
 

@@ -7,7 +7,7 @@ import torch
 from pipeline.identify.narx import build_regression
 from pipeline.invert.direct import nyquist_fraction, per_sample_seconds
 from pipeline.models.pgnn import fast_pgnn
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 
 
 def check_structure(cfg, kind: str, allowed: tuple[str, ...]) -> None:

@@ -1,7 +1,7 @@
 """invert.kind=exact: the simulator's exact optimal input (only where the plant knows it)."""
 import numpy as np
 
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 
 
 def check(cfg, system) -> None:

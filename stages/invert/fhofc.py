@@ -20,7 +20,7 @@ import numpy as np
 from pipeline.identify.sim_error import DiscreteController
 from pipeline.invert.fhofc import fhofc, fhofc_receding
 from pipeline.metrics_bound import bound_terms
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 
 VERSION = 2   # 2: the FHOFC solve is timed warm (the first solve of a process compiles numba kernels)
 

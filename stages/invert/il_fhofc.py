@@ -17,7 +17,7 @@ import numpy as np
 
 from pipeline.identify.sim_error import DiscreteController
 from pipeline.invert.fhofc import il_fhofc
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 from stages.invert.fhofc import check as check_fhofc
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 
 from pipeline.invert.newton import newton_feedforward, newton_step
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
 
 VERSION = 2   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)

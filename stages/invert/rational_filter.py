@@ -12,7 +12,7 @@ import torch
 
 from pipeline.identify.orthogonal import spread_over_inits
 from pipeline.invert.rational_filter import rational_feedforward
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 
 
 def check(cfg, system) -> None:

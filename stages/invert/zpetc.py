@@ -1,6 +1,6 @@
 """invert.kind=zpetc: zero-phase-error tracking feedforward of the identified linear physics model,
 a stable approximate inverse for nonminimum-phase models (rot_trans_nmp, SPEC §2.3)."""
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 from pipeline.systems.rot_trans_nmp import zpetc_feedforward
 from pipeline.systems.arx_bias import ARXPhysics
 

@@ -19,7 +19,7 @@ from omegaconf import OmegaConf
 from pipeline.identify.narx import (arx_inverse_asymptotics, forward_regressor,
                                     inverse_regressor, physics_least_squares)
 from pipeline.models.pgnn import PGNN, LinearFeatures
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 
 
 def check(cfg, system) -> None:

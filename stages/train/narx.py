@@ -23,7 +23,7 @@ from omegaconf import OmegaConf
 
 from pipeline.identify.narx import identify_pgnn
 from pipeline.models.pgnn import PGNN, physics_features_for
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 from pipeline.systems.measured import Recording
 from stages.train import lm_progress, log_restarts, restart_memo
 

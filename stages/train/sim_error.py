@@ -25,7 +25,7 @@ from omegaconf import OmegaConf
 
 from pipeline.identify.sim_error import DiscreteController, closed_loop_exogenous, identify_sim_error
 from pipeline.models.pgnn import PGNN, LinearFeatures
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 from stages.train import lm_progress, log_restarts, restart_memo
 from pipeline.systems.arx_bias import ARXPhysics
 from pipeline.systems.measured import Recording

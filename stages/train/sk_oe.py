@@ -37,7 +37,7 @@ from pipeline.identify.orthogonal import interpretability, spread_over_inits
 from pipeline.identify.sk import output_error_lm, sk_restarts
 from pipeline.models.rational import RationalFeedforward, basis_coefficients, basis_matrix
 from pipeline.models.shared_ar import ReferenceWindow, SharedARPGNN, make_approximator
-from pipeline.runner import ConfigError
+from pipeline.errors import ConfigError
 
 VERSION = 2   # 2: SK and the OE check stop on tolerances (stop reasons logged); regularised check on J_OE + λR
 KINDS = ("rational", "pgnn_shared_ar")

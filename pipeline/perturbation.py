@@ -39,9 +39,10 @@ def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02
     """Per key (reference value, perturbed value, relative change) and per experiment a summary.
 
     The relative change is |a - b| / max(|a|, |b|) (0 when both are 0, 1 when one is NaN and the
-    other not); keys missing on one side count as changed (relative change 1)."""
-    a = reference.copy()
+    other not).  Keys on one side only are counted per experiment (``keys_on_one_side``), not
+    compared; only the experiments of ``perturbed`` are compared (a check of a subset)."""
     b = perturbed.copy()
+    a = reference[reference["experiment"].isin(set(b["experiment"]))].copy()   # a subset rerun: its experiments
     for d in (a, b):
         d[KEY] = d[KEY].fillna("")
     m = a.merge(b, on=KEY, how="outer", suffixes=("_ref", "_pert"), indicator=True)
@@ -53,8 +54,10 @@ def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02
         rel = np.where(den > 0, np.abs(va - vb) / den, 0.0)
     both_nan = np.isnan(va) & np.isnan(vb)
     rel = np.where(both_nan, 0.0, np.where(np.isnan(va) | np.isnan(vb), 1.0, rel))
-    rel = np.where(m["_merge"].to_numpy() != "both", 1.0, rel)
-    m = m.assign(rel_change=rel)
+    one_side = m["_merge"].to_numpy() != "both"
+    m = m.assign(rel_change=np.where(one_side, np.nan, rel))
+    missing = m[one_side].groupby("experiment").size()
+    m = m[~one_side]
     rows = []
     for exp, g in m.groupby("experiment", sort=False):
         i = int(np.argmax(g["rel_change"].to_numpy()))
@@ -64,7 +67,8 @@ def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02
         rows.append({"experiment": exp, "values": len(g), "max_rel_change": float(worst["rel_change"]),
                      "worst_key": f"{worst['claim']}|{worst['variant']}|{worst['metric']}".strip("|"),
                      "n_above_rtol": int((g["rel_change"] > rtol).sum()),
-                     "verdicts_changed": int(verdicts["claim"].nunique())})
+                     "verdicts_changed": int(verdicts["claim"].nunique()),
+                     "keys_on_one_side": int(missing.get(exp, 0))})
     cols = KEY + ["value_ref", "value_pert", "rel_change"]
     return m[cols], pd.DataFrame(rows)
 
@@ -81,11 +85,12 @@ def markdown(summary: pd.DataFrame, rtol: float, check: str, setting: str) -> st
              f"The whole `make reproduce` rerun with {what} (`{setting}`); values compared key by "
              f"key with the reference `summary.csv` (timings left out). A value that moves by more "
              f"than {rtol:.0%} comes from a fit that its tolerance does not pin down.", "",
-             "| experiment | values | largest relative change | at | moved > rtol | claim verdicts changed |",
-             "| --- | --- | --- | --- | --- | --- |"]
+             "| experiment | values | largest relative change | at | moved > rtol | claim verdicts changed "
+             "| keys on one side only |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
     for r in summary.itertuples():
         lines.append(f"| {r.experiment} | {r.values} | {r.max_rel_change:.3g} | `{r.worst_key}` | "
-                     f"{r.n_above_rtol} | {r.verdicts_changed} |")
+                     f"{r.n_above_rtol} | {r.verdicts_changed} | {r.keys_on_one_side} |")
     return "\n".join(lines) + "\n"
 
 

@@ -388,17 +388,20 @@ def _lfilter_step(x, y, Z, b, a):
             Zl[c] = x[c] * bl - y[c] * al
 
 
+@numba.njit(cache=True, inline="always")
+def _row_buffers(acts, n_phi, nb):
+    """Work arrays of one Jacobian row: the row, two layer-width vectors, the filter state."""
+    width = 1
+    for l in range(len(acts)):
+        width = max(width, acts[l].shape[1])
+    return np.empty(n_phi), np.empty(width), np.empty(width), np.zeros((max(nb - 1, 1), n_phi))
+
+
 @numba.njit(cache=True)
 def _mlp_filtered_jacobian(acts, Ws, w_out, out_bias, gain, b, a, bounds, WJ):
     """WJ [N, n_φ] (C order) = (num/den) ∂g/∂φ filtered along time, per segment from rest."""
     n_phi = WJ.shape[1]
-    width = 1
-    for l in range(len(acts)):
-        width = max(width, acts[l].shape[1])
-    jr = np.empty(n_phi)
-    d = np.empty(width)
-    t = np.empty(width)
-    Z = np.zeros((max(b.shape[0] - 1, 1), n_phi))
+    jr, d, t, Z = _row_buffers(acts, n_phi, b.shape[0])
     for s in range(bounds.shape[0]):
         Z[:] = 0.0
         for k in range(bounds[s, 0], bounds[s, 1]):
@@ -414,13 +417,7 @@ def _mlp_filtered_gram(acts, Ws, w_out, out_bias, gain, b, a, bounds, U1, r, blo
     (the p + 1 extra columns cost less than a gemm and a gemv of the block)."""
     n_phi = G.shape[0] - U1.shape[1] - 1
     p = U1.shape[1]
-    width = 1
-    for l in range(len(acts)):
-        width = max(width, acts[l].shape[1])
-    jr = np.empty(n_phi)
-    d = np.empty(width)
-    t = np.empty(width)
-    Z = np.zeros((max(b.shape[0] - 1, 1), n_phi))
+    jr, d, t, Z = _row_buffers(acts, n_phi, b.shape[0])
     N = bounds[bounds.shape[0] - 1, 1]
     w = G.shape[0]
     Jb = np.empty((min(block, N), w))

@@ -31,6 +31,7 @@ def test_compare_reports_the_largest_change_per_experiment_and_skips_timings():
     assert s.loc["e2", "keys_on_one_side"] == 1 and s.loc["e2", "max_rel_change"] == pytest.approx(0.1 / 2.1)
 
 
+@pytest.mark.slow      # two subprocesses per case (~8 s); the tightening test below covers the hook path
 @pytest.mark.parametrize("eps", ["0", "1e-13"])
 def test_perturbation_reaches_the_lm_and_a_converged_fit_stays(eps):
     # the same LM problem in a subprocess with PIPELINE_PERTURB: the perturbed fit differs from the

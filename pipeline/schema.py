@@ -442,8 +442,8 @@ class Narx:
     mu0: float = spec(1e-3, gt=0, le=1e12)
     val_fraction: float = spec(0.2, ge=0, lt=1)
     patience: int = spec(20, ge=1, le=ITER_MAX)
-    geodesic: bool = False
-    stat_window: int = spec(0, ge=0, le=ITER_MAX)
+    geodesic: bool = True
+    stat_window: int = spec(10, ge=0, le=ITER_MAX)
     stat_tol: float = spec(0.1, ge=0, le=100)
 
 
@@ -461,8 +461,8 @@ class SimError:
     mu0: float = spec(1e-3, gt=0, le=1e12)
     val_fraction: float = spec(0.0, ge=0, lt=0.5)
     patience: int = spec(5, ge=1, le=ITER_MAX)
-    geodesic: bool = False
-    stat_window: int = spec(0, ge=0, le=ITER_MAX)
+    geodesic: bool = True
+    stat_window: int = spec(10, ge=0, le=ITER_MAX)
     stat_tol: float = spec(0.1, ge=0, le=100)
 
 

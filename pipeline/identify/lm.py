@@ -295,7 +295,7 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
                 J = eval_jac(theta, r.numel())
                 A = _gram(J)
                 g = J.T @ r
-            if _PERTURB:            # emulate another machine's rounding (pipeline.perturb)
+            if _PERTURB:            # emulate another machine's rounding (pipeline/perturbation.py)
                 A, g = _perturb_normal_equations(A, g, n_jac)
             diag = torch.diagonal(A).clone()
             # gradient test, scale-free (cosine of each column with the residual)

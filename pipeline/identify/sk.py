@@ -275,7 +275,7 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
             res = np.concatenate([res, sq * sub.coordinates(Wg)])
         return torch.from_numpy(res)
 
-    def activations(phi: torch.Tensor, key: bytes):
+    def activations(key: bytes):
         return acts["acts"] if acts.get("key") == key else None
 
     last: dict = {}     # the filtered Jacobian of g (and J) at the last φ asked for
@@ -285,7 +285,7 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
         if last.get("key") != key:
             last.clear()
             if closed:
-                WJ = model.filtered_jacobian(inp, phi, [1.0], den, seg, activations(phi, key))
+                WJ = model.filtered_jacobian(inp, phi, [1.0], den, seg, activations(key))
             else:
                 _, Jg = model.g_and_jacobian(inp, phi)
                 WJ = filter_segments(Jg.numpy(), [1.0], den, seg)     # W ∂g/∂φ, column by column
@@ -317,7 +317,7 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
         key = phi.numpy().tobytes()
         if closed and last.get("key") != key:
             # G, C and WJᵀr block by block while the filtered rows are in cache (WJ is not stored)
-            G, C, WJr = model.filtered_jacobian_gram(inp, phi, [1.0], den, seg, U1, r1, activations(phi, key))
+            G, C, WJr = model.filtered_jacobian_gram(inp, phi, [1.0], den, seg, U1, r1, activations(key))
         else:
             WJ, C = filtered(phi)
             G = WJ.T @ WJ                                     # syrk

@@ -253,10 +253,34 @@ class ArxBias:
 
 @schema
 class Controller:
-    kp: float = spec(gt=0, le=1e6, unit="1/s", example=160.18)
-    kv: float = spec(gt=0, le=1e9, unit="controller units per m/s", example=243.45)
+    """system.controller (pipeline.systems.controller): kind cascade (kp, kv) or lti (num, den, num_r,
+    delay); which keys a kind takes is checked by LTIController.from_config."""
+    kind: Literal["cascade", "lti"] = "cascade"
+    kp: Optional[float] = spec(None, gt=0, le=1e6, unit="1/s", example=160.18)
+    kv: Optional[float] = spec(None, gt=0, le=1e9, unit="controller units per m/s", example=243.45)
+    num: Optional[list[float]] = spec(None, ge=-1e15, le=1e15, min_len=1, example=[4.279e6, -8.212e6, 3.939e6])
+    den: Optional[list[float]] = spec(None, ge=-1e15, le=1e15, min_len=1, example=[1.0, -1.4361, 0.4361])
+    num_r: Optional[list[float]] = spec(None, ge=-1e15, le=1e15, min_len=1, example=[4.279e6, -8.212e6, 3.939e6])
+    delay: Optional[int] = spec(None, ge=0, le=100, unit="samples", example=1)
     gtau: float = spec(1.0, gt=0, le=1e6, unit="N per controller unit")
     v_sat: float = spec(1e9, gt=0, le=1e12, unit="controller units")
+
+
+def _terms_rule(v) -> str | None:
+    from pipeline.systems.force_terms import TERMS
+    bad = [t for t in v if t not in TERMS]
+    return f"unknown term(s) {bad}; choose from {list(TERMS)} (the mass is always in)" if bad else None
+
+
+@schema
+class ForceTermsCfg:
+    """system.force_terms of a measured system (pipeline.systems.force_terms)."""
+    terms: list[str] = spec(["viscous", "coulomb", "offset"], check=_terms_rule,
+                            example=["viscous", "coulomb", "cogging"])
+    coulomb_width: Optional[float] = spec(None, gt=0, le=SPEED_MAX, unit="m/s", example=0.002)
+    stribeck_velocity: float = spec(0.01, gt=0, le=SPEED_MAX, unit="m/s")
+    cogging_period: Optional[float] = spec(None, gt=0, le=LENGTH_MAX, unit="m", example=0.03)
+    cogging_harmonics: int = spec(1, ge=1, le=20)
 
 
 @schema
@@ -282,7 +306,7 @@ class Recording:
     Ts: float = spec(1e-3, gt=0, le=TS_MAX, unit="s")
     controller: Controller = spec(example="{kp:160.18,kv:243.45}")
     physics_input: Literal["averaged", "direct"] = "averaged"
-    offset: bool = True
+    force_terms: ForceTermsCfg = field(default_factory=lambda: ForceTermsCfg())
     disturbance: Optional[str] = None
     published: Optional[Published] = None
     idim: Idim = field(default_factory=Idim)
@@ -442,7 +466,7 @@ class Narx:
     mu0: float = spec(1e-3, gt=0, le=1e12)
     val_fraction: float = spec(0.2, ge=0, lt=1)
     patience: int = spec(20, ge=1, le=ITER_MAX)
-    geodesic: bool = True
+    geodesic: bool = False
     stat_window: int = spec(10, ge=0, le=ITER_MAX)
     stat_tol: float = spec(0.1, ge=0, le=100)
 
@@ -482,6 +506,7 @@ class SkOe:
     n_jobs: int = spec(5, ge=1, le=1024)
     oe_check_iter: int = spec(3000, ge=1, le=ITER_MAX)
     geodesic: bool = False
+    cost_tol: float = spec(0.0, ge=0, lt=1)
 
 
 @schema

@@ -105,7 +105,6 @@ def run(ctx) -> dict:
 def _run_measured(ctx) -> dict:
     from pipeline.identify.measured_loop import (CONVENTIONS, LoopModel, LoopSignals, benchmark_rmse_mm,
                                                  loop_errors, simulate_loop, simulate_open_loop)
-    from pipeline.systems.measured import RigidBodyPhysics
     from stages._common import reference_specs
     from stages.generate.measured import reference
     inv, system, cfg = ctx.inputs["invert"], ctx.system, ctx.cfg
@@ -114,8 +113,7 @@ def _run_measured(ctx) -> dict:
     main = str(cfg.evaluate.get("convention", "data"))   # of the figures and the feedforward tracking
     published = None
     if system.published_theta() is not None:   # the authors' model in their discretisation (direct input)
-        pub_physics = RigidBodyPhysics(system.Ts, averaged_input=False, offset=system.physics.has_offset)
-        published = LoopModel.physics_only(pub_physics, system.published_theta())
+        published = LoopModel.physics_only(system.physics.with_direct_input(), system.published_theta())
     ctx.tag("feedforward_scoring", "model-based: the identified model in the recorded loop, not the machine")
     out, errors, force = {}, {}, {}
     for spec in reference_specs(cfg.evaluate.references):

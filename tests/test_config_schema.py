@@ -155,7 +155,8 @@ EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
 OPTIONS = [f"{g}={p.stem}" for g in ("system", "data", "model", "identify", "regularizer", "invert", "evaluate")
            for p in sorted((CONF / g).glob("*.yaml"))]
 #: the mandatory values (???) of the templates
-NEEDS = {"system=measured": ["system.controller.kp=160.18", "system.controller.kv=243.45"],
+NEEDS = {"system=measured": ["system.controller.num=[4.279e6,-8.212e6,3.939e6]",
+                             "system.controller.den=[1.0,-1.4361,0.4361]"],
          "data=measured": ["data.path=/nowhere"]}
 
 

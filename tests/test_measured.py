@@ -14,7 +14,8 @@ import pytest
 from pipeline import data, runner
 from pipeline.identify.measured_loop import (LoopModel, LoopSignals, benchmark_rmse_mm, identify_loop_sim_error,
                                             loop_errors, simulate_loop, simulate_open_loop)
-from pipeline.systems.measured import CascadeController, Recording, RigidBodyPhysics
+from pipeline.systems.controller import LTIController
+from pipeline.systems.measured import Recording, RigidBodyPhysics
 
 EMPS = Path(__file__).resolve().parents[2] / "shared" / "data" / "emps"
 needs_emps = pytest.mark.skipif(not (EMPS / "DATA_EMPS.mat").exists(),
@@ -68,10 +69,11 @@ def test_controller_law_is_the_recording_and_a_sign_error_is_caught():
     ds = data.load_emps(EMPS, "DATA_EMPS")
     s = _emps_system()
     # the recorded vir is the law on qm of the same sample (no delay): 0.2 % rms residual
-    assert s.ctrl.residual(ds["r"], ds["y"], ds["u"], ds["d"], 1e-3) < 0.005
+    assert s.ctrl.check(ds["r"], ds["y"], ds["u"], ds["d"]) < 0.005
     check_record(ds, s, "DATA_EMPS")
     flipped = data.Dataset(ds.frame.assign(u=-ds.frame["u"]), ds.meta)
-    with pytest.raises(ValueError, match="DATA_EMPS.*not the configured controller's output.*signs and units"):
+    with pytest.raises(ValueError, match="DATA_EMPS.*not the output of the configured controller, the position/"
+                                         "velocity cascade.*gain ×-(0.99|1.00).*sign error"):
         check_record(flipped, s, "DATA_EMPS")
     with pytest.raises(ValueError, match="kp = 160.18 differs from system.controller.kp"):
         check_record(ds, Recording("emps", 1e-3, dict(CTRL, kp=100.0)), "DATA_EMPS")
@@ -149,7 +151,7 @@ def test_feedforward_cancels_the_cascade_and_tracks_the_models_loop(physics_inpu
     s = _emps_system(physics_input)
     th = s.published_theta()
     model = LoopModel.physics_only(s.physics, th)
-    uff = s.physics.feedforward(th, sig.r) - s.ctrl.force_on_reference(sig.r, 1e-3)
+    uff = s.physics.feedforward(th, sig.r) - s.ctrl.reference_force(sig.r)
     y, _, _ = simulate_loop(model, s.ctrl, LoopSignals(sig.r, sig.d, 0.0, sig.t, uff))
     y0, _, _ = simulate_loop(model, s.ctrl, sig)
     e, e0 = np.abs(sig.r - y)[:-2], np.abs(sig.r - y0)[:-2]   # the last samples lack r(N+1)
@@ -183,7 +185,8 @@ def _csv(tmp_path, name="rec", n=2000, dt=1e-3, **change):
 
 
 def _measured_overrides(path):
-    return ["system=measured", "system.controller.kp=160.18", "system.controller.kv=243.45",
+    return ["system=measured", "system.controller.kind=cascade", "system.controller.num=null",
+            "system.controller.kp=160.18", "system.controller.kv=243.45",
             "system.controller.gtau=35.150652", "data=measured", f"data.path={path.parent}", f"data.file={path.name}",
             "evaluate=emps", f"evaluate.references=[{{name:test,kind:measured,file:{path.name}}}]",
             "model=physics", "identify=none", "invert=physics", "experiment_name=user"]
@@ -209,7 +212,7 @@ def test_user_csv_round_trips_load_identify_evaluate(store, cfg_of, tmp_path):
     ("string", r"rec\.csv: column 'y' is not numeric.*SI units"),
     ("nan", r"rec\.csv: column 'u' has 1 NaN/inf"),
     ("huge", r"rec\.csv: column 'y' has \|value\| = 1e\+300.*units and scaling"),
-    ("sign", r"rec\.csv: the recorded force u is not the configured controller's output.*signs and units"),
+    ("sign", r"rec\.csv: the recorded force u is not the output of the configured controller.*sign error"),
 ])
 def test_bad_measured_input_fails_before_work(store, cfg_of, tmp_path, case, match):
     n = 2000
@@ -279,7 +282,7 @@ def test_recording_has_no_plant():
     with pytest.raises(RuntimeError, match="recording of a real machine: it has no true plant"):
         s.simulate(np.zeros(10))
     with pytest.raises(ValueError, match="controller.kp"):
-        CascadeController(kp=-1.0, kv=1.0, gtau=1.0)
+        LTIController.cascade(kp=-1.0, kv=1.0, gtau=1.0)
 
 
 def test_unknown_convention_is_named(store, cfg_of, tmp_path):
@@ -357,7 +360,8 @@ def test_measured_pgnn_trainings_and_the_emps_report_section(store, cfg_of, tmp_
     import pandas as pd
     from pipeline import tracking
     _csv(tmp_path, n=3000)                 # rec.csv: the physics model in the EMPS cascade
-    user = ["system=measured", "system.controller.kp=160.18", "system.controller.kv=243.45",
+    user = ["system=measured", "system.controller.kind=cascade", "system.controller.num=null",
+            "system.controller.kp=160.18", "system.controller.kv=243.45",
             "system.controller.gtau=35.150652", "data.format=table", f"data.path={tmp_path}", "data.file=rec.csv",
             "evaluate.references=[{name:train,kind:measured,file:rec.csv},{name:test,kind:measured,file:rec.csv}]"]
     runner.run_job(cfg_of("experiment=emps_physics", *user))

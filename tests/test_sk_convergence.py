@@ -146,3 +146,20 @@ def test_regularised_check_needs_a_weighting(problem):
     rs, fs = problem
     with pytest.raises(ValueError, match="weighting"):
         output_error_lm(_pgnn(rs, seed=3), rs, fs, lam=1.0)
+
+
+def test_sk_cost_stop_fires_where_the_parameter_test_cannot(problem, sk_none):
+    """cost_tol (issue 19): with a parameter tolerance no step can meet (1e-30), the run stops when
+    J_OE changed by <= cost_tol over a step whose inner LM converged, and not before: the criterion
+    of the stopping step is within cost_tol of the previous one, every earlier step moved more, and
+    the cost reached is the converged (tol-stopped) run's to 1e-6."""
+    rs, fs = problem
+    res = sk_iterations(_pgnn(rs, seed=4), rs, fs, regularizer="none", lam=0.0, max_iter=50,
+                        tol=1e-30, cost_tol=1e-9, **LM)
+    assert res.message == "cost_tol" and res.converged and res.inner_converged
+    J = np.array(res.J_OE)
+    rel = np.abs(np.diff(J)) / J[:-1]
+    assert rel[-1] <= 1e-9 and np.all(rel[:-1] > 1e-9)
+    assert min(J) == pytest.approx(min(sk_none.J_OE), rel=1e-6)
+    with pytest.raises(ValueError, match="cost_tol must be >= 0"):
+        sk_iterations(_pgnn(rs, seed=4), rs, fs, regularizer="none", max_iter=2, cost_tol=-1.0, **LM)

@@ -7,21 +7,22 @@ RigidBodyPhysics`, direct input on w) and at most one tanh hidden layer ([B1] (1
            + s_out (W2 tanh(W1 x(k) + b1) + b2),       x(k) = P φ(k) + c,
     φ(k) = [y(k-1) … y(k-n_a), w(k-1) … w(k-n_b)],   w = ū = (u(k) + u(k-1))/2 or u,
 
-closed around the cascade controller of :class:`pipeline.systems.measured.CascadeController`::
+closed around the known controller (:class:`pipeline.systems.controller.LTIController`, any
+discrete LTI C_r, C_y with a common denominator A; the EMPS cascade is one instance)::
 
-    c(k) = sat(kv (kp (r(k) - ŷ(k)) - (ŷ(k) - ŷ(k-2)) / (2 Ts)) + u_ff(k) / gtau)
+    A v(k) = B_r r(k) - B_y ŷ(k),     c(k) = sat(v(k) + u_ff(k) / gtau)
     u(k) = gtau (c(k - D) + d(k))                   applied force [N]
-    τ̂(k) = gtau (c(k) + d(k))                       the drive's force, compared with the record
+    τ̂(k) = gtau (c(k - D_c) + d(k))                the recorded force's model [N]
 
-with d the measured disturbance [V] (EMPS test file: ``pulses_N``, after the saturation) and
-u_ff [N] a force feedforward added to the command before the drive's limit (after it, the
-saturated velocity feedback could not be cancelled, see ``CascadeController.force_on_reference``).
-Two timing conventions (EMPS README, issue 9):
+with d the measured disturbance [V] (EMPS test file: ``pulses_N``, after the saturation), u_ff [N]
+a force feedforward added to the command before the drive's limit (after it, a saturated
+feedback could not be cancelled, see ``LTIController.reference_force``) and D_c the controller's
+configured delay. Two timing conventions (EMPS README, issue 9):
 
-- ``data`` (default): D = 0, as recorded (vir[k] is the law on qm[k] of the same sample);
-- ``published``: the benchmark authors' simulation script: D = 1 (one-sample delay on the
-  controller output, not on the pulses) and the reference and disturbance read at the script's
-  time base k·h, h = t(10) - t(9), by linear interpolation in the data's time column.
+- ``data`` (default): D = D_c, as recorded (EMPS: vir[k] is the law on qm[k] of the same sample);
+- ``published``: the benchmark authors' simulation script: D = D_c + 1 (one more sample of delay
+  on the controller output, not on the pulses) and the reference and disturbance read at the
+  script's time base k·h, h = t(10) - t(9), by linear interpolation in the data's time column.
 
 One numba kernel simulates the loop and, on request, the exact forward sensitivities of ŷ
 and τ̂ to every parameter (the Jacobian of the closed-loop simulation error, [B2] (16)).
@@ -36,6 +37,8 @@ import numba
 import numpy as np
 
 from pipeline.identify.sim_error import nn_export, nn_split
+from pipeline.systems.controller import LTIController
+from pipeline.systems.force_terms import ForceTerms, term
 
 CONVENTIONS = ("data", "published")
 
@@ -56,14 +59,22 @@ class LoopModel:
     nn_P: np.ndarray = None
     nn_c: np.ndarray = None
     out_scale: float = 1.0
+    term_codes: np.ndarray = None     # the physics' force terms (ForceTerms.kernel()); None: viscous, Coulomb
+    term_p: np.ndarray = None         # (sign) and, for a 4-entry θ, the offset (the EMPS model)
 
     def __post_init__(self):
         if self.n_a < 2 or self.n_b < 1:
             raise ValueError(f"the rigid-body loop model needs n_a >= 2 and n_b >= 1, got n_a={self.n_a}, "
                              f"n_b={self.n_b}")
         self.theta_phy = np.ascontiguousarray(self.theta_phy, dtype=np.float64).reshape(-1)
-        if self.theta_phy.shape not in ((3,), (4,)):
-            raise ValueError(f"theta_phy must be [1/M, F_v/M, F_c/M(, OF/M)], got shape {self.theta_phy.shape}")
+        if self.term_codes is None:
+            names = ("viscous", "coulomb") + (("offset",) if self.theta_phy.size == 4 else ())
+            self.term_codes, self.term_p = ForceTerms(names).kernel()
+        self.term_codes = np.ascontiguousarray(self.term_codes, dtype=np.int64)
+        self.term_p = np.ascontiguousarray(self.term_p, dtype=np.float64)
+        if self.theta_phy.shape != (1 + self.term_codes.size,):
+            raise ValueError(f"theta_phy must be [1/M, p_1/M, …] with one entry per force term "
+                             f"({1 + self.term_codes.size}), got shape {self.theta_phy.shape}")
         nphi = self.n_a + self.n_b
         self.nn_P = np.eye(nphi) if self.nn_P is None else np.ascontiguousarray(self.nn_P, dtype=np.float64)
         nx = self.nn_P.shape[0]
@@ -84,14 +95,17 @@ class LoopModel:
         if model.use_nn and not (len(model.hidden) == 1 and model.activation == "tanh"):
             raise ValueError(f"the loop model has one tanh hidden layer, got hidden={model.hidden}, "
                              f"activation={model.activation!r}")
-        Ts = float(getattr(model.physics, "pm", model.physics).Ts)
-        return cls(Ts, model.n_a, model.n_b, bool(averaged), model.theta_phy.detach().numpy().copy(),
-                   **nn_export(model))
+        pm = getattr(model.physics, "pm", model.physics)
+        codes, tp = pm.kernel_terms() if hasattr(pm, "kernel_terms") else (None, None)
+        return cls(float(pm.Ts), model.n_a, model.n_b, bool(averaged), model.theta_phy.detach().numpy().copy(),
+                   **nn_export(model), term_codes=codes, term_p=tp)
 
     @classmethod
     def physics_only(cls, physics, theta) -> "LoopModel":
         """The physics model alone (``RigidBodyPhysics``; w = ū if it averages its input)."""
-        return cls(physics.Ts, 2, 1, bool(physics.averaged_input), np.asarray(theta, dtype=np.float64))
+        codes, tp = physics.kernel_terms() if hasattr(physics, "kernel_terms") else (None, None)
+        return cls(physics.Ts, 2, 1, bool(physics.averaged_input), np.asarray(theta, dtype=np.float64),
+                   term_codes=codes, term_p=tp)
 
     @property
     def n1(self) -> int:
@@ -114,7 +128,8 @@ class LoopModel:
 
 
 @numba.njit(cache=True)
-def _loop(r, d, uff, y0, n_a, n_b, averaged, th, W1, b1, W2, b2, P, c, so, Ts, kp, kv, gtau, vsat, D, sens):
+def _loop(r, d, uff, y0, n_a, n_b, averaged, th, codes, tp, W1, b1, W2, b2, P, c, so, Ts, br, by, ca, gtau, vsat, D, Dt,
+          sens):
     N = r.size
     n1, nx = W1.shape[0], P.shape[0]
     nphi = n_a + n_b
@@ -124,10 +139,12 @@ def _loop(r, d, uff, y0, n_a, n_b, averaged, th, W1, b1, W2, b2, P, c, so, Ts, k
     u = np.zeros(N)        # applied force
     w = np.zeros(N)        # model input
     cc = np.zeros(N)       # controller output before the disturbance [V]
+    vv = np.zeros(N)       # the controller's filter output v (before u_ff and the limit)
     tau = np.empty(N)      # controller force compared with the record
     M = N if sens else 1
     Sy = np.zeros((M, NP))
     Sc = np.zeros((M, NP))
+    Sv = np.zeros((M, NP))
     Sw = np.zeros((M, NP))
     W1P = np.zeros((n1, nphi))   # W1 P: ∂(pre-activation)/∂φ, constant over the run
     for m in range(n1):
@@ -137,10 +154,10 @@ def _loop(r, d, uff, y0, n_a, n_b, averaged, th, W1, b1, W2, b2, P, c, so, Ts, k
                 col += W1[m, a] * P[a, i]
             W1P[m, i] = col
     phi = np.zeros(nphi)
+    tt = np.zeros(codes.size)
     dfdphi = np.zeros(nphi)
     x = np.zeros(nx)
     h = np.zeros(n1)
-    dgain = kv / (2.0 * Ts)
     for k in range(N):
         if k == 0:
             y[0] = y0
@@ -151,15 +168,19 @@ def _loop(r, d, uff, y0, n_a, n_b, averaged, th, W1, b1, W2, b2, P, c, so, Ts, k
                 phi[n_a + j] = w[k - 1 - j] if k - 1 - j >= 0 else 0.0
             y1, y2, w1 = phi[0], phi[1], phi[n_a]
             v = (y1 - y2) / Ts
-            s = 1.0 if v > 0 else (-1.0 if v < 0 else 0.0)
-            f = 2.0 * y1 - y2 + Ts * Ts * (th[0] * w1 - th[1] * v - th[2] * s)
-            if nth > 3:
-                f -= Ts * Ts * th[3]
             for i in range(nphi):
                 dfdphi[i] = 0.0
-            dfdphi[0] = 2.0 - Ts * th[1]
-            dfdphi[1] = -1.0 + Ts * th[1]
+            # M q̈ = w - Σ p_j T_j(q, q̇) (pipeline.systems.force_terms), one step at (y1, δy)
+            f = 2.0 * y1 - y2 + Ts * Ts * th[0] * w1
+            dfdphi[0] = 2.0
+            dfdphi[1] = -1.0
             dfdphi[n_a] += Ts * Ts * th[0]
+            for j in range(codes.size):
+                T, dq, dv = term(codes[j], tp[j], y1, v)
+                tt[j] = T
+                f -= Ts * Ts * th[1 + j] * T
+                dfdphi[0] -= Ts * Ts * th[1 + j] * (dq + dv / Ts)
+                dfdphi[1] += Ts * Ts * th[1 + j] * dv / Ts
             if n1 > 0:
                 for a in range(nx):
                     acc = c[a]
@@ -181,10 +202,8 @@ def _loop(r, d, uff, y0, n_a, n_b, averaged, th, W1, b1, W2, b2, P, c, so, Ts, k
             if sens:
                 # ∂f/∂θ (direct) then the chain through the past outputs and inputs
                 Sy[k, 0] = Ts * Ts * w1
-                Sy[k, 1] = -Ts * Ts * v
-                Sy[k, 2] = -Ts * Ts * s
-                if nth > 3:
-                    Sy[k, 3] = -Ts * Ts
+                for j in range(codes.size):
+                    Sy[k, 1 + j] = -Ts * Ts * tt[j]
                 if n1 > 0:
                     p0 = nth
                     for m in range(n1):
@@ -202,16 +221,24 @@ def _loop(r, d, uff, y0, n_a, n_b, averaged, th, W1, b1, W2, b2, P, c, so, Ts, k
                     if k - 1 - j >= 0 and dfdphi[n_a + j] != 0.0:
                         for p in range(NP):
                             Sy[k, p] += dfdphi[n_a + j] * Sw[k - 1 - j, p]
-        # controller (no computational delay) and the applied force
-        yk2 = y[k - 2] if k >= 2 else y0
-        raw = kv * (kp * (r[k] - y[k]) - (y[k] - yk2) / (2.0 * Ts)) + uff[k] / gtau
+        # controller A v = B_r r - B_y y (pipeline.systems.controller; r, y held before k = 0)
+        vk = 0.0
+        for i in range(br.size):
+            vk += br[i] * r[k - i if k - i >= 0 else 0]
+        for i in range(by.size):
+            vk -= by[i] * (y[k - i] if k - i >= 0 else y0)
+        for i in range(1, ca.size):
+            if k - i >= 0:
+                vk -= ca[i] * vv[k - i]
+        vv[k] = vk
+        raw = vk + uff[k] / gtau
         sat = 1.0
         if raw > vsat:
             raw, sat = vsat, 0.0
         elif raw < -vsat:
             raw, sat = -vsat, 0.0
         cc[k] = raw
-        tau[k] = gtau * (raw + d[k])
+        tau[k] = gtau * ((cc[k - Dt] if k - Dt >= 0 else 0.0) + d[k])
         cd = cc[k - D] if k - D >= 0 else 0.0
         u[k] = gtau * (cd + d[k])
         if averaged:
@@ -219,11 +246,16 @@ def _loop(r, d, uff, y0, n_a, n_b, averaged, th, W1, b1, W2, b2, P, c, so, Ts, k
         else:
             w[k] = u[k]
         if sens:
-            if sat != 0.0:
-                for p in range(NP):
-                    Sc[k, p] = -(kv * kp + dgain) * Sy[k, p]
-                    if k >= 2:
-                        Sc[k, p] += dgain * Sy[k - 2, p]
+            for p in range(NP):
+                sv = 0.0
+                for i in range(by.size):
+                    if k - i >= 1:
+                        sv -= by[i] * Sy[k - i, p]
+                for i in range(1, ca.size):
+                    if k - i >= 0:
+                        sv -= ca[i] * Sv[k - i, p]
+                Sv[k, p] = sv
+                Sc[k, p] = sv if sat != 0.0 else 0.0
             for p in range(NP):
                 su = gtau * Sc[k - D, p] if k - D >= 0 else 0.0
                 if averaged:
@@ -248,18 +280,19 @@ class LoopSignals:
     u_ff: np.ndarray | None = None
 
 
-def _convention(sig: LoopSignals, convention: str):
-    """(r, d, u_ff, D) of the convention: as recorded, or read at the script's time base with D = 1."""
+def _convention(sig: LoopSignals, convention: str, delay: int = 0):
+    """(r, d, u_ff, D) of the convention: as recorded (D = the controller's delay), or read at the
+    script's time base with one sample more (the EMPS authors' script)."""
     if convention not in CONVENTIONS:
         raise ValueError(f"convention={convention!r}; choose one of {CONVENTIONS}")
     uff = np.zeros_like(sig.r) if sig.u_ff is None else sig.u_ff
     if convention == "data":
-        return sig.r, sig.d, uff, 0
+        return sig.r, sig.d, uff, delay
     if sig.t is None or sig.t.size < 10:
         raise ValueError("the published convention needs the data's time column t (>= 10 samples)")
     h = float(sig.t[9] - sig.t[8])                       # the script's step t(10) - t(9)
     ts = sig.t[0] + np.arange(sig.r.size) * h
-    return tuple(np.interp(ts, sig.t, x) for x in (sig.r, sig.d, uff)) + (1,)
+    return tuple(np.interp(ts, sig.t, x) for x in (sig.r, sig.d, uff)) + (delay + 1,)
 
 
 def simulate_loop(model: LoopModel, ctrl, sig: LoopSignals, convention: str = "data", sens: bool = False):
@@ -267,15 +300,20 @@ def simulate_loop(model: LoopModel, ctrl, sig: LoopSignals, convention: str = "d
 
     Returns (ŷ [m], τ̂ [N], u [N] applied force) and, with ``sens``, the sensitivities
     (∂ŷ/∂θ [N, P], ∂τ̂/∂θ [N, P])."""
-    r, d, uff, D = _convention(sig, convention)
+    r, d, uff, D = _convention(sig, convention, ctrl.delay)
+    Dt = int(ctrl.delay)                          # the recorded force is the applied one, u(k) = gtau (c(k-D) + d(k))
     r, d, uff = (np.ascontiguousarray(x, dtype=np.float64) for x in (r, d, uff))
     if not (d.shape == r.shape == uff.shape):
         raise ValueError(f"r, d and u_ff must have one length, got {r.shape}, {d.shape}, {uff.shape}")
     y, tau, u, Sy, Sc = _loop(r, d, uff, float(sig.y0), model.n_a, model.n_b, model.averaged, model.theta_phy,
+                              model.term_codes, model.term_p,
                               model.W1, model.b1, model.W2, model.b2, model.nn_P, model.nn_c, model.out_scale,
-                              model.Ts, ctrl.kp, ctrl.kv, ctrl.gtau, ctrl.v_sat, D, sens)
+                              model.Ts, ctrl.b_r, ctrl.b_y, ctrl.a, ctrl.gtau, ctrl.v_sat, D, Dt, sens)
     if sens:
-        return y, tau, u, Sy, Sc * ctrl.gtau
+        St = Sc * ctrl.gtau
+        if Dt:
+            St = np.concatenate([np.zeros((Dt, St.shape[1])), St[:-Dt]])
+        return y, tau, u, Sy, St
     return y, tau, u
 
 
@@ -292,12 +330,8 @@ def loop_errors(y_meas, tau_meas, y_hat, tau_hat) -> dict[str, float]:
             "loop_rmse_mm": float(1e3 * np.sqrt(np.mean((y_meas - y_hat) ** 2)))}
 
 
-@dataclass(frozen=True)
-class _NoFeedback:
-    kp: float = 0.0
-    kv: float = 0.0
-    gtau: float = 1.0
-    v_sat: float = math.inf
+#: no controller: the open-loop convention (u enters as the disturbance)
+_NO_FEEDBACK = LTIController(np.zeros(1), np.zeros(1), np.ones(1), 1.0, math.inf, 0, "none")
 
 
 def simulate_open_loop(model: LoopModel, u, y0: float) -> np.ndarray:
@@ -305,7 +339,7 @@ def simulate_open_loop(model: LoopModel, u, y0: float) -> np.ndarray:
     simulation convention: input vir, output qm): the loop kernel with zero gains and u as the
     disturbance, so the same model code runs."""
     u = np.asarray(u, dtype=np.float64)
-    y, _, _ = simulate_loop(model, _NoFeedback(), LoopSignals(np.zeros_like(u), u, float(y0)), "data")
+    y, _, _ = simulate_loop(model, _NO_FEEDBACK, LoopSignals(np.zeros_like(u), u, float(y0)), "data")
     return y
 
 

@@ -138,9 +138,10 @@ class SKResult:
     iterates : list of SKIterate
         Every iterate, j = 0 (initialisation) … last.
     converged : bool
-        True when the parameter change fell below ``tol`` after an inner solve that converged.
+        True when the parameter change fell below ``tol`` (or the criterion's change below
+        ``cost_tol``) after an inner solve that converged.
     message : str
-        Outer stop reason: 'tol' or 'max_iter'.
+        Outer stop reason: 'tol', 'cost_tol' or 'max_iter'.
     reflected : list of int
         Iterations after which roots of B were reflected (SPEC §5: tag the run).
     tol : float
@@ -165,7 +166,7 @@ class SKResult:
 
     @property
     def stop_reason(self) -> str:
-        """Outer stop reason ('tol' or 'max_iter')."""
+        """Outer stop reason ('tol', 'cost_tol' or 'max_iter')."""
         return self.message
 
     @property
@@ -360,8 +361,8 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
 def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, tol: float = 1e-8,
                   regularizer: str = "orthogonal", lam: float = 1.0, column_scale: bool = True,
                   init: str = "equation_error", lm_max_iter: int = 100, lm_ftol: float = 1e-10,
-                  lm_gtol: float = 1e-10, geodesic: bool = False, rank_rtol: float | None = None,
-                  weighted_rank: str = "truncate",
+                  lm_gtol: float = 1e-10, geodesic: bool = False, cost_tol: float = 0.0,
+                  rank_rtol: float | None = None, weighted_rank: str = "truncate",
                   callback: Callable[[SKIterate], None] | None = None) -> SKResult:
     """Identify a [K] feedforward by SK iterations ([K] Alg. 5; Alg. 19 with the regulariser).
 
@@ -377,6 +378,12 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
     tol : float
         Stop (reason 'tol') when the relative parameter change (column-scaled θ, and φ) of a
         step is below ``tol`` and that step's inner LM converged (stopped on ftol/gtol/mu_max).
+    cost_tol : float
+        Stop (reason 'cost_tol') when the SK criterion J_OE (+ λR, [K] (30)) of a step differs
+        from the previous step's by at most ``cost_tol`` of it and that step's inner LM
+        converged: the fixed point in cost where the parameters are not unique (the
+        unregularised PGNN, [K] K2: g_φ and θ trade along directions that leave the fit
+        unchanged, so a parameter-change test never passes).  0 = off.
     regularizer : {'orthogonal', 'none'}
         Orthogonal projection-based regulariser [K] (29) or none ([K] Alg. 5).  Ignored for
         the rational model (no approximator).
@@ -424,7 +431,9 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
     data = prepare_data(model, r, f_hat)
     seg, M, f = data["segments"], data["M"], data["f"]
     lm_kw = dict(max_iter=lm_max_iter, ftol=lm_ftol, gtol=lm_gtol, geodesic=geodesic)
-    tol = tol / TIGHTEN                          # make reproduce-check CHECK=tighten (lm.TIGHTEN)
+    tol, cost_tol = tol / TIGHTEN, cost_tol / TIGHTEN   # make reproduce-check CHECK=tighten (lm.TIGHTEN)
+    if cost_tol < 0:
+        raise ValueError(f"cost_tol must be >= 0, got {cost_tol}")
 
     # j = 0: best linear approximation by equation error, B^0 = 1 ([K] Alg. 5, Remark 7)
     t0 = time.perf_counter()
@@ -490,6 +499,11 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
         # small change from an LM stopped on its cap is not a fixed point of the SK map)
         if change < tol and it.lm_converged:
             converged, message = True, "tol"
+            break
+        # ... or the criterion stopped moving ([K] (30): J_OE + λR; cost_tol > 0 only)
+        J_prev, J_now = prev.J_OE + lam_eff * prev.regularizer, it.J_OE + lam_eff * it.regularizer
+        if cost_tol > 0 and it.lm_converged and abs(J_now - J_prev) <= cost_tol * abs(J_prev):
+            converged, message = True, "cost_tol"
             break
 
     if not converged:

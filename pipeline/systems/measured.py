@@ -7,8 +7,9 @@ A :class:`Recording` has what a user knows about a real machine, and nothing mor
       M q̈ = τ - F_v q̇ - F_c sign(q̇) - OF                      (EMPS reference model)
 
   linear in θ = [1/M, F_v/M, F_c/M, OF/M] in its one-step (NARX) form;
-- the **known controller** as config, :class:`CascadeController` (the EMPS position/velocity
-  cascade ``vir = sat±v_sat(kv (kp (r - q) - q̇f))``, force ``τ = gtau · vir``);
+- the **known controller** as config, :class:`pipeline.systems.controller.LTIController`: any
+  discrete LTI C(z), error feedback or 2-DOF, with gain, limit and delay (the EMPS position/velocity
+  cascade ``vir = sat±v_sat(kv (kp (r - q) - q̇f))``, force ``τ = gtau · vir``, is one instance);
 - the sample time (from the data, checked against the config) and the units of the signals.
 
 It has no true plant: :meth:`Recording.simulate` refuses, so no stage can score a model of
@@ -18,47 +19,54 @@ the known controller (``pipeline.identify.measured_loop``) and compares with the
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from scipy import signal
 
 from pipeline.systems.base import System, check_signal
+from pipeline.systems.controller import LTIController
+from pipeline.systems.force_terms import ForceTerms
 from pipeline.systems.linear_motor import LinearMotorPhysics
 
 
 # --------------------------------------------------------------------------- physics model
 class RigidBodyPhysics(LinearMotorPhysics):
-    """Rigid body with viscous, Coulomb friction and a constant force offset (EMPS, SPEC §2.5).
+    """Rigid body with composable force terms (:mod:`pipeline.systems.force_terms`; EMPS: viscous,
+    Coulomb and a constant offset, SPEC §2.5)::
 
-    One-step form (the [B1] (32) rigid body of :class:`LinearMotorPhysics` plus the offset)::
+        M q̈ = τ - Σ_j p_j T_j(q, q̇)
 
-        y(t) = 2y(t-1) - y(t-2) + Ts² (w(t-1) - F_v δy(t-1) - F_c sign(δy(t-1)) - OF) / M
+    One-step form (the [B1] (32) rigid body of :class:`LinearMotorPhysics` with the terms)::
 
-    θ = [1/M, F_v/M, F_c/M, OF/M]; w = u (``averaged_input=False``: the semi-implicit Euler step
-    of the benchmark authors' script) or ū(t-1) = (u(t-1) + u(t-2))/2 (``averaged_input=True``:
-    the exact ZOH sampling of a mass, whose zero sits at z = -1, SPEC §2.2 pitfall).
-    ``offset=False`` drops OF (θ has 3 entries, as the linear motor).
+        y(t) = 2y(t-1) - y(t-2) + Ts² (w(t-1) - Σ_j p_j T_j(y(t-1), δy(t-1))) / M
+
+    θ = [1/M, p_1/M, …]; w = u (``averaged_input=False``: the semi-implicit Euler step of the
+    benchmark authors' script) or ū(t-1) = (u(t-1) + u(t-2))/2 (``averaged_input=True``: the
+    exact ZOH sampling of a mass, whose zero sits at z = -1, SPEC §2.2 pitfall).
     """
 
     input_gain_index = 0
 
-    def __init__(self, Ts: float = 1e-3, averaged_input: bool = True, offset: bool = True):
+    def __init__(self, Ts: float = 1e-3, averaged_input: bool = True, terms: ForceTerms | None = None):
         super().__init__(Ts, averaged_input)
-        self.has_offset = bool(offset)
-        self.param_names = ("inv_m", "fv_over_m", "fc_over_m") + (("of_over_m",) if offset else ())
+        self.terms = terms if terms is not None else ForceTerms()
+        self.param_names = ("inv_m",) + self.terms.param_names
+
+    @property
+    def has_offset(self) -> bool:
+        return "offset" in self.terms.names
 
     def with_direct_input(self) -> "RigidBodyPhysics":
         """The same physics on an input that is already the model input w (no averaging)."""
-        return RigidBodyPhysics(self.Ts, averaged_input=False, offset=self.has_offset)
+        return RigidBodyPhysics(self.Ts, averaged_input=False, terms=self.terms)
 
-    @staticmethod
-    def theta_from_physical(m: float, f_v: float, f_c: float, of: float | None = 0.0) -> np.ndarray:
-        """θ from M [kg], F_v [N s/m], F_c [N], OF [N] (``of=None``: no offset entry)."""
-        if not m > 0:
+    def theta_from_physical(self, physical: dict) -> np.ndarray:
+        """θ from {M [kg], F_v, F_c, …}; a term the dict does not give is 0 (a datasheet that
+        knows M, F_v, F_c only)."""
+        m = physical.get("M")
+        if m is None or not m > 0:
             raise ValueError(f"mass must be positive, got M={m!r}")
-        th = [1.0 / m, f_v / m, f_c / m] + ([] if of is None else [of / m])
-        return np.array(th)
+        return np.array([1.0 / m] + [float(physical.get(n, 0.0)) / m for n in self.terms.physical_names])
 
     def _check_theta(self, theta) -> np.ndarray:
         theta = np.asarray(theta, dtype=np.float64).reshape(-1)
@@ -68,17 +76,15 @@ class RigidBodyPhysics(LinearMotorPhysics):
         return theta
 
     def physical(self, theta) -> dict[str, float]:
-        """{M [kg], F_v [N s/m], F_c [N], OF [N]} from θ."""
+        """{M [kg], then each term's parameter (F_v [N s/m], F_c [N], …)} from θ."""
         t = self._check_theta(theta)
+        names = self.terms.physical_names
         if t[0] == 0.0:
-            return {"M": math.inf, "F_v": math.nan, "F_c": math.nan, **({"OF": math.nan} if self.has_offset else {})}
-        out = {"M": 1.0 / t[0], "F_v": t[1] / t[0], "F_c": t[2] / t[0]}
-        if self.has_offset:
-            out["OF"] = t[3] / t[0]
-        return out
+            return {"M": math.inf, **{n: math.nan for n in names}}
+        return {"M": 1.0 / t[0], **{n: t[1 + i] / t[0] for i, n in enumerate(names)}}
 
     def inverse_theta(self, theta) -> np.ndarray:
-        """θ' = [M, F_v, F_c(, OF)] of the inverse form."""
+        """θ' = [M, p_1, …] of the inverse form."""
         t = self._check_theta(theta)
         if not t[0] > 0.0:
             raise ValueError(f"θ[0] = 1/M = {t[0]} is not positive: no physical mass, the model cannot "
@@ -86,31 +92,33 @@ class RigidBodyPhysics(LinearMotorPhysics):
         return np.concatenate([[1.0], t[1:]]) / t[0]
 
     def features(self, phi):
-        cols = super().features(phi)
-        if not self.has_offset:
-            return cols
-        ones = -self.Ts ** 2 * (phi[..., 0] * 0.0 + 1.0)
-        if isinstance(cols, np.ndarray):
-            return np.concatenate([cols, ones[..., None]], axis=-1)
-        import torch
-        return torch.cat([cols, ones.unsqueeze(-1)], dim=-1)
+        """Ts² [w(t-1), -T_1, -T_2, …] at (y(t-1), δy(t-1)) (numpy or torch)."""
+        Ts = self.Ts
+        w = 0.5 * (phi[..., 2] + phi[..., 3]) if self.averaged_input else phi[..., 2]
+        dy = (phi[..., 0] - phi[..., 1]) / Ts
+        cols = [Ts * Ts * w] + [-Ts * Ts * c for c in self.terms.columns(phi[..., 0], dy)]
+        return _stack(cols, phi)
 
     def inverse_features(self, phi_inv):
-        cols = super().inverse_features(phi_inv)
-        if not self.has_offset:
-            return cols
-        ones = phi_inv[..., 0] * 0.0 + 1.0
-        if isinstance(cols, np.ndarray):
-            return np.concatenate([cols, ones[..., None]], axis=-1)
-        import torch
-        return torch.cat([cols, ones.unsqueeze(-1)], dim=-1)
+        """[δ²y(k+1), T_1, T_2, …] at (y(k), δy(k)) (numpy or torch): w(k) = inverse_features θ'."""
+        Ts = self.Ts
+        d2 = (phi_inv[..., 0] - 2.0 * phi_inv[..., 1] + phi_inv[..., 2]) / Ts ** 2
+        dy = (phi_inv[..., 1] - phi_inv[..., 2]) / Ts
+        return _stack([d2] + self.terms.columns(phi_inv[..., 1], dy), phi_inv)
 
     def feedforward(self, theta, r) -> np.ndarray:
-        """w(k) = M δ²r(k+1) + F_v δr(k) + F_c sign(δr(k)) + OF, then :meth:`applied_input` [N]."""
+        """w(k) = M δ²r(k+1) + Σ p_j T_j(r(k), δr(k)) with r(-1) = 0 and r held after the end,
+        then :meth:`applied_input` [N] (the analytic inverse, SPEC §6)."""
         p = self.inverse_theta(theta)
-        of = p[3] if self.has_offset else 0.0
-        base = LinearMotorPhysics(self.Ts, self.averaged_input)
-        return base.feedforward(np.array([1.0, p[1], p[2]]) / p[0], r) + of
+        r = check_signal("r", r)
+        rp = np.concatenate([[0.0], r, r[-1:], r[-1:]])            # r(-1) .. r(N+1)
+        phi_inv = np.stack([rp[2:], rp[1:-1], rp[:-2]], axis=1)    # k = 0 .. N
+        w = self.inverse_features(phi_inv) @ p                     # w(0) .. w(N)
+        return self.applied_input(w[:-1], w_end=w[-1])
+
+    def kernel_terms(self) -> tuple[np.ndarray, np.ndarray]:
+        """The terms' kernel codes and constants (``pipeline.identify.measured_loop``)."""
+        return self.terms.kernel()
 
     @staticmethod
     def min_samples(decimation: int = 10, trim: int = 50) -> int:
@@ -124,7 +132,7 @@ class RigidBodyPhysics(LinearMotorPhysics):
         then parallel decimation (``scipy.signal.decimate``, zero phase) of τ and of every
         regressor column; ``trim`` samples at each end are dropped (filter transients).
 
-        Returns the forward θ ([1/M, F_v/M, F_c/M(, OF/M)]) of the inverse fit [M, F_v, F_c, OF].
+        Returns the forward θ ([1/M, p_1/M, …]) of the inverse fit [M, p_1, …].
         """
         y = check_signal("y", y)
         u = check_signal("u", u, y.shape[0])
@@ -138,65 +146,25 @@ class RigidBodyPhysics(LinearMotorPhysics):
         qf = signal.filtfilt(b, a, y)
         v = np.gradient(qf, self.Ts)
         acc = np.gradient(v, self.Ts)
-        X = np.stack([acc, v, np.sign(v)] + ([np.ones_like(v)] if self.has_offset else []), axis=1)
+        X = np.stack([acc] + self.terms.columns(qf, v), axis=1)     # [q̈, T_1(q, q̇), …]
         z = u
         if decimation > 1:
             X = signal.decimate(X, int(decimation), axis=0, zero_phase=True)
             z = signal.decimate(u, int(decimation), zero_phase=True)
         k = max(1, trim // max(decimation, 1))
         from pipeline.identify.least_squares import solve_scaled
-        p = solve_scaled(X[k:-k], z[k:-k])     # [M, F_v, F_c(, OF)]
+        p = solve_scaled(X[k:-k], z[k:-k])     # [M, p_1, …]
         if p[0] == 0:
             raise ValueError("the filtered least squares gives a zero mass: the data do not excite the "
                              "acceleration; check that y moves and that u is the force")
         return np.concatenate([[1.0], p[1:]]) / p[0]   # M < 0 comes back as is: the baseline warns
 
 
-# --------------------------------------------------------------------------- controller
-@dataclass(frozen=True)
-class CascadeController:
-    """The known position/velocity cascade of a measured axis (EMPS README)::
-
-        v(k)   = kv (kp (r(k) - q(k)) - q̇f(k)),    q̇f(k) = (q(k) - q(k-2)) / (2 Ts)
-        vir(k) = sat±v_sat(v(k)) (+ measured disturbance d(k) after the saturation)
-        τ(k)   = gtau · vir(k)   [N]
-
-    q̇f is the backward difference of the two-sample-averaged position.  No computational
-    delay: vir(k) uses q(k) of the same sample (SPEC §0; checked on the data by
-    :meth:`residual`).
-    """
-
-    kp: float           # position gain [1/s]
-    kv: float           # velocity gain [V/(m/s)]
-    gtau: float         # force per volt [N/V]
-    v_sat: float = 10.0  # controller output limit [V]
-
-    def __post_init__(self):
-        for k in ("kp", "kv", "gtau", "v_sat"):
-            v = getattr(self, k)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"controller.{k}={v!r} must be a finite positive number")
-
-    def law(self, r, q, Ts: float, saturate: bool = True) -> np.ndarray:
-        """Controller output vir [V] for position samples q (past at q[0]), vectorised."""
-        q = np.asarray(q, dtype=np.float64)
-        q2 = np.concatenate([np.full(2, q[0]), q[:-2]])
-        v = self.kv * (self.kp * (np.asarray(r) - q) - (q - q2) / (2.0 * Ts))
-        return np.clip(v, -self.v_sat, self.v_sat) if saturate else v
-
-    def force_on_reference(self, r, Ts: float) -> np.ndarray:
-        """τ [N] of the feedback law when the axis follows r exactly (q = r): -gtau kv ṙf, before
-        the limit.  The velocity loop feeds back q̇, not the error, so a force feedforward (added to
-        the command before the drive's limit) that makes q = r is the model's inverse force *minus*
-        this: it cancels the velocity feedback on the reference."""
-        return self.gtau * self.law(r, r, Ts, saturate=False)
-
-    def residual(self, r, q, u, d, Ts: float) -> float:
-        """rms of (measured force - law on the measured position) over rms force: a check that
-        the recording is this loop (signs, units, gains, sample time) before any fitting."""
-        vir = np.asarray(u) / self.gtau
-        res = vir - self.law(r, q, Ts) - np.asarray(d)
-        return float(np.sqrt(np.mean(res[2:] ** 2)) / max(np.sqrt(np.mean(vir ** 2)), 1e-300))
+def _stack(cols, like):
+    if isinstance(like, np.ndarray):
+        return np.stack(cols, axis=-1)
+    import torch
+    return torch.stack(cols, dim=-1)
 
 
 # --------------------------------------------------------------------------- the recording
@@ -210,39 +178,47 @@ class Recording(System):
     Ts : float
         Sample time [s]; the data's own sample time must equal it (checked before any work).
     controller : dict
-        :class:`CascadeController` arguments (kp, kv, gtau, v_sat).
+        :meth:`LTIController.from_config` arguments: ``kind: cascade`` (kp, kv, gtau, v_sat) or
+        ``kind: lti`` (num, den, num_r, gtau, v_sat, delay).
     physics_input : {'averaged', 'direct'}
         Input of the one-step physics model: ū(t-1) (exact ZOH, default) or u(t-1).
-    offset : bool
-        Whether the physics has the constant force offset OF.
+    force_terms : dict or None
+        :class:`pipeline.systems.force_terms.ForceTerms` arguments: ``terms`` (the force terms of
+        ``M q̈ = τ - Σ``: viscous, coulomb, stribeck, offset, cogging) and their shape constants
+        (coulomb_width, stribeck_velocity, cogging_period, cogging_harmonics).  Default: EMPS's
+        viscous, Coulomb (sign) and offset.
     disturbance : str or None
         Column of the data holding a measured disturbance [V] added after the saturation
         (EMPS test file: ``pulses_N``), zero when absent.
     published : dict or None
-        Published physical parameters {M, F_v, F_c, OF} (the report compares with them).
+        Published physical parameters {M, F_v, F_c, OF, …} (the report compares with them; a term
+        it does not give is 0).
     idim : dict or None
         Settings of the filtered inverse-model least squares (:meth:`RigidBodyPhysics.fit_filtered`:
         cutoff_hz, order, decimation, trim).
     """
 
     def __init__(self, name: str = "measured", Ts: float = 1e-3, controller: dict | None = None,
-                 physics_input: str = "averaged", offset: bool = True, disturbance: str | None = None,
+                 physics_input: str = "averaged", force_terms: dict | None = None, disturbance: str | None = None,
                  published: dict | None = None, idim: dict | None = None):
         if not (isinstance(Ts, (int, float)) and math.isfinite(Ts) and Ts > 0):
             raise ValueError(f"Ts={Ts!r} must be a positive sample time in s")
         if physics_input not in ("averaged", "direct"):
             raise ValueError(f"physics_input={physics_input!r}; use 'averaged' (exact ZOH) or 'direct'")
         if controller is None:
-            raise ValueError("a measured system needs its controller (system.controller: kp, kv, gtau)")
+            raise ValueError("a measured system needs its controller (system.controller: kind cascade with kp, "
+                             "kv, gtau, or kind lti with num, den)")
         self.name, self.Ts = str(name), float(Ts)
-        self.ctrl = CascadeController(**dict(controller))
+        self.ctrl = LTIController.from_config(dict(controller), self.Ts)
         self.disturbance = disturbance or None
         self.published = dict(published) if published else None
         self.idim = dict(idim or {})
         unknown = set(self.idim) - {"cutoff_hz", "order", "decimation", "trim"}
         if unknown:
             raise ValueError(f"unknown idim key(s) {sorted(unknown)}; allowed: cutoff_hz, order, decimation, trim")
-        self._physics = RigidBodyPhysics(self.Ts, averaged_input=physics_input == "averaged", offset=offset)
+        ft = dict(force_terms or {})
+        terms = ForceTerms(tuple(ft.pop("terms", ForceTerms.names)), **ft)
+        self._physics = RigidBodyPhysics(self.Ts, averaged_input=physics_input == "averaged", terms=terms)
 
     @property
     def physics(self) -> RigidBodyPhysics:
@@ -260,9 +236,7 @@ class Recording(System):
         """θ of the published physical parameters (None if not given)."""
         if not self.published:
             return None
-        p = self.published
-        return self.physics.theta_from_physical(p["M"], p["F_v"], p["F_c"],
-                                                p.get("OF", 0.0) if self.physics.has_offset else None)
+        return self.physics.theta_from_physical(self.published)
 
     def min_samples(self) -> int:
         """Shortest training record the physics baseline (``idim`` settings) can use."""

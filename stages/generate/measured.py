@@ -10,7 +10,10 @@ Evaluation references of kind ``measured`` (:func:`reference`) load the test fil
 """
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
+
+import numpy as np
 
 from pipeline import data
 from pipeline.runner import ROOT, ConfigError
@@ -52,8 +55,11 @@ def load_file(cfg, file: str | None = None) -> data.Dataset:
     return ds
 
 
-def check_record(ds: data.Dataset, system, source: str, min_len: int = 0) -> None:
-    """A loaded record against the system it is meant for (length, sample time, controller, units)."""
+def check_record(ds: data.Dataset, system, source: str, min_len: int = 0,
+                 uses_controller: bool = True) -> None:
+    """A loaded record against the system it is meant for (length, sample time, controller, units).
+    A controller that does not fit the record is an error where the run uses the controller
+    (``uses_controller``: replay, feedforward), else a warning."""
     if len(ds) < min_len:
         raise ValueError(f"{source}: {len(ds)} samples; at least {min_len} are needed here (a short record cannot "
                          "identify or score the loop): give the whole recording")
@@ -65,32 +71,108 @@ def check_record(ds: data.Dataset, system, source: str, min_len: int = 0) -> Non
                          "(a wrong Ts scales an identified mass by its square)")
     if not isinstance(system, Recording):
         return
-    ctrl = system.ctrl
+    ctrl, params = system.ctrl, dict(system.ctrl.params)
     for k in data.EMPS_CONSTANTS:
-        if k in ds.meta and ds.meta[k] is not None and abs(float(ds.meta[k]) - getattr(ctrl, k)) > \
-                1e-6 * abs(float(ds.meta[k])):
+        if k in ds.meta and ds.meta[k] is not None and (k not in params or abs(float(ds.meta[k]) - params[k]) >
+                                                         1e-6 * abs(float(ds.meta[k]))):
             raise ValueError(f"{source}: the file's {k} = {ds.meta[k]} differs from system.controller.{k} = "
-                             f"{getattr(ctrl, k)}; make the config match the machine the data came from")
+                             f"{params.get(k)}; make the config match the machine the data came from")
     d = ds["d"] if "d" in ds.frame else 0.0 * ds["y"]
-    rel = ctrl.residual(ds["r"], ds["y"], ds["u"], d, sys_Ts)
+    rel = ctrl.check(ds["r"], ds["y"], ds["u"], d)
     if not rel < CONTROLLER_RTOL:
-        raise ValueError(f"{source}: the recorded force u is not the configured controller's output on the "
-                         f"recorded position (relative rms residual {100 * rel:.1f} % > "
-                         f"{100 * CONTROLLER_RTOL:.0f} %): check the signs and units of u [N] and y [m], "
-                         "system.controller (kp, kv, gtau, v_sat), system.Ts, and the disturbance column d")
+        hints = ctrl.diagnose(ds["r"], ds["y"], ds["u"], d, CONTROLLER_RTOL)
+        msg = (f"{source}: the recorded force u is not the output of the configured controller, "
+               f"{ctrl.describe()}, on the recorded r and y (relative equation error {100 * rel:.1f} % > "
+               f"{100 * CONTROLLER_RTOL:.0f} %). " + ("What fits: " + "; ".join(hints) + ". " if hints else
+               "No gain, sign, delay or error-feedback variant of it fits: the structure is different. ") +
+               "Give the machine's controller as system.controller (kind: lti with num, den in powers of z⁻¹, "
+               "num_r for a 2-DOF reference path, delay, gtau, v_sat; README \"Your own machine's data\"); "
+               "check the signs and units of u [N] and y [m] and the disturbance column d")
+        if uses_controller:
+            raise ValueError(msg + ". Only the physics least squares runs without it "
+                             "(stages=[generate,baseline])")
+        warnings.warn(msg, stacklevel=2)
+    _check_disturbance(ds, ctrl, source)
+
+
+#: a measured disturbance is suspect when it carries this share of the recorded force's rms ...
+DISTURBANCE_SHARE = 0.5
+#: ... and changes value at more than this fraction of the samples
+DISTURBANCE_ACTIVE = 0.5
+
+
+def disturbance_diagnostics(ds, ctrl) -> tuple[float, float]:
+    """(share, active): rms(gtau d)/rms(u), and the fraction of samples at which d changes value.
+
+    Whether d was injected or is a controller mismatch put into d (u minus a wrong law) cannot be
+    told from its size or its correlation with the motion (any force is a linear function of the
+    motion through M q̈; the EMPS test pulses are 98 % "explained" by lags of r and y).  What
+    differs is its texture: an injected test signal is a step or pulse sequence (EMPS: d changes at
+    0.2 % of the samples), a law on the measured position changes at every sample (sensor noise
+    through the feedback)."""
+    d = np.asarray(ds["d"], dtype=np.float64)
+    share = float(np.linalg.norm(ctrl.gtau * d) / max(np.linalg.norm(ds["u"]), 1e-300))
+    active = float(np.mean(np.diff(d) != 0)) if d.size > 1 else 0.0
+    return share, active
+
+
+def _check_disturbance(ds, ctrl, source: str) -> None:
+    """Warn when the disturbance column d carries most of the recorded force *and* follows the
+    motion: a controller that does not match the recording can be hidden in d (u minus the
+    configured law put into d passes the controller check)."""
+    if "d" not in ds.frame:
+        return
+    share, active = disturbance_diagnostics(ds, ctrl)
+    if share > DISTURBANCE_SHARE and active > DISTURBANCE_ACTIVE:
+        warnings.warn(f"{source}: the disturbance column d carries {100 * share:.0f} % of the recorded force's "
+                      f"rms and changes at {100 * active:.0f} % of the samples: it looks like a controller output, "
+                      "not an injected disturbance (a step or pulse sequence). If d was computed as u minus a "
+                      "controller law, the configured controller does not match the machine and every replay "
+                      "and feedforward built on it is wrong: give the real controller as system.controller",
+                      DisturbanceShareWarning, stacklevel=2)
+
+
+class DisturbanceShareWarning(UserWarning):
+    """The measured disturbance carries most of the recorded force (issue 20)."""
+
+
+def uses_controller(cfg) -> bool:
+    """Whether a stage of this run replays the recorded loop or designs a feedforward for it: the
+    closed-loop simulation-error training, invert, evaluate, export (the physics LS does not)."""
+    stages = set(cfg.get("stages") or [])
+    return bool(stages & {"invert", "evaluate", "export"}) or \
+        ("train" in stages and str(cfg.get("identify", {}).get("kind")) == "sim_error")
 
 
 def check(cfg, system) -> None:
     try:
         ds = load_file(cfg)
         need = system.min_samples() if isinstance(system, Recording) else 0   # filtered LS trims, decimates
-        check_record(ds, system, ds.meta.get("source", str(cfg.data.path)), min_len=need)
+        check_record(ds, system, ds.meta.get("source", str(cfg.data.path)), min_len=need,
+                     uses_controller=uses_controller(cfg))
     except (ValueError, FileNotFoundError) as exc:
         raise ConfigError(str(exc)) from exc
 
 
 def make(cfg, system, ctx) -> data.Dataset:
-    return load_file(cfg)
+    ds = load_file(cfg)
+    if isinstance(system, Recording):   # the checks' numbers on the run (check() warned or refused already)
+        d = ds["d"] if "d" in ds.frame else 0.0 * ds["y"]
+        rel = system.ctrl.check(ds["r"], ds["y"], ds["u"], d)
+        ctx.metric("controller_equation_error", rel)
+        ctx.tag("controller", system.ctrl.describe())
+        if not rel < CONTROLLER_RTOL:
+            ctx.tag("controller_warning", f"the recorded u is not the configured controller's output "
+                                          f"(equation error {100 * rel:.1f} %)")
+        if "d" in ds.frame:
+            share, active = disturbance_diagnostics(ds, system.ctrl)
+            ctx.metric("disturbance_share", share)
+            ctx.metric("disturbance_active", active)
+            if share > DISTURBANCE_SHARE and active > DISTURBANCE_ACTIVE:
+                ctx.tag("disturbance_warning", f"d carries {100 * share:.0f} % of the recorded force and changes "
+                                               f"at {100 * active:.0f} % of the samples: a controller mismatch "
+                                               "hidden in d?")
+    return ds
 
 
 def reference(cfg, spec: dict, system) -> data.Dataset:

@@ -2,9 +2,9 @@
 
 Implementations: ``stages/invert/<kind>.py`` exposing ``feedforward(ctx, name, r) -> u_ff`` (one
 reference) and optionally ``check(cfg, system)``.  The references are ``evaluate.references``.
-On a measured system the controller is a 2-DOF cascade whose velocity loop feeds back q̇, not
-the error: the applied feedforward is the model inverse minus the force the controller outputs
-when the axis follows the reference exactly (``CascadeController.force_on_reference``).
+On a measured system the applied feedforward is the model inverse minus the force the controller
+outputs when the axis follows the reference exactly, (C_r - C_y) r (``LTIController.
+reference_force``): zero for error feedback, the velocity feedback on r for the EMPS cascade.
 """
 from __future__ import annotations
 
@@ -44,8 +44,8 @@ def run(ctx) -> dict:
             raise ValueError(f"invert.kind={ctx.cfg.invert.kind} returned a feedforward of shape "
                              f"{f.shape} with {int((~np.isfinite(f)).sum())} non-finite values for "
                              f"reference '{name}' (expected {r.shape}, all finite)")
-        if isinstance(ctx.system, Recording):   # the 2-DOF cascade: cancel its output on q = r
-            f = f - ctx.system.ctrl.force_on_reference(r, ctx.system.Ts)
+        if isinstance(ctx.system, Recording):   # a 2-DOF controller: cancel its output on y = r
+            f = f - ctx.system.ctrl.reference_force(r)
         u_ff[name] = f
     out = {"u_ff": u_ff, "r": refs}
     if isinstance(ctx.system, Recording):   # evaluate replays the identified model in the recorded loop

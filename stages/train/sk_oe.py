@@ -115,7 +115,7 @@ def fit(ctx) -> dict:
               regularizer=reg if is_pgnn else "none",
               lam=float(cfg.regularizer.lam) if reg == "orthogonal" else 0.0,
               lm_max_iter=int(ident.lm_max_iter), lm_ftol=float(ident.lm_ftol),
-              lm_gtol=float(ident.lm_gtol), geodesic=bool(ident.geodesic))
+              lm_gtol=float(ident.lm_gtol), geodesic=bool(ident.geodesic), cost_tol=float(ident.cost_tol))
     n_restarts = int(ident.n_restarts) if is_pgnn else 1
     seeds = [int(ctx.rng(f"train/restart{i}").integers(2**31 - 1)) for i in range(n_restarts)]
     models = [build_model(m, ds.Ts, rs, s) for s in seeds]
@@ -164,7 +164,7 @@ def fit(ctx) -> dict:
         ctx.metric("restart_lm_iterations", r.n_lm_iter, step=i)
         ctx.metric(f"sk_stopped_on_tol/restart{i}", float(r.converged))
         ctx.metric(f"sk_inner_capped/restart{i}", r.n_inner_capped)
-        ctx.tag(f"stop_reason.restart{i}", r.stop_reason)           # 'tol' or 'max_iter'
+        ctx.tag(f"stop_reason.restart{i}", r.stop_reason)           # 'tol', 'cost_tol' or 'max_iter'
         ctx.tag(f"stop_detail.restart{i}", r.summary())
     for it in res.iterates:                                   # the kept restart ([K] (7) per j)
         ctx.metric("sk_J_OE", it.J_OE, step=it.j)

@@ -1,0 +1,214 @@
+"""The known controller of a measured loop: any discrete LTI controller, 1- or 2-DOF (issue 20).
+
+In z⁻¹ polynomials with a common denominator A (a[0] = 1)::
+
+    A(z⁻¹) v(k) = B_r(z⁻¹) r(k) - B_y(z⁻¹) y(k)          C_r = B_r/A,  C_y = B_y/A
+    c(k) = sat±v_sat(v(k) + u_ff(k)/gtau)                 controller output [controller units]
+    u(k) = gtau (c(k - D) + d(k))                         applied force [N]
+
+- **error feedback** (``num_r`` null): C_r = C_y = C, the usual PID / lead-lag on e = r - y;
+- **2-DOF**: separate reference and measurement paths, e.g. the EMPS position/velocity cascade
+  ``vir = kv (kp (r - q) - q̇f)``, q̇f = (q(k) - q(k-2))/(2 Ts): B_r = [kv kp],
+  B_y = [kv kp + kv/(2 Ts), 0, -kv/(2 Ts)], A = [1] (:meth:`LTIController.cascade`);
+- D: an integer computational delay of the output [samples]; d: a measured disturbance added
+  after the limit (controller units); u_ff: a force feedforward added before the limit.
+
+The filter state is the unsaturated v (no anti-windup modelled).  **The feedforward that fits
+the loop** (:meth:`LTIController.reference_force`): the axis follows r exactly (y = r) when the
+applied force equals the model's inverse force F(r), i.e. u_ff = F(r) - (C_r - C_y) r, zero
+extra term for error feedback, the velocity feedback on the reference for the EMPS cascade.
+
+**The consistency check** (:meth:`LTIController.check`) is an equation error, so it needs no
+initial controller state: ``A c_meas - B_r r + B_y y`` with c_meas(k) = u(k+D)/gtau - d(k+D),
+relative to ``‖A c_meas‖``, on the samples where the limit is not reached.  When it fails,
+:meth:`LTIController.diagnose` says how far the configured structure is and what fits better
+(another gain or sign, another delay, error feedback vs 2-DOF).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal
+
+KINDS = ("cascade", "lti")
+
+
+def _poly(name: str, v) -> np.ndarray:
+    a = np.asarray(v, dtype=np.float64).reshape(-1)
+    if a.size == 0 or not np.all(np.isfinite(a)):
+        raise ValueError(f"controller.{name}={list(np.atleast_1d(v))} must be a non-empty list of finite "
+                         "coefficients in powers of z⁻¹ (e.g. [4.279e6, -8.212e6, 3.939e6])")
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class LTIController:
+    """A discrete LTI controller (module docstring).  Build with :meth:`from_config`,
+    :meth:`cascade` or :meth:`lti`."""
+
+    b_r: np.ndarray          # C_r numerator in z⁻¹ (normalised by a[0])
+    b_y: np.ndarray          # C_y numerator in z⁻¹
+    a: np.ndarray            # common denominator, a[0] = 1
+    gtau: float = 1.0        # force per controller unit [N/unit]
+    v_sat: float = math.inf  # limit of the controller output [units]
+    delay: int = 0           # computational delay D of the output [samples]
+    structure: str = "lti"   # 'cascade' | 'error feedback' | '2-DOF' (messages, tags)
+    params: tuple = ()       # the config's numbers ((name, value), …): checked against a file's constants
+
+    # ---- construction ---------------------------------------------------------------------------
+    @classmethod
+    def cascade(cls, kp: float, kv: float, gtau: float = 1.0, v_sat: float = 1e9, Ts: float = 1e-3, delay: int = 0):
+        """The EMPS position/velocity cascade as a 2-DOF LTI controller (module docstring)."""
+        for k, v in (("kp", kp), ("kv", kv), ("gtau", gtau), ("v_sat", v_sat)):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"controller.{k}={v!r} must be a finite positive number")
+        if int(delay) != delay or delay < 0:
+            raise ValueError(f"controller.delay={delay} must be a whole number of samples >= 0")
+        dg = kv / (2.0 * Ts)
+        return cls(np.array([kv * kp]), np.array([kv * kp + dg, 0.0, -dg]), np.array([1.0]), float(gtau),
+                   float(v_sat), int(delay), "cascade",
+                   (("kp", float(kp)), ("kv", float(kv)), ("gtau", float(gtau)), ("v_sat", float(v_sat))))
+
+    @classmethod
+    def lti(cls, num, den=(1.0,), num_r=None, gtau: float = 1.0, v_sat: float = 1e9, delay: int = 0):
+        """C_y = num/den (and C_r = num_r/den; ``num_r`` None: error feedback, C_r = C_y)."""
+        b_y, a = _poly("num", num), _poly("den", den)
+        if a[0] == 0:
+            raise ValueError(f"controller.den={list(den)}: the leading coefficient (of z⁰) must not be 0")
+        b_r = b_y if num_r is None else _poly("num_r", num_r)
+        if not (math.isfinite(gtau) and gtau > 0 and v_sat > 0):
+            raise ValueError(f"controller.gtau={gtau} and v_sat={v_sat} must be positive")
+        if int(delay) != delay or delay < 0:
+            raise ValueError(f"controller.delay={delay} must be a whole number of samples >= 0")
+        poles = np.roots(a / a[0]) if a.size > 1 else np.zeros(0)
+        if np.any(np.abs(poles) > 1.0 + 1e-9):
+            raise ValueError(f"controller.den={list(den)} has poles outside the unit circle "
+                             f"(|z| = {np.abs(poles).max():.4g}): an unstable controller cannot be replayed; "
+                             "check the coefficient order (powers of z⁻¹, a[0] first)")
+        return cls(b_r / a[0], b_y / a[0], a / a[0], float(gtau), float(v_sat), int(delay),
+                   "error feedback" if num_r is None else "2-DOF",
+                   (("gtau", float(gtau)), ("v_sat", float(v_sat))))
+
+    @classmethod
+    def from_config(cls, cfg: dict, Ts: float) -> "LTIController":
+        """From ``system.controller``: kind 'cascade' (kp, kv, gtau, v_sat, delay) or 'lti' (num,
+        den, num_r, gtau, v_sat, delay); null values are absent keys."""
+        cfg = {k: v for k, v in dict(cfg).items() if v is not None}
+        kind = cfg.pop("kind", "cascade")
+        if kind not in KINDS:
+            raise ValueError(f"controller.kind={kind!r}; choose one of {KINDS}")
+        keys = {"cascade": ("kp", "kv", "gtau", "v_sat", "delay"),
+                "lti": ("num", "den", "num_r", "gtau", "v_sat", "delay")}[kind]
+        extra = sorted(set(cfg) - set(keys))
+        if extra:
+            raise ValueError(f"controller.kind={kind} takes {list(keys)}, not {extra}" +
+                             ("; a C(z) is given as kind: lti" if kind == "cascade" else
+                              "; the cascade's kp, kv need kind: cascade"))
+        if kind == "cascade":
+            missing = [k for k in ("kp", "kv") if k not in cfg]
+            if missing:
+                raise ValueError(f"controller.kind=cascade needs {missing} (or give C(z) as kind: lti, num, den)")
+            return cls.cascade(Ts=Ts, **cfg)
+        if "num" not in cfg:
+            raise ValueError("controller.kind=lti needs num (C(z) numerator in powers of z⁻¹) and den")
+        return cls.lti(**cfg)
+
+    # ---- properties -----------------------------------------------------------------------------
+    @property
+    def order(self) -> int:
+        """Longest polynomial degree: the samples of history the controller needs."""
+        return max(self.a.size, self.b_r.size, self.b_y.size) - 1
+
+    def transfer_functions(self, Ts: float):
+        """(C_r, C_y) as python-control discrete transfer functions [units/m]."""
+        import control
+        n = self.order + 1
+        pad = lambda p: np.concatenate([p, np.zeros(n - p.size)])     # z⁻¹ → z: same coefficients, z^(n-1) scaled
+        return (control.tf(pad(self.b_r), pad(self.a), Ts), control.tf(pad(self.b_y), pad(self.a), Ts))
+
+    def describe(self) -> str:
+        d = f", delay {self.delay}" if self.delay else ""
+        if self.structure == "cascade":
+            p = dict(self.params)
+            return f"the position/velocity cascade (kp {p['kp']:g}, kv {p['kv']:g}, gtau {p['gtau']:g}{d})"
+        return (f"{self.structure} C(z) = ({_fmt(self.b_y)}) / ({_fmt(self.a)})"
+                + ("" if self.structure == "error feedback" else f", C_r num ({_fmt(self.b_r)})") + d)
+
+    # ---- signals ---------------------------------------------------------------------------------
+    def law(self, r, y) -> np.ndarray:
+        """v = C_r r - C_y y [units] from rest (zero filter state), before the limit."""
+        r, y = np.asarray(r, np.float64), np.asarray(y, np.float64)
+        return signal.lfilter(self.b_r, self.a, r) - signal.lfilter(self.b_y, self.a, y)
+
+    def reference_force(self, r) -> np.ndarray:
+        """(C_r - C_y) r · gtau [N]: the controller's force when the axis follows r exactly.  The
+        feedforward that makes y = r is the model's inverse force minus this (module docstring)."""
+        db = np.zeros(max(self.b_r.size, self.b_y.size))
+        db[:self.b_r.size] += self.b_r
+        db[:self.b_y.size] -= self.b_y
+        if not np.any(db):                    # error feedback: exactly zero
+            return np.zeros(np.shape(r))
+        return self.gtau * signal.lfilter(db, self.a, np.asarray(r, np.float64))
+
+    def recorded_output(self, u, d) -> np.ndarray:
+        """c_meas(k) = u(k+D)/gtau - d(k+D) [units] (the last D samples are unknown: NaN)."""
+        c = np.asarray(u, np.float64) / self.gtau - np.asarray(d, np.float64)
+        if self.delay:
+            c = np.concatenate([c[self.delay:], np.full(self.delay, np.nan)])
+        return c
+
+    def _equation_error(self, r, y, c) -> tuple[np.ndarray, np.ndarray]:
+        """(A c, B_r r - B_y y) on the samples where every tap is known and below the limit."""
+        n = self.order
+        Ac = signal.lfilter(self.a, [1.0], c)
+        Bx = signal.lfilter(self.b_r, [1.0], r) - signal.lfilter(self.b_y, [1.0], y)
+        ok = np.isfinite(c) & (np.abs(c) < self.v_sat * (1 - 1e-9))
+        ok = np.convolve(ok.astype(float), np.ones(n + 1))[:c.size] > n    # the last n+1 samples all ok
+        ok[:n] = False
+        return Ac[ok], Bx[ok]
+
+    def check(self, r, y, u, d) -> float:
+        """Relative rms equation error ‖A c_meas - B_r r + B_y y‖ / ‖A c_meas‖ (module docstring):
+        ~1e-3 for a recording of this controller, O(1) or more for another structure."""
+        Ac, Bx = self._equation_error(np.asarray(r, np.float64), np.asarray(y, np.float64),
+                                      self.recorded_output(u, d))
+        if Ac.size < 10:
+            return math.inf
+        return float(np.linalg.norm(Ac - Bx) / max(np.linalg.norm(Ac), 1e-300))
+
+    def diagnose(self, r, y, u, d, tol: float) -> list[str]:
+        """What fits the recording better than the configured structure (for the error message)."""
+        r, y = np.asarray(r, np.float64), np.asarray(y, np.float64)
+        hints = []
+        Ac, Bx = self._equation_error(r, y, self.recorded_output(u, d))
+        if Ac.size >= 10 and np.dot(Bx, Bx) > 0:
+            g = float(np.dot(Ac, Bx) / np.dot(Bx, Bx))            # best scale of the law
+            res = float(np.linalg.norm(Ac - g * Bx) / np.linalg.norm(Ac))
+            if res < tol and abs(g - 1) > 0.01:
+                why = "a sign error" if g < 0 else "check gtau and the gains"
+                hints.append(f"the recording is this structure with its gain ×{g:.4g} ({why}; residual then "
+                             f"{100 * res:.2g} %)")
+        for D in range(0, 4):
+            if D == self.delay:
+                continue
+            alt = LTIController(self.b_r, self.b_y, self.a, self.gtau, self.v_sat, D, self.structure, self.params)
+            res = alt.check(r, y, u, d)
+            if res < tol:
+                hints.append(f"delay {D} samples fits (residual {100 * res:.2g} %): set controller.delay={D}")
+        if self.structure != "error feedback":
+            ef = LTIController(self.b_y, self.b_y, self.a, self.gtau, self.v_sat, self.delay, "error feedback")
+            res = ef.check(r, y, u, d)
+            if res < tol:
+                hints.append(f"error feedback on e = r - y with this C_y fits (residual {100 * res:.2g} %)")
+        return hints
+
+
+def _fmt(p: np.ndarray) -> str:
+    """'4.279e+06 - 8.212e+06 z^-1 + 3.939e+06 z^-2'"""
+    terms = [(c, i) for i, c in enumerate(p) if c != 0 or i == 0]
+    out = f"{terms[0][0]:.4g}" + (f" z^-{terms[0][1]}" if terms[0][1] else "")
+    for c, i in terms[1:]:
+        out += f" {'-' if c < 0 else '+'} {abs(c):.4g} z^-{i}"
+    return out

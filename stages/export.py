@@ -6,7 +6,9 @@ the harness ``main_<name>.c``, every evaluation reference ``r_<ref>.csv`` with t
 ``u_ff_<ref>.csv``, the law (``law/``: json + npz) and ``manifest.json``.  The laws are the
 ``invert.kind`` of the job: physics (8), direct (13)-(14), analytic (27), newton ([B1] Alg. 1),
 rational_filter ([K]: rational TF or shared-AR PGNN), and fhofc / il_fhofc as a table (one
-package per reference: the signal was optimised offline for it).
+package per reference: the signal was optimised offline for it).  On a measured system
+(``Recording``) physics only: the inverse rigid-body force minus the controller's force on the
+reference (``laws.from_measured_physics``).
 
 Verified here: the C compiled with ``cc -std=c99 -O2 -Wall -Wextra -Werror`` and the Python law
 (the MLflow model's code) must reproduce the invert stage's u_ff on every evaluation reference to
@@ -37,10 +39,11 @@ def validate(cfg, system) -> None:
         raise ConfigError(f"export: invert.kind={kind} has no feedforward law to ship; export covers "
                           f"invert.kind in {list(laws.LAWS)} (drop 'export' from stages)")
     if isinstance(system, Recording):
-        raise ConfigError("export: a measured system's feedforward also cancels its cascade controller's "
-                          "output on the reference, which the exporter does not generate yet; drop 'export' "
-                          "from stages")
-    if kind == "physics" and type(getattr(system, "physics", None)).__name__ != "LinearMotorPhysics":
+        if kind != "physics":
+            raise ConfigError(f"export: on a measured system the exporter ships invert.kind=physics (the inverse "
+                              f"rigid-body force minus the controller's force on the reference); invert.kind={kind} "
+                              "is not exported for a measured system: use invert=physics or drop 'export' from stages")
+    elif kind == "physics" and type(getattr(system, "physics", None)).__name__ != "LinearMotorPhysics":
         raise ConfigError(f"export: the physics feedforward (8) is exported for the linear motor only, not "
                           f"for system '{system.name}'; drop 'export' from stages")
     m = cfg.model
@@ -65,6 +68,12 @@ def build_laws(ctx) -> dict[str, tuple["laws.Law", list[str]]]:
     cfg, train = ctx.cfg, ctx.inputs["train"]
     every = list(ctx.inputs["invert"]["r"])
     kind, Ts = str(cfg.invert.kind), float(ctx.system.Ts)
+    if kind == "physics" and isinstance(ctx.system, Recording):   # minus the controller's force on y = r
+        try:
+            law = laws.from_measured_physics(ctx.system.physics, ctx.inputs["baseline"]["theta"], ctx.system.ctrl)
+        except laws.ExportError as exc:
+            raise ConfigError(f"export: {exc}") from exc
+        return {"ff_physics": (law, every)}
     if kind == "physics":
         return {"ff_physics": (laws.from_linear_motor_physics(ctx.system.physics, ctx.inputs["baseline"]["theta"]),
                                every)}

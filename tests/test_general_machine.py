@@ -89,8 +89,15 @@ def _u_ff(run_id, dst):
 
 
 def test_pid_axis_end_to_end(store, cfg_of, recordings):
-    runner.run_job(cfg_of(*overrides(recordings)))
+    from pipeline.export.package import find_compiler
+    stages = "stages=[generate,baseline,train,invert,evaluate,export]"
+    res = runner.run_job(cfg_of(*overrides(recordings, extra=[stages])))
     run = tracking.search_runs("pid_axis").iloc[0]
+    # the shipped law (C99 and the Python law) reproduces the study's u_ff (pipeline.export)
+    man = res["export"]["packages"]["ff_physics"]
+    assert man["python_max_rel_diff"] <= 1e-9
+    if find_compiler("cc") is not None:
+        assert man["compiled"] and man["c_max_rel_diff"] <= 1e-9
     # physics with the cogging term: every parameter within 2 % (cogging: of its amplitude)
     for k, v in TRUE.items():
         got = run[f"metrics.baseline/{k}"]

@@ -18,7 +18,10 @@ Families (``family``):
   ``blob``/``meta`` arrays of ``fast_pgnn``;
 - ``k_filter``: the rational filter and the shared-AR PGNN of [K] (6):
   f = (A(r) + g_φ(r)) / B(q), run as ``scipy.signal.lfilter`` runs it (direct form II transposed);
-- ``table``: FHOFC / IL-FHOFC ([B2] (17)), a signal optimised offline for one known reference.
+- ``table``: FHOFC / IL-FHOFC ([B2] (17)), a signal optimised offline for one known reference;
+- ``rigid_body``: the physics feedforward of a measured system (issue 20): the analytic inverse of
+  :class:`~pipeline.systems.measured.RigidBodyPhysics` (its force terms) minus the known
+  controller's reference force (C_r - C_y) r (``LTIController.reference_force``).
 
 :func:`feedforward` evaluates a law in Python with the study's own kernels and classes (the
 numba inversions, :class:`~pipeline.models.shared_ar.SharedARPGNN`), so the MLflow model returns
@@ -33,8 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["Law", "ExportError", "LAWS", "from_pgnn", "from_linear_motor_physics", "from_k_filter",
-           "from_table", "feedforward"]
+__all__ = ["Law", "ExportError", "LAWS", "from_pgnn", "from_linear_motor_physics", "from_measured_physics",
+           "from_k_filter", "from_table", "feedforward"]
 
 #: every law the exporter covers, by ``invert.kind``
 LAWS = ("physics", "direct", "analytic", "newton", "rational_filter", "fhofc", "il_fhofc")
@@ -54,7 +57,7 @@ class Law:
     """A feedforward law as sizes, constants and arrays (module docstring)."""
 
     law: str                      # invert.kind
-    family: str                   # pgnn | k_filter | table
+    family: str                   # pgnn | k_filter | table | rigid_body
     Ts: float                     # sample time [s]
     preview: int                  # the step at t reads r(t) … r(t+preview)
     rest: str                     # 'zero' | 'first': the reference before t = 0
@@ -107,6 +110,8 @@ class Law:
         if self.family == "k_filter":
             return int(sum(self.arrays[k].size for k in self.arrays if k.startswith(("g_W", "g_b")))
                        + self.ints["n_a"] + self.ints["n_b"])
+        if self.family == "rigid_body":
+            return int(self.arrays["theta"].size + (2 * self.ints["n_den"] if self.ints["has_ctrl"] else 0))
         return int(self.arrays["u"].size)
 
     def flops_per_sample(self) -> dict:
@@ -129,6 +134,16 @@ class Law:
                 flops += 2 * (i["n_window"]) + sum(2 * a * b for a, b in zip(widths[:-1], widths[1:])) + 1
                 calls = sum(widths[1:-1])
             return {"flops": int(flops), "elementary_calls": int(calls)}
+        if self.family == "rigid_body":
+            codes = self.arrays["codes"]
+            per = {0: 0, 1: 0, 2: 1, 3: 5, 4: 0, 5: 1, 6: 1}        # T_j beyond the velocity
+            w = 7 + 2 * codes.size + sum(per[int(c)] for c in codes)
+            calls = int(sum(int(c) in (2, 3, 5, 6) for c in codes))
+            flops = (2 if self.averaged else 1) * w + (3 if self.averaged else 0)
+            calls *= 2 if self.averaged else 1
+            if self.ints["has_ctrl"]:
+                flops += 4 * self.ints["n_den"] + 2
+            return {"flops": int(flops), "elementary_calls": calls}
         return {"flops": 0, "elementary_calls": 0}
 
 
@@ -189,6 +204,32 @@ def from_linear_motor_physics(physics, theta) -> Law:
     model = PGNN(2, 1, 0, structure="inverse", physics=RigidBodyInverse(physics.Ts), use_nn=False)
     model.set_physics_estimate(physics.inverse_theta(theta))
     return from_pgnn(model, "physics", physics.Ts, averaged=bool(physics.averaged_input))
+
+
+def from_measured_physics(physics, theta, ctrl) -> Law:
+    """The physics feedforward of a measured system (``invert.kind=physics`` on a
+    :class:`~pipeline.systems.measured.Recording`): u_ff = ``physics.feedforward(theta, r)`` -
+    ``ctrl.reference_force(r)``, i.e. w(k) = θ'ᵀ [δ²r(k+1), T_1(r(k), δr(k)), …] with r(-1) = 0, the
+    applied input of w (identity or averaged), minus gtau · lfilter(B_r - B_y, A, r) from rest."""
+    if type(physics).__name__ != "RigidBodyPhysics":
+        raise ExportError(f"the measured-system physics feedforward is exported for RigidBodyPhysics; "
+                          f"this system's physics is {type(physics).__name__}")
+    theta = physics._check_theta(theta)
+    codes, consts = physics.terms.kernel()
+    t = physics.terms
+    db, den = ctrl.reference_filter()
+    has_ctrl = bool(np.any(db))
+    return Law(law="physics", family="rigid_body", Ts=float(physics.Ts), preview=1 + int(physics.averaged_input),
+               rest="zero", averaged=bool(physics.averaged_input),
+               ints={"n_terms": int(codes.size), "has_ctrl": int(has_ctrl), "n_den": int(den.size),
+                     "cogging_harmonics": int(t.cogging_harmonics)},
+               floats={"gtau": float(ctrl.gtau), "stribeck_velocity": float(t.stribeck_velocity),
+                       "coulomb_width": 0.0 if t.coulomb_width is None else float(t.coulomb_width),
+                       "cogging_period": 0.0 if t.cogging_period is None else float(t.cogging_period)},
+               arrays={"theta": theta, "theta_inv": physics.inverse_theta(theta), "codes": codes,
+                       "consts": consts, "b_r": ctrl.b_r, "b_y": ctrl.b_y, "a": ctrl.a,
+                       "num": db / den[0], "den": den / den[0]},   # lfilter divides by den[0] first
+               strings={"model": "physics-measured", "terms": ",".join(t.names), "controller": ctrl.structure})
 
 
 def from_k_filter(model, law: str = "rational_filter") -> Law:
@@ -272,6 +313,9 @@ def feedforward(law: Law, r) -> np.ndarray:
     if law.family == "k_filter":
         from pipeline.invert.rational_filter import rational_feedforward
         return rational_feedforward(_k_model(law), r).f
+    if law.family == "rigid_body":
+        physics, ctrl = _rigid_body(law)
+        return physics.feedforward(law.arrays["theta"], r) - ctrl.reference_force(r)
     w = _pgnn_run(law, np.append(r, r[-1]) if law.averaged else r)
     return 0.5 * (w[:-1] + w[1:]) if law.averaged else w
 
@@ -293,6 +337,23 @@ def _pgnn_run(law: Law, r: np.ndarray) -> np.ndarray:
     if law.law == "newton":
         return _newton_run(blob, meta, state, r_ext, N, m["k"], law.floats["u_min"], law.floats["u_max"])[0]
     return _run(blob, meta, state, r_ext, N, law.law == "physics", bool(m["inverse_layout"]))
+
+
+def _rigid_body(law: Law):
+    """(RigidBodyPhysics, LTIController) rebuilt from the law (the study's classes)."""
+    from pipeline.systems.controller import LTIController
+    from pipeline.systems.force_terms import ForceTerms
+    from pipeline.systems.measured import RigidBodyPhysics
+    f = law.floats
+    terms = ForceTerms(tuple(law.strings["terms"].split(",")) if law.strings["terms"] else (),
+                       coulomb_width=f["coulomb_width"] or None, stribeck_velocity=f["stribeck_velocity"],
+                       cogging_period=f["cogging_period"] or None,
+                       cogging_harmonics=law.ints["cogging_harmonics"])
+    physics = RigidBodyPhysics(law.Ts, averaged_input=law.averaged, terms=terms)
+    a = law.arrays
+    if not (np.array_equal(terms.kernel()[0], a["codes"]) and np.array_equal(terms.kernel()[1], a["consts"])):
+        raise ExportError("the law's force terms do not match its kernel codes: a corrupted law")
+    return physics, LTIController(a["b_r"], a["b_y"], a["a"], f["gtau"])
 
 
 def _k_model(law: Law):

@@ -142,15 +142,22 @@ class LTIController:
         r, y = np.asarray(r, np.float64), np.asarray(y, np.float64)
         return signal.lfilter(self.b_r, self.a, r) - signal.lfilter(self.b_y, self.a, y)
 
+    def reference_filter(self) -> tuple[np.ndarray, np.ndarray]:
+        """(B_r - B_y, A) padded to one length: C_r - C_y as a filter (zero numerator for error feedback)."""
+        n = max(self.b_r.size, self.b_y.size, self.a.size)
+        db, den = np.zeros(n), np.zeros(n)
+        db[:self.b_r.size] += self.b_r
+        db[:self.b_y.size] -= self.b_y
+        den[:self.a.size] = self.a
+        return db, den
+
     def reference_force(self, r) -> np.ndarray:
         """(C_r - C_y) r · gtau [N]: the controller's force when the axis follows r exactly.  The
         feedforward that makes y = r is the model's inverse force minus this (module docstring)."""
-        db = np.zeros(max(self.b_r.size, self.b_y.size))
-        db[:self.b_r.size] += self.b_r
-        db[:self.b_y.size] -= self.b_y
+        db, den = self.reference_filter()
         if not np.any(db):                    # error feedback: exactly zero
             return np.zeros(np.shape(r))
-        return self.gtau * signal.lfilter(db, self.a, np.asarray(r, np.float64))
+        return self.gtau * signal.lfilter(db, den, np.asarray(r, np.float64))
 
     def recorded_output(self, u, d) -> np.ndarray:
         """c_meas(k) = u(k+D)/gtau - d(k+D) [units] (the last D samples are unknown: NaN)."""

@@ -218,6 +218,7 @@ def test_export_stage_logs_a_verified_package_and_a_pyfunc_model(invert, noise, 
         assert float(version.tags["evaluate/v0.15/mae"]) == pytest.approx(run["metrics.evaluate/v0.15/mae"], rel=1e-5)
 
 
+@pytest.mark.slow   # 25 s; the pyfunc path is also in test_export_stage_logs_a_verified_package_and_a_pyfunc_model
 @needs_cc
 @fits_poorly
 def test_mlflow_models_predict_and_the_export_cli(store, cfg_of, tmp_path):

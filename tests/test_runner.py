@@ -353,6 +353,7 @@ def test_run_name_shows_every_override_its_template_does_not(cfg_of):
         "linear_motor-output-sigma1e-08-direct-s0"      # all in the template: the reproduce names are kept
 
 
+@pytest.mark.slow   # 12 s: composes every sweep of every experiment (make test-full)
 def test_no_two_configs_of_a_sweep_share_a_run_name(store):
     """Issue 14: a small sweep through the CLI; every run of the experiment has its own name, and one
     name never covers two configs."""

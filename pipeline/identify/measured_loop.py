@@ -128,8 +128,8 @@ class LoopModel:
 
 
 @numba.njit(cache=True)
-def _loop(r, d, uff, y0, n_a, n_b, averaged, th, codes, tp, W1, b1, W2, b2, P, c, so, Ts, br, by, ca, gtau, vsat, D, Dt,
-          sens):
+def _loop(r, d, uff, y0, yrec, urec, n0, n_a, n_b, averaged, th, codes, tp, W1, b1, W2, b2, P, c, so, Ts, br, by, ca,
+          gtau, vsat, D, Dt, sens):
     N = r.size
     n1, nx = W1.shape[0], P.shape[0]
     nphi = n_a + n_b
@@ -159,6 +159,14 @@ def _loop(r, d, uff, y0, n_a, n_b, averaged, th, codes, tp, W1, b1, W2, b2, P, c
     x = np.zeros(nx)
     h = np.zeros(n1)
     for k in range(N):
+        if k < n0:   # the recorded state: output, applied force and controller output from the record
+            y[k] = yrec[k]
+            u[k] = urec[k]
+            tau[k] = urec[k]
+            cc[k] = urec[k] / gtau - d[k]
+            vv[k] = cc[k]
+            w[k] = 0.5 * (u[k] + (u[k - 1] if k >= 1 else 0.0)) if averaged else u[k]
+            continue
         if k == 0:
             y[0] = y0
         else:
@@ -271,13 +279,32 @@ def _loop(r, d, uff, y0, n_a, n_b, averaged, th, codes, tp, W1, b1, W2, b2, P, c
 @dataclass
 class LoopSignals:
     """Inputs of one closed-loop run: reference r [m], disturbance d [V], feedforward u_ff [N],
-    the initial position y0 [m] and, for the published convention, the data's time column t [s]."""
+    the initial position y0 [m] and, for the published convention, the data's time column t [s].
+
+    Started from the recorded state (``n_init`` > 0): samples k < n_init of the output, the applied
+    force and the controller output (u/gtau - d) are the record's, so the first simulated sample
+    n_init sees the machine's recorded position, velocity and force history instead of rest;
+    scores then start at n_init (:func:`loop_errors` ``start``)."""
 
     r: np.ndarray
     d: np.ndarray
     y0: float
     t: np.ndarray | None = None
     u_ff: np.ndarray | None = None
+    y_rec: np.ndarray | None = None     # the record, for a start from the recorded state:
+    u_rec: np.ndarray | None = None     # its position [m] and applied force [N]
+    n_init: int = 0                     # samples taken from the record (0: start at rest at y0)
+
+    def __post_init__(self):
+        if self.n_init and (self.y_rec is None or self.u_rec is None):
+            raise ValueError("a start from the recorded state (n_init > 0) needs y_rec and u_rec")
+        if self.n_init < 0 or (self.n_init and self.n_init >= np.size(self.r)):
+            raise ValueError(f"n_init={self.n_init} must be in [0, {np.size(self.r)})")
+
+    @classmethod
+    def recorded(cls, r, d, y, u, t=None, n_init: int = 0, u_ff=None) -> "LoopSignals":
+        """A replay of a record (position y, applied force u) started from its first ``n_init`` samples."""
+        return cls(r, d, float(y[0]), t, u_ff, y, u, int(n_init))
 
 
 def _convention(sig: LoopSignals, convention: str, delay: int = 0):
@@ -288,6 +315,8 @@ def _convention(sig: LoopSignals, convention: str, delay: int = 0):
     uff = np.zeros_like(sig.r) if sig.u_ff is None else sig.u_ff
     if convention == "data":
         return sig.r, sig.d, uff, delay
+    if sig.n_init:
+        raise ValueError("the published convention is the authors' script, which starts at rest: give n_init=0")
     if sig.t is None or sig.t.size < 10:
         raise ValueError("the published convention needs the data's time column t (>= 10 samples)")
     h = float(sig.t[9] - sig.t[8])                       # the script's step t(10) - t(9)
@@ -305,7 +334,16 @@ def simulate_loop(model: LoopModel, ctrl, sig: LoopSignals, convention: str = "d
     r, d, uff = (np.ascontiguousarray(x, dtype=np.float64) for x in (r, d, uff))
     if not (d.shape == r.shape == uff.shape):
         raise ValueError(f"r, d and u_ff must have one length, got {r.shape}, {d.shape}, {uff.shape}")
-    y, tau, u, Sy, Sc = _loop(r, d, uff, float(sig.y0), model.n_a, model.n_b, model.averaged, model.theta_phy,
+    n0 = int(sig.n_init)
+    need = max(model.n_a, model.n_b, ctrl.b_y.size, ctrl.b_r.size, ctrl.a.size)
+    if 0 < n0 < need:
+        raise ValueError(f"a recorded start needs the model's and the controller's whole history: n_init={n0} < {need}")
+    yrec = np.ascontiguousarray(sig.y_rec if n0 else np.zeros(1), dtype=np.float64)
+    urec = np.ascontiguousarray(sig.u_rec if n0 else np.zeros(1), dtype=np.float64)
+    if n0 and not (yrec.shape == urec.shape == r.shape):
+        raise ValueError(f"y_rec and u_rec must have the reference's length {r.shape}, got {yrec.shape}, {urec.shape}")
+    y, tau, u, Sy, Sc = _loop(r, d, uff, float(sig.y0), yrec, urec, n0, model.n_a, model.n_b, model.averaged,
+                              model.theta_phy,
                               model.term_codes, model.term_p,
                               model.W1, model.b1, model.W2, model.b2, model.nn_P, model.nn_c, model.out_scale,
                               model.Ts, ctrl.b_r, ctrl.b_y, ctrl.a, ctrl.gtau, ctrl.v_sat, D, Dt, sens)
@@ -317,14 +355,15 @@ def simulate_loop(model: LoopModel, ctrl, sig: LoopSignals, convention: str = "d
     return y, tau, u
 
 
-def loop_errors(y_meas, tau_meas, y_hat, tau_hat) -> dict[str, float]:
-    """Scores of a closed-loop simulation against the record (EMPS README):
+def loop_errors(y_meas, tau_meas, y_hat, tau_hat, start: int = 0) -> dict[str, float]:
+    """Scores of a closed-loop simulation against the record (EMPS README), on samples k >= start:
 
-    - ``force_rel_error`` [%] = 100 ‖τ - τ̂‖ / ‖τ‖ (all samples);
+    - ``force_rel_error`` [%] = 100 ‖τ - τ̂‖ / ‖τ‖;
     - ``position_rel_error`` [%] = 100 ‖q - q̂‖ / ‖q‖;
     - ``loop_rmse_mm`` [mm]: rms(q - q̂) of the closed-loop replay.
     """
-    y_meas, tau_meas = np.asarray(y_meas), np.asarray(tau_meas)
+    y_meas, tau_meas = np.asarray(y_meas)[start:], np.asarray(tau_meas)[start:]
+    y_hat, tau_hat = np.asarray(y_hat)[start:], np.asarray(tau_hat)[start:]
     return {"force_rel_error": float(100 * np.linalg.norm(tau_meas - tau_hat) / np.linalg.norm(tau_meas)),
             "position_rel_error": float(100 * np.linalg.norm(y_meas - y_hat) / np.linalg.norm(y_meas)),
             "loop_rmse_mm": float(1e3 * np.sqrt(np.mean((y_meas - y_hat) ** 2)))}
@@ -333,20 +372,34 @@ def loop_errors(y_meas, tau_meas, y_hat, tau_hat) -> dict[str, float]:
 #: no controller: the open-loop convention (u enters as the disturbance)
 _NO_FEEDBACK = LTIController(np.zeros(1), np.zeros(1), np.ones(1), 1.0, math.inf, 0, "none")
 
+#: samples that initialise an open-loop simulation (nonlinear_benchmarks' EMPS convention)
+N_INIT = 20
 
-def simulate_open_loop(model: LoopModel, u, y0: float) -> np.ndarray:
+
+def simulate_open_loop(model: LoopModel, u, y0: float, y_rec=None, n_init: int = 0) -> np.ndarray:
     """ŷ [m] of the model driven by a recorded force u [N], no controller (the EMPS benchmark's
     simulation convention: input vir, output qm): the loop kernel with zero gains and u as the
-    disturbance, so the same model code runs."""
+    disturbance, so the same model code runs.  With ``y_rec``, the first ``n_init`` samples are
+    the record's (the benchmark's initialisation), else the model starts at rest at y0."""
     u = np.asarray(u, dtype=np.float64)
-    y, _, _ = simulate_loop(model, _NO_FEEDBACK, LoopSignals(np.zeros_like(u), u, float(y0)), "data")
+    sig = LoopSignals(np.zeros_like(u), u, float(y0), None, None, y_rec, u if y_rec is not None else None,
+                      int(n_init) if y_rec is not None else 0)
+    y, _, _ = simulate_loop(model, _NO_FEEDBACK, sig, "data")
     return y
 
 
-def benchmark_rmse_mm(y_meas, y_hat, n_init: int = 20) -> float:
+def benchmark_scores(y_meas, y_hat, n_init: int = N_INIT) -> dict[str, float]:
+    """The open-loop simulation's scores on the samples after the first ``n_init`` (which only
+    initialise): ``benchmark_rmse_mm`` = rms(q - q̂) [mm] and ``benchmark_r2`` = 1 - Σe² / Σ(q - q̄)²."""
+    y = np.asarray(y_meas)[n_init:]
+    e = y - np.asarray(y_hat)[n_init:]
+    return {"benchmark_rmse_mm": float(1e3 * np.sqrt(np.mean(e ** 2))),
+            "benchmark_r2": float(1.0 - np.sum(e ** 2) / np.sum((y - y.mean()) ** 2))}
+
+
+def benchmark_rmse_mm(y_meas, y_hat, n_init: int = N_INIT) -> float:
     """rms(q - q̂) [mm] over the samples after the first ``n_init`` (which only initialise)."""
-    e = np.asarray(y_meas)[n_init:] - np.asarray(y_hat)[n_init:]
-    return float(1e3 * np.sqrt(np.mean(e ** 2)))
+    return benchmark_scores(y_meas, y_hat, n_init)["benchmark_rmse_mm"]
 
 
 # --------------------------------------------------------------------------------------
@@ -380,8 +433,8 @@ def identify_loop_sim_error(model, averaged: bool, ctrl, sig: LoopSignals, tau_m
     [B2] (16) with the loop's measured force τ as the output (τ̂ follows ŷ through the known
     controller, so this is the simulation error the EMPS benchmark scores) and the SPEC §5
     normalisation; θ*_phy is where ``model`` holds θ_phy (the physics baseline).  The whole
-    record is simulated from rest; the first ``n_train`` samples enter V, the rest is the
-    validation block (its force error is logged, never used to stop).  LM
+    record is simulated from ``sig``'s start (the recorded state of its first ``sig.n_init``
+    samples, or rest); samples n_init … n_train - 1 enter V, the rest is the validation block (its force error is logged, never used to stop).  LM
     (:func:`pipeline.identify.lm.levenberg_marquardt`, ``lm_options``) with the exact Jacobian
     from the loop's forward sensitivities, best of ``n_restarts`` NN initialisations
     (:func:`pipeline.identify.narx.best_of_restarts`).  ``model`` (a forward PGNN whose NN
@@ -392,10 +445,13 @@ def identify_loop_sim_error(model, averaged: bool, ctrl, sig: LoopSignals, tau_m
     tau_meas = np.asarray(tau_meas, dtype=np.float64)
     N = tau_meas.size
     nt = N if n_train is None else int(n_train)
-    sigma = float(np.std(tau_meas[:nt]))
+    n0 = int(sig.n_init)
+    if not 0 <= n0 < nt:
+        raise ValueError(f"the recorded start n_init={n0} leaves no training sample before n_train={nt}")
+    sigma = float(np.std(tau_meas[n0:nt]))
     if not sigma > 0:
         raise ValueError("the measured force is constant on the training samples; nothing to identify")
-    cn = 1.0 / (sigma * math.sqrt(nt))
+    cn = 1.0 / (sigma * math.sqrt(nt - n0))
     loop0 = LoopModel.from_pgnn(model, averaged)
     ts = loop0.theta_phy.copy()
     npy = ts.size
@@ -414,14 +470,14 @@ def identify_loop_sim_error(model, averaged: bool, ctrl, sig: LoopSignals, tau_m
     def residual(th):
         theta = th.numpy()
         _, tau, *_ = run(theta)
-        e = (tau_meas[:nt] - tau[:nt]) * cn
+        e = (tau_meas[n0:nt] - tau[n0:nt]) * cn
         if not np.all(np.isfinite(e)):
             e = np.full_like(e, 1e150)        # a diverged simulation: LM rejects the step
         return torch.from_numpy(np.concatenate([e, Rs @ (theta[:npy] - ts)]) if reg else e)
 
     def jacobian(th):
         *_, St = run(th.numpy())
-        J = -St[:nt] * cn
+        J = -St[n0:nt] * cn
         if reg:
             Jr = np.zeros((npy, J.shape[1]))
             Jr[:, :npy] = Rs

@@ -228,7 +228,7 @@ def _claim_table(table: pd.DataFrame) -> list[str]:
     no_fits = {c for m in providers().values() for c in getattr(m, "CLAIMS_WITHOUT_FITS", ())}
     out = ["| claim | experiment | holds | its experiment's fits stopped on a cap |", "| --- | --- | --- | --- |"]
     for (c, e), g in claims.groupby(["claim", "experiment"], sort=False):
-        cap = (f"{fits[(e, 'fits_stopped_on_cap')]:.0f} of {fits[(e, 'fits_with_stop_reason')]:.0f}"
+        cap = (f"{float(fits[(e, 'fits_stopped_on_cap')]):.0f} of {float(fits[(e, 'fits_with_stop_reason')]):.0f}"
                if (e, "fits_stopped_on_cap") in fits.index and c not in no_fits else "")
         if cap and not cap.startswith("0 "):
             cap = f"**{cap}**"

@@ -22,6 +22,8 @@ PUBLISHED = {"train": {"force_rel_error": 5.85, "position_rel_error": 0.0138},
 TOL = {"force_rel_error": 0.5, "position_rel_error": 0.001}     # acceptance: points of %
 PHYS_TOL = 0.02                                                 # |relative deviation| of M, F_v, F_c, OF
 X1_FORCE = 4.5                                                  # [%] test force error, data timing
+X1_R2 = 0.99                                                    # open-loop R²: a usable simulator (SPEC §8 X1)
+TRAIN_R2 = "evaluate/train/benchmark_r2"
 VAL = "evaluate/train/data/force_rel_error_tail"
 
 
@@ -92,25 +94,35 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
             else:
                 rows.append(row(E, f"published_model/{f}/data", "force_rel_error", fe))
                 rows.append(row(E, f"published_model/{f}/data", "position_rel_error", pe))
-    lines += ["", "The published convention reproduces the published figures; in the data's own timing "
-              "the same model's force error is lower: the unit delay of the authors' script costs "
-              "the difference. Compare numbers within one convention only.", ""]
+    lines += ["", "The published convention is the authors' script (their semi-implicit Euler step, one sample "
+              "of delay on the controller output, from rest) and reproduces their figures. The data convention "
+              "replays every model — this one, the re-identified physics, the PGNNs — with one integrator (the "
+              "rigid body's exact-ZOH step on the averaged force), started from the recorded state (the first "
+              "20 samples are the record's) and scored from sample 20 on. Compare numbers within one "
+              "convention only.", ""]
+    lines += _integrator_table(E, pm, rows)
     # ---- choice on the training file's validation tail
     pg = [r for r in recs if r["kind"] != "none"]
     lines += ["### PGNNs: choice on the training file, score on the test file", "",
               "Each PGNN is fitted on the first 80 % of `DATA_EMPS`; its closed-loop force error on the "
               "last 20 % (validation) chooses the hyper-parameters. The test file is never used for a "
               "choice.", "",
-              "| run | criterion | validation [%] | train [%] | test [%] | test, published conv. [%] | LM stop |",
-              "| --- | --- | --- | --- | --- | --- | --- |"]
+              "| run | criterion | validation [%] | train [%] | train open-loop R² | test [%] | "
+              "test, published conv. [%] | LM stop |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     chosen = {}
+    usable = [r for r in pg if r["m"].get(TRAIN_R2, -np.inf) >= X1_R2]
     for r in sorted(pg, key=lambda r: (r["kind"], r["m"][VAL])):
         m = r["m"]
         lines.append(f"| {r['name']} | {r['kind']} | {m[VAL]:.3f} | {m['evaluate/train/data/force_rel_error']:.3f} | "
-                     f"{m['evaluate/test/data/force_rel_error']:.3f} | "
+                     f"{m.get(TRAIN_R2, float('nan')):.4f} | {m['evaluate/test/data/force_rel_error']:.3f} | "
                      f"{m['evaluate/test/published/force_rel_error']:.3f} | {r['stop']} |")
-        if r["kind"] not in chosen or m[VAL] < chosen[r["kind"]]["m"][VAL]:
+        if (r in usable or not usable) and (r["kind"] not in chosen or m[VAL] < chosen[r["kind"]]["m"][VAL]):
             chosen[r["kind"]] = r
+    lines += ["", f"A PGNN is a candidate if it is a usable simulator on the training file (open-loop R² ≥ {X1_R2}, "
+              "the whole file); among the candidates of each criterion the lowest validation error is chosen"
+              + ("." if usable or not pg else ": **no PGNN qualifies**, so the choice falls back to the lowest "
+                 "validation error alone.")]
     capped = [r["name"] for r in pg if str(r["stop"]) in ("max_iter", "nan", "None")]
     if capped:
         lines += ["", f"> Stopped on the iteration cap (not converged): {', '.join(capped)}."]
@@ -118,14 +130,16 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
     # ---- the X1 comparison
     lines += ["### X1: chosen models, data timing", "",
               "| model | validation [%] | train force [%] | test force [%] | gap [points] | test position [%] | "
-              "test open-loop RMSE [mm] | test force, published conv. [%] | feedforward: model-predicted MAE [m] |",
-              "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+              "test open-loop RMSE [mm] | test open-loop R² | test force, published conv. [%] | "
+              "feedforward: model-predicted MAE [m] |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     table = [("physics", P)] + [(f"PGNN {k}", r) for k, r in sorted(chosen.items())]
     for label, r in table:
         m = r["m"]
         tr, te = m["evaluate/train/data/force_rel_error"], m["evaluate/test/data/force_rel_error"]
         lines.append(f"| {label} (`{r['name']}`) | {m[VAL]:.3f} | {tr:.3f} | {te:.3f} | {te - tr:+.3f} | "
                      f"{m['evaluate/test/data/position_rel_error']:.5f} | {m['evaluate/test/benchmark_rmse_mm']:.3g} | "
+                     f"{m['evaluate/test/benchmark_r2']:.4f} | "
                      f"{m['evaluate/test/published/force_rel_error']:.3f} | "
                      f"{m['evaluate/test/model_based/mae']:.3g} |")
         v = "physics" if label == "physics" else f"pgnn-{r['kind']}"
@@ -133,7 +147,8 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
             for conv in ("data", "published"):
                 for x in ("force_rel_error", "position_rel_error", "loop_rmse_mm"):
                     rows.append(row(E, f"{v}/{f}/{conv}", x, m[f"evaluate/{f}/{conv}/{x}"]))
-            rows.append(row(E, f"{v}/{f}", "benchmark_rmse_mm", m[f"evaluate/{f}/benchmark_rmse_mm"]))
+            for x in ("benchmark_rmse_mm", "benchmark_r2"):
+                rows.append(row(E, f"{v}/{f}", x, m[f"evaluate/{f}/{x}"]))
         rows.append(row(E, f"{v}/train", "validation_force_rel_error", m[VAL]))
         rows.append(row(E, f"{v}/test", "model_based_mae", m["evaluate/test/model_based/mae"]))
     lines += ["", "Open-loop RMSE: the benchmark's simulation convention (the model driven by the recorded force, "
@@ -152,14 +167,18 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
         m = best["m"]
         te, tr = m["evaluate/test/data/force_rel_error"], m["evaluate/train/data/force_rel_error"]
         v = f"pgnn-{best['kind']}/test/data"
-        c1, c2, c3 = te < X1_FORCE, te < pte, (te - tr) <= (pte - ptr)
+        r2 = m["evaluate/test/benchmark_r2"]
+        c1, c2, c3, c4 = te < X1_FORCE, te < pte, (te - tr) <= (pte - ptr), r2 >= X1_R2
         rows += [row(E, v, "force_rel_error<4.5", te, "X1", c1, X1_FORCE),
                  row(E, v, "force_rel_error<physics", te, "X1", c2, pte),
-                 row(E, v, "train_test_gap<=physics", te - tr, "X1", c3, pte - ptr)]
-        lines += [f"X1 candidate (lowest validation error over both criteria): `{best['name']}`. Test force "
-                  f"error {te:.2f} % ({'<' if c1 else '≥'} {X1_FORCE} %), physics {pte:.2f} % "
-                  f"({'below' if c2 else 'not below'}), train/test gap {te - tr:+.2f} points vs physics "
-                  f"{pte - ptr:+.2f} ({'no worse' if c3 else 'worse'}).", ""]
+                 row(E, f"pgnn-{best['kind']}/test", "benchmark_r2>=0.99", r2, "X1", c4, X1_R2),
+                 row(E, v, "train_test_gap<=physics", te - tr, "", None, pte - ptr)]
+        lines += [f"X1 candidate (lowest validation error over both criteria among the usable simulators): "
+                  f"`{best['name']}`. Test force error {te:.2f} % ({'<' if c1 else '≥'} {X1_FORCE} %), physics "
+                  f"{pte:.2f} % ({'below' if c2 else 'not below'}); open-loop test R² {r2:.4f} "
+                  f"({'≥' if c4 else '<'} {X1_R2}: {'a usable simulator' if c4 else 'not a usable simulator'}); "
+                  f"train/test gap {te - tr:+.2f} points vs physics {pte - ptr:+.2f} (information, not a "
+                  "criterion).", ""]
         share = {lab: r["m"].get("evaluate/test/data/force_error_share_after_steps") for lab, r in table}
         outside = {lab: r["m"].get("evaluate/test/data/force_rel_error_outside_steps") for lab, r in table}
         if all(v is not None for v in share.values()):
@@ -183,6 +202,31 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
         if fig:
             lines += ["![EMPS test force error](figures/emps-force-error.png)", ""]
     return rows, "\n".join(lines)
+
+
+def _integrator_table(E, pm: dict, rows: list) -> list[str]:
+    """The one integrator against the continuous-time physics it discretises (RK4 sub-steps)."""
+    from pipeline.identify.continuous_replay import SUBSTEPS
+    out = []
+    for f in ("train", "test"):
+        for label, pre, one in (("published", "published_model/", f"evaluate/{f}/published_model/data/force_rel_error"),
+                                ("physics", "", f"evaluate/{f}/data/force_rel_error")):
+            rk = [pm.get(f"evaluate/{f}/{pre}integrator/rk4_n{n}/force_rel_error") for n in SUBSTEPS]
+            if any(v is None for v in rk) or one not in pm:
+                continue
+            out.append(f"| {f} | {label} | {pm[one]:.3f} | " + " | ".join(f"{v:.3f}" for v in rk) + " |")
+            for n, v in zip(SUBSTEPS, rk):
+                rows.append(row(E, f"{'published_model' if pre else 'physics'}/{f}/data", f"rk4_n{n}_force_rel_error", v))
+    if not out:
+        return []
+    return (["#### The one integrator against the continuous-time model", "",
+             "Data timing, force error [%]: the one-step replay every model gets, and the same continuous-time "
+             "physics integrated with n classical Runge-Kutta sub-steps per sample (force held between "
+             "samples, controller at the samples). The sub-stepped values settle as n grows; their limit minus "
+             "the one-step value is the one-step integrator's own error, the same for the published and the "
+             "re-identified parameters.", "",
+             "| file | parameters | one step (ZOH on ū) | " + " | ".join(f"RK4 n={n}" for n in SUBSTEPS) + " |",
+             "| --- | --- | --- | " + " | ".join("---" for _ in SUBSTEPS) + " |"] + out + [""])
 
 
 def _figure(phys, best, path: Path) -> bool:

@@ -31,7 +31,7 @@ from pipeline.systems.arx_bias import ARXPhysics
 from pipeline.systems.measured import Recording
 
 THETA_STAR = ("arx", "sim_error", "oracle")   # oracle: the plant's true linear part (an oracle, simulation only)
-VERSION = 2   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zeros logged
+VERSION = 3   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zeros logged; 3: measured loop from the recorded state
 
 
 def check(cfg, system) -> None:
@@ -174,7 +174,7 @@ def _check_measured(cfg, system) -> None:
 
 def _fit_measured(ctx) -> dict:
     import torch
-    from pipeline.identify.measured_loop import LoopSignals, identify_loop_sim_error
+    from pipeline.identify.measured_loop import N_INIT, LoopSignals, identify_loop_sim_error
     from pipeline.identify.narx import build_regression
     from stages.train.narx import build_model as build_narx_model
     cfg, system = ctx.cfg, ctx.system
@@ -192,7 +192,7 @@ def _fit_measured(ctx) -> dict:
         with torch.no_grad():
             s = float((torch.as_tensor(reg.target) - model.physics_part(phi)).std())
         model.out_scale.fill_(s if s > 0 else 1.0)
-    sig = LoopSignals(ds["r"], d, float(y[0]), ds["t"])
+    sig = LoopSignals.recorded(ds["r"], d, y, u, ds["t"], N_INIT)   # from the recorded state (issue 20)
     ident = cfg.identify
     n_train = int(round((1.0 - float(ident.val_fraction)) * y.size))
     lam = float(cfg.regularizer.get("lam", 0.0))
@@ -212,14 +212,38 @@ def _fit_measured(ctx) -> dict:
         ctx.metric("val_force_rel_error", fit_.val_force_rel_error)
     ctx.tag("lm_stop", best.message)
     physical = system.physics.physical(fit_.loop.theta_phy)
+    star = system.physics.physical(theta_star)
     for k, v in physical.items():
         ctx.metric(f"theta_phy/{k}", v)
-    for k, v in system.physics.physical(theta_star).items():
+    for k, v in star.items():
         ctx.metric(f"theta_phy_star/{k}", v)
+    _warn_physics_drift(ctx, star, physical)
     ctx.figure(_figure_measured(fit_, ds["t"], u, fit_.tau_hat, n_train), "identification.png")
     model.eval()
     return {"model": model, "model_input": True, "loop": fit_.loop, "theta_phy_star": theta_star,
             "physical": physical, "val_force_rel_error": fit_.val_force_rel_error}
+
+
+#: largest relative move of a physical parameter between the least-squares baseline and the
+#: simulation-error fit before a warning: beyond it the NN and the physics trade the force between them
+PHYSICS_DRIFT = 0.25
+
+
+def _warn_physics_drift(ctx, star: dict, fitted: dict) -> None:
+    """Metric ``physics_drift`` (max_k |p_k - p*_k| / |p*_k|) and, above PHYSICS_DRIFT, a warning and
+    the run tag ``physics_drift_warning``: the fitted physics no longer means its name."""
+    import warnings
+    rel = {k: abs(fitted[k] - v) / abs(v) for k, v in star.items() if v != 0 and k in fitted}
+    if not rel:
+        return
+    k = max(rel, key=rel.get)
+    ctx.metric("physics_drift", rel[k])
+    if rel[k] > PHYSICS_DRIFT:
+        msg = (f"the simulation-error fit moved {k} by {100 * rel[k]:.0f} % from the least-squares baseline "
+               f"({star[k]:.4g} -> {fitted[k]:.4g}; limit {100 * PHYSICS_DRIFT:.0f} %): the NN and the physics "
+               "trade the force between them; raise regularizer.lam or check the physics terms")
+        ctx.tag("physics_drift_warning", msg)
+        warnings.warn(msg, stacklevel=2)
 
 
 def _figure_measured(fit_, t, tau, tau_hat, n_train):

@@ -5,7 +5,10 @@ Simulated plants: column-scaled LS of the one-step model.  Measured systems
 benchmark (``system.idim``), with the relative deviation from the published parameters where
 the system config gives them.  Physical parameters that must be positive (masses, stiffnesses,
 friction, damping) and come out negative are a warning: run tag ``physics_warning`` (the report
-shows it) and a Python warning, because the physics model does not fit the data.
+shows it) and a Python warning, because the physics model does not fit the data.  On a measured
+system the least-squares residual is also searched for a force term the config lacks (velocity,
+velocity sign, offset, a position-periodic cogging force at any period): one that would explain
+≥ 20 % of the residual's energy is named, with its config key (tag ``physics_missing_term``).
 """
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ from pipeline.systems.measured import Recording
 
 UPSTREAM = ("generate",)
 DEPENDS = ("system",)
-VERSION = 1
+VERSION = 2   # 2: residual diagnostics of measured systems
 #: physical parameters that cannot be negative (masses, stiffnesses, friction and damping)
 POSITIVE = ("m", "M", "m1", "m2", "k", "k1", "k2", "c", "d2", "f_v", "F_v", "f_c", "F_c")
 
@@ -50,6 +53,15 @@ def run(ctx) -> dict:
                "(must be positive); check the system choice, signs and units")
         ctx.tag("physics_warning", msg)
         warnings.warn(msg, stacklevel=1)
+    if isinstance(system, Recording):      # a term the config lacks that the residual still holds
+        diag, found = system.missing_terms(ds["y"], ds["u"])
+        for k, v in diag.items():
+            ctx.metric(f"residual/{k}", v)
+        if found:
+            msg = (f"the physics of '{system.name}' leaves {100 * diag['residual_rel']:.1f} % of the force "
+                   "unexplained and it is structured: " + "; ".join(found))
+            ctx.tag("physics_missing_term", msg)
+            warnings.warn(msg, stacklevel=1)
     truth = getattr(system, "true_physical", None)
     if callable(truth):  # where the simulator knows its parameters, report the estimation error
         for k, v in truth().items():

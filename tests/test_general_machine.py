@@ -115,6 +115,12 @@ def test_pid_axis_end_to_end(store, cfg_of, recordings):
     u_rigid, _ = _u_ff(rigid["run_id"], store / "dl2")
     e_rigid = np.mean(np.abs(r - plant(r, u_rigid, seed=3)[0]))
     assert e_ff * 2 <= e_rigid, (e_ff, e_rigid)
+    # the rigid-body baseline's residual names the missing cogging term and its period (the
+    # generator's 30 mm within 3 %: the scan's grid is 1.3 % wide per step near it); the
+    # cogging-aware baseline is not warned
+    assert "cogging_period ≈ 0.0" in rigid["tags.physics_missing_term"]
+    assert abs(rigid["metrics.baseline/residual/cogging_period"] - PERIOD) <= 0.03 * PERIOD
+    assert pd.isna(run.get("tags.physics_missing_term")) and "metrics.baseline/residual/residual_rel" in run
 
 
 @pytest.mark.parametrize("wrong, match", [

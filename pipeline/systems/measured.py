@@ -125,15 +125,13 @@ class RigidBodyPhysics(LinearMotorPhysics):
         """Shortest record :meth:`fit_filtered` accepts: the trimmed ends plus 20 decimated rows."""
         return 2 * int(trim) + 20 * max(int(decimation), 1)
 
-    def fit_filtered(self, y, u, cutoff_hz: float = 50.0, order: int = 4, decimation: int = 10,
-                     trim: int = 50) -> np.ndarray:
-        """θ by least squares on the inverse model with zero-phase filtered derivatives (IDIM-LS,
-        the EMPS benchmark's method): Butterworth ``filtfilt`` of q, central-difference q̇, q̈,
-        then parallel decimation (``scipy.signal.decimate``, zero phase) of τ and of every
-        regressor column; ``trim`` samples at each end are dropped (filter transients).
-
-        Returns the forward θ ([1/M, p_1/M, …]) of the inverse fit [M, p_1, …].
-        """
+    def filtered_regression(self, y, u, cutoff_hz: float = 50.0, order: int = 4, decimation: int = 10,
+                            trim: int = 50):
+        """The rows of the filtered inverse-model least squares (IDIM-LS, the EMPS benchmark's
+        method): Butterworth ``filtfilt`` of q, central-difference q̇, q̈, then parallel decimation
+        (``scipy.signal.decimate``, zero phase) of τ and of every regressor column; ``trim``
+        samples at each end are dropped (filter transients).  Returns (X = [q̈, T_1, …], τ, q, q̇)
+        on the kept rows."""
         y = check_signal("y", y)
         u = check_signal("u", u, y.shape[0])
         nyq = 0.5 / self.Ts
@@ -146,18 +144,71 @@ class RigidBodyPhysics(LinearMotorPhysics):
         qf = signal.filtfilt(b, a, y)
         v = np.gradient(qf, self.Ts)
         acc = np.gradient(v, self.Ts)
-        X = np.stack([acc] + self.terms.columns(qf, v), axis=1)     # [q̈, T_1(q, q̇), …]
+        X = np.stack([acc] + self.terms.columns(qf, v) + [qf, v], axis=1)   # [q̈, T_1(q, q̇), …, q, q̇]
         z = u
         if decimation > 1:
             X = signal.decimate(X, int(decimation), axis=0, zero_phase=True)
             z = signal.decimate(u, int(decimation), zero_phase=True)
         k = max(1, trim // max(decimation, 1))
+        X, z = X[k:-k], z[k:-k]
+        return X[:, :-2], z, X[:, -2], X[:, -1]
+
+    def fit_filtered(self, y, u, cutoff_hz: float = 50.0, order: int = 4, decimation: int = 10,
+                     trim: int = 50) -> np.ndarray:
+        """θ by least squares on the rows of :meth:`filtered_regression`.
+
+        Returns the forward θ ([1/M, p_1/M, …]) of the inverse fit [M, p_1, …].
+        """
         from pipeline.identify.least_squares import solve_scaled
-        p = solve_scaled(X[k:-k], z[k:-k])     # [M, p_1, …]
+        X, z, _, _ = self.filtered_regression(y, u, cutoff_hz, order, decimation, trim)
+        p = solve_scaled(X, z)     # [M, p_1, …]
         if p[0] == 0:
             raise ValueError("the filtered least squares gives a zero mass: the data do not excite the "
                              "acceleration; check that y moves and that u is the force")
         return np.concatenate([[1.0], p[1:]]) / p[0]   # M < 0 comes back as is: the baseline warns
+
+    def residual_diagnostics(self, y, u, **filt) -> dict:
+        """What the configured terms leave in the force (issue 20 item 2): on the rows of the
+        filtered least squares, the residual r = τ - X p and, for each term the config does *not*
+        have, the share of ‖r‖² it would explain (its column made orthogonal to X, then fitted to
+        r): ``viscous`` (q̇), ``coulomb`` (sign q̇), ``offset`` (1) and ``cogging`` (cos, sin of
+        2πq/P at the best period P between 4 row spacings and a third of the travel, scanned on a
+        log grid).  Returns {"residual_rel": ‖r‖/‖τ‖, "<term>": share, "cogging_period": P}."""
+        X, z, q, v = self.filtered_regression(y, u, **filt)
+        Q, _ = np.linalg.qr(X / np.maximum(np.linalg.norm(X, axis=0), 1e-300))
+        res = z - Q @ (Q.T @ z)
+        rr = float(res @ res)
+        out = {"residual_rel": float(np.sqrt(rr) / np.linalg.norm(z))}
+
+        def share(cols):
+            C = np.stack(cols, axis=1)
+            C = C - Q @ (Q.T @ C)                                  # orthogonal to the configured terms
+            keep = np.linalg.norm(C, axis=0) > 1e-9 * np.sqrt(len(z))
+            if not keep.any() or rr == 0:
+                return 0.0
+            coef, *_ = np.linalg.lstsq(C[:, keep], res, rcond=None)
+            fit = C[:, keep] @ coef
+            return float(fit @ fit / rr)
+
+        have = set(self.terms.names)
+        for name, col in (("viscous", v), ("coulomb", np.sign(v)), ("offset", np.ones_like(v))):
+            if name not in have:
+                out[name] = share([col])
+        if "cogging" not in have:
+            travel = float(q.max() - q.min())
+            step = float(np.max(np.abs(np.diff(q)))) if q.size > 1 else 0.0
+            lo, hi = 4 * step, travel / 3
+            if travel > 0 and 0 < lo < hi:
+                best = (0.0, math.nan)
+                for P in np.geomspace(lo, hi, 400):
+                    a = 2 * np.pi * q / P
+                    best = max(best, (share([np.cos(a), np.sin(a)]), float(P)))
+                out["cogging"], out["cogging_period"] = best
+        return out
+
+
+#: a term the config lacks that would explain this share of the residual's energy is missing (warning)
+MISSING_TERM_SHARE = 0.2
 
 
 def _stack(cols, like):
@@ -245,6 +296,18 @@ class Recording(System):
     def fit_physics(self, y, u) -> np.ndarray:
         """θ of the physics model from one record, by the filtered inverse-model least squares."""
         return self.physics.fit_filtered(y, u, **self.idim)
+
+    def missing_terms(self, y, u) -> tuple[dict, list[str]]:
+        """(:meth:`RigidBodyPhysics.residual_diagnostics` on this record, a sentence per force term
+        the config lacks that would explain ≥ MISSING_TERM_SHARE of the residual's energy)."""
+        diag = self.physics.residual_diagnostics(y, u, **self.idim)
+        hints = {"viscous": "add 'viscous' to system.force_terms.terms",
+                 "coulomb": "add 'coulomb' (sign, or smooth with coulomb_width)",
+                 "offset": "add 'offset' (gravity, cable force)",
+                 "cogging": f"add 'cogging' with cogging_period ≈ {diag.get('cogging_period', math.nan):.4g} m"}
+        found = [f"{k} would explain {100 * diag[k]:.0f} % of the residual force: {hints[k]}"
+                 for k in hints if diag.get(k, 0.0) >= MISSING_TERM_SHARE]
+        return diag, found
 
     def check_reference(self, r) -> None:
         check_signal("r", r)

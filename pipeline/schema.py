@@ -373,6 +373,7 @@ class MeasuredData:
     path: str = spec(example="../shared/data/emps")
     format: Literal["table", "emps"] = "table"     # = stages.generate.measured.FORMATS
     file: Optional[str] = None
+    files: Optional[list[str]] = spec(None, min_len=1, example=["run1.csv", "run2.csv"])   # several records
 
 
 DATA: dict[str, type] = {"closed_loop": ClosedLoopData, "ilc": IlcData, "white_noise": WhiteNoiseData,

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import warnings
 
+import numpy as np
+
 from pipeline.identify.least_squares import fit_physics
 from pipeline.errors import ConfigError
 from pipeline.systems.measured import Recording
@@ -35,10 +37,9 @@ def run(ctx) -> dict:
     system = ctx.system
     physics = system.physics
     try:
-        if isinstance(system, Recording):
-            if len(list(ds.segments())) != 1:
-                raise ValueError("a measured record is one segment; give one file per data.file")
-            theta = system.fit_physics(ds["y"], ds["u"])
+        if isinstance(system, Recording):   # each recording filtered on its own (data.files)
+            ys, us = zip(*[(g["y"].to_numpy(np.float64), g["u"].to_numpy(np.float64)) for g in ds.segments()])
+            theta = system.fit_physics(list(ys), list(us))
         else:
             theta = fit_physics(physics, ({c: seg[c].to_numpy() for c in ("y", "u", "r")}
                                           for seg in ds.segments()))
@@ -54,7 +55,7 @@ def run(ctx) -> dict:
         ctx.tag("physics_warning", msg)
         warnings.warn(msg, stacklevel=1)
     if isinstance(system, Recording):      # a term the config lacks that the residual still holds
-        diag, found = system.missing_terms(ds["y"], ds["u"])
+        diag, found = system.missing_terms(list(ys), list(us))
         for k, v in diag.items():
             ctx.metric(f"residual/{k}", v)
         if found:

@@ -152,3 +152,23 @@ def test_disturbance_hiding_a_controller_mismatch_warns(store, cfg_of, recording
         runner.run_job(cfg_of(*ov))
     run = tracking.search_runs("pid_hidden").iloc[0]
     assert "controller mismatch hidden in d" in run["tags.disturbance_warning"]
+
+
+def test_several_training_files_are_segments_not_one_glued_record(store, cfg_of, recordings, tmp_path):
+    """data.files: each recording filtered on its own (no filter or difference across the jump
+    between two recordings); the physics from both PID-axis files stays within 2 % of the
+    generator, where the same two files glued into one record (t continued) are biased by the
+    position jump at the seam. Experiment and run names come from the system."""
+    a, b = (pd.read_csv(recordings / f"{n}.csv") for n in ("train", "test"))
+    glued = pd.concat([a, b.assign(t=b["t"] + a["t"].iloc[-1] + TS)], ignore_index=True)
+    glued.to_csv(recordings / "glued.csv", index=False)
+    stages = "stages=[generate,baseline]"
+    files = [o for o in overrides(recordings, name="pid_two") if not o.startswith("data.file=")]
+    runner.run_job(cfg_of(*files, "data.files=[train.csv,test.csv]", stages))
+    runner.run_job(cfg_of(*overrides(recordings, name="pid_glued"), "data.file=glued.csv", stages))
+    two, one = (tracking.search_runs(n).iloc[0] for n in ("pid_two", "pid_glued"))
+    assert two["metrics.generate/segments"] == 2
+    err = {k: max(abs(run[f"metrics.baseline/{p}"] - v) / abs(v) for p, v in TRUE.items() if not p.startswith("C_"))
+           for k, run in (("two", two), ("glued", one))}
+    assert err["two"] <= 0.02, err
+    assert err["glued"] >= 2 * err["two"], err

@@ -364,6 +364,10 @@ def test_measured_pgnn_trainings_and_the_emps_report_section(store, cfg_of, tmp_
             "system.controller.kp=160.18", "system.controller.kv=243.45",
             "system.controller.gtau=35.150652", "data.format=table", f"data.path={tmp_path}", "data.file=rec.csv",
             "evaluate.references=[{name:train,kind:measured,file:rec.csv},{name:test,kind:measured,file:rec.csv}]"]
+    # experiment and run names come from the system (a user's machine is not 'emps')
+    runner.run_job(cfg_of("experiment=emps_physics", *user, "system.name=my_axis", "stages=[generate,baseline]"))
+    assert list(tracking.search_runs("my_axis")["tags.mlflow.runName"]) == ["my_axis-physics-s0"]
+    user.append("system.name=emps")        # named emps below, so the EMPS report section reads the runs
     runner.run_job(cfg_of("experiment=emps_physics", *user))
     for e in ("emps", "emps_narx"):
         runner.run_job(cfg_of(f"experiment={e}", *user, "model.hidden=[2]", "identify.n_restarts=1",

@@ -423,8 +423,8 @@ class LoopFit:
         return self.restarts[self.best].cost
 
 
-def identify_loop_sim_error(model, averaged: bool, ctrl, sig: LoopSignals, tau_meas, *, lam: float = 0.0,
-                            n_train: int | None = None, n_restarts: int = 3, seed: int = 0,
+def identify_loop_sim_error(model, averaged: bool, ctrl, sig, tau_meas, *, lam: float = 0.0,
+                            n_train=None, n_restarts: int = 3, seed: int = 0,
                             progress=None, **lm_options) -> LoopFit:
     """Closed-loop simulation-error identification of a rigid-body PGNN on a measured loop,
 
@@ -432,9 +432,11 @@ def identify_loop_sim_error(model, averaged: bool, ctrl, sig: LoopSignals, tau_m
 
     [B2] (16) with the loop's measured force τ as the output (τ̂ follows ŷ through the known
     controller, so this is the simulation error the EMPS benchmark scores) and the SPEC §5
-    normalisation; θ*_phy is where ``model`` holds θ_phy (the physics baseline).  The whole
-    record is simulated from ``sig``'s start (the recorded state of its first ``sig.n_init``
-    samples, or rest); samples n_init … n_train - 1 enter V, the rest is the validation block (its force error is logged, never used to stop).  LM
+    normalisation; θ*_phy is where ``model`` holds θ_phy (the physics baseline).  ``sig``,
+    ``tau_meas`` and ``n_train`` are one record's or lists, one per recording (``data.files``):
+    each record is simulated on its own from ``sig``'s start (the recorded state of its first
+    ``n_init`` samples, or rest); its samples n_init … n_train - 1 enter V, the rest is its
+    validation block (the force error over all blocks is logged, never used to stop).  LM
     (:func:`pipeline.identify.lm.levenberg_marquardt`, ``lm_options``) with the exact Jacobian
     from the loop's forward sensitivities, best of ``n_restarts`` NN initialisations
     (:func:`pipeline.identify.narx.best_of_restarts`).  ``model`` (a forward PGNN whose NN
@@ -442,16 +444,22 @@ def identify_loop_sim_error(model, averaged: bool, ctrl, sig: LoopSignals, tau_m
     """
     import torch
     from pipeline.identify.narx import best_of_restarts, regularizer_sqrt
-    tau_meas = np.asarray(tau_meas, dtype=np.float64)
-    N = tau_meas.size
-    nt = N if n_train is None else int(n_train)
-    n0 = int(sig.n_init)
-    if not 0 <= n0 < nt:
-        raise ValueError(f"the recorded start n_init={n0} leaves no training sample before n_train={nt}")
-    sigma = float(np.std(tau_meas[n0:nt]))
+    one = isinstance(sig, LoopSignals)
+    sigs = [sig] if one else list(sig)
+    taus = [np.asarray(t, dtype=np.float64) for t in ([tau_meas] if one else tau_meas)]
+    nts = [n_train] * len(sigs) if (n_train is None or np.ndim(n_train) == 0) else list(n_train)
+    if not len(sigs) == len(taus) == len(nts):
+        raise ValueError(f"give one force record and one n_train per loop signal: {len(sigs)}, {len(taus)}, {len(nts)}")
+    nts = [t.size if n is None else int(n) for n, t in zip(nts, taus)]
+    n0s = [int(s_.n_init) for s_ in sigs]
+    for n0, nt in zip(n0s, nts):
+        if not 0 <= n0 < nt:
+            raise ValueError(f"the recorded start n_init={n0} leaves no training sample before n_train={nt}")
+    train = np.concatenate([t[n0:nt] for t, n0, nt in zip(taus, n0s, nts)])
+    sigma = float(np.std(train))
     if not sigma > 0:
         raise ValueError("the measured force is constant on the training samples; nothing to identify")
-    cn = 1.0 / (sigma * math.sqrt(nt - n0))
+    cn = 1.0 / (sigma * math.sqrt(train.size))
     loop0 = LoopModel.from_pgnn(model, averaged)
     ts = loop0.theta_phy.copy()
     npy = ts.size
@@ -464,20 +472,19 @@ def identify_loop_sim_error(model, averaged: bool, ctrl, sig: LoopSignals, tau_m
         key = theta.tobytes()
         if key not in cache:
             cache.clear()
-            cache[key] = simulate_loop(loop0.with_theta(theta), ctrl, sig, "data", sens=True)
+            m = loop0.with_theta(theta)
+            cache[key] = [simulate_loop(m, ctrl, s_, "data", sens=True) for s_ in sigs]
         return cache[key]
 
     def residual(th):
         theta = th.numpy()
-        _, tau, *_ = run(theta)
-        e = (tau_meas[n0:nt] - tau[n0:nt]) * cn
+        e = np.concatenate([(t[n0:nt] - out[1][n0:nt]) * cn for t, out, n0, nt in zip(taus, run(theta), n0s, nts)])
         if not np.all(np.isfinite(e)):
             e = np.full_like(e, 1e150)        # a diverged simulation: LM rejects the step
         return torch.from_numpy(np.concatenate([e, Rs @ (theta[:npy] - ts)]) if reg else e)
 
     def jacobian(th):
-        *_, St = run(th.numpy())
-        J = -St[n0:nt] * cn
+        J = np.concatenate([-out[4][n0:nt] * cn for out, n0, nt in zip(run(th.numpy()), n0s, nts)])
         if reg:
             Jr = np.zeros((npy, J.shape[1]))
             Jr[:, :npy] = Rs
@@ -487,8 +494,10 @@ def identify_loop_sim_error(model, averaged: bool, ctrl, sig: LoopSignals, tau_m
     restarts, best = best_of_restarts(model, residual, jacobian, n_restarts if model.use_nn else 1, seed,
                                       progress=progress, **lm_options)
     loop = LoopModel.from_pgnn(model, averaged)
-    _, tau, _ = simulate_loop(loop, ctrl, sig, "data")
+    hats = [simulate_loop(loop, ctrl, s_, "data")[1] for s_ in sigs]
     val = None
-    if nt < N:
-        val = float(100 * np.linalg.norm(tau_meas[nt:] - tau[nt:]) / np.linalg.norm(tau_meas[nt:]))
-    return LoopFit(loop, ts, sigma, nt, val, tau, restarts, best)
+    if any(nt < t.size for t, nt in zip(taus, nts)):
+        vm = np.concatenate([t[nt:] for t, nt in zip(taus, nts)])
+        vh = np.concatenate([h[nt:] for h, nt in zip(hats, nts)])
+        val = float(100 * np.linalg.norm(vm - vh) / np.linalg.norm(vm))
+    return LoopFit(loop, ts, sigma, sum(nts), val, np.concatenate(hats), restarts, best)

@@ -153,14 +153,25 @@ class RigidBodyPhysics(LinearMotorPhysics):
         X, z = X[k:-k], z[k:-k]
         return X[:, :-2], z, X[:, -2], X[:, -1]
 
+    def stacked_regression(self, y, u, **filt):
+        """:meth:`filtered_regression` of one record (arrays) or of several (lists of arrays, one
+        per recording: each filtered on its own, the rows stacked)."""
+        if isinstance(y, np.ndarray) and y.ndim == 1:
+            return self.filtered_regression(y, u, **filt)
+        if len(y) != len(u) or not len(y):
+            raise ValueError(f"give as many position records as force records (got {len(y)} and {len(u)})")
+        rows = [self.filtered_regression(a, b, **filt) for a, b in zip(y, u)]
+        return tuple(np.concatenate([r[i] for r in rows]) for i in range(4))
+
     def fit_filtered(self, y, u, cutoff_hz: float = 50.0, order: int = 4, decimation: int = 10,
                      trim: int = 50) -> np.ndarray:
-        """θ by least squares on the rows of :meth:`filtered_regression`.
+        """θ by least squares on the rows of :meth:`stacked_regression` (y, u: one record's
+        arrays, or lists of them, one per recording).
 
         Returns the forward θ ([1/M, p_1/M, …]) of the inverse fit [M, p_1, …].
         """
         from pipeline.identify.least_squares import solve_scaled
-        X, z, _, _ = self.filtered_regression(y, u, cutoff_hz, order, decimation, trim)
+        X, z, _, _ = self.stacked_regression(y, u, cutoff_hz=cutoff_hz, order=order, decimation=decimation, trim=trim)
         p = solve_scaled(X, z)     # [M, p_1, …]
         if p[0] == 0:
             raise ValueError("the filtered least squares gives a zero mass: the data do not excite the "
@@ -174,7 +185,7 @@ class RigidBodyPhysics(LinearMotorPhysics):
         r): ``viscous`` (q̇), ``coulomb`` (sign q̇), ``offset`` (1) and ``cogging`` (cos, sin of
         2πq/P at the best period P between 4 row spacings and a third of the travel, scanned on a
         log grid).  Returns {"residual_rel": ‖r‖/‖τ‖, "<term>": share, "cogging_period": P}."""
-        X, z, q, v = self.filtered_regression(y, u, **filt)
+        X, z, q, v = self.stacked_regression(y, u, **filt)
         Q, _ = np.linalg.qr(X / np.maximum(np.linalg.norm(X, axis=0), 1e-300))
         res = z - Q @ (Q.T @ z)
         rr = float(res @ res)
@@ -196,7 +207,7 @@ class RigidBodyPhysics(LinearMotorPhysics):
                 out[name] = share([col])
         if "cogging" not in have:
             travel = float(q.max() - q.min())
-            step = float(np.max(np.abs(np.diff(q)))) if q.size > 1 else 0.0
+            step = float(np.percentile(np.abs(np.diff(q)), 99.5)) if q.size > 1 else 0.0   # not the jumps between records
             lo, hi = 4 * step, travel / 3
             if travel > 0 and 0 < lo < hi:
                 best = (0.0, math.nan)
@@ -294,7 +305,8 @@ class Recording(System):
         return self.physics.min_samples(**{k: v for k, v in self.idim.items() if k in ("decimation", "trim")})
 
     def fit_physics(self, y, u) -> np.ndarray:
-        """θ of the physics model from one record, by the filtered inverse-model least squares."""
+        """θ of the physics model from one record (arrays) or several (lists), by the filtered
+        inverse-model least squares."""
         return self.physics.fit_filtered(y, u, **self.idim)
 
     def missing_terms(self, y, u) -> tuple[dict, list[str]]:

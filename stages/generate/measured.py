@@ -1,7 +1,7 @@
 """data.kind=measured: load a measured record (Parquet/CSV with t, r, u, y(, d), or EMPS .mat).
 
 ``data.path`` is a file, or a folder holding ``data.file`` (the training record; EMPS:
-``DATA_EMPS``).  Before any work (:func:`check`): the file exists and parses, every value is a
+``DATA_EMPS``) or ``data.files`` (several training records, each a segment of the dataset).  Before any work (:func:`check`): the file exists and parses, every value is a
 finite, plausible number, the sample time (t column and/or sidecar ``Ts``) is positive,
 uniform, increasing and equal to ``system.Ts``; for a measured system (:class:`pipeline.systems.
 measured.Recording`) the file's controller constants match the config and the recorded force
@@ -144,22 +144,52 @@ def uses_controller(cfg) -> bool:
         ("train" in stages and str(cfg.get("identify", {}).get("kind")) == "sim_error")
 
 
+def training_files(cfg) -> list:
+    """The training records: ``data.files`` (several, each its own segment) or ``data.file`` (one;
+    None = ``data.path`` itself is the file)."""
+    files, file = cfg.data.get("files"), cfg.data.get("file")
+    if files:
+        if file not in (None, ""):
+            raise ConfigError(f"data.file={file!r} and data.files={list(files)} are both set; give one training "
+                              "file as data.file or several as data.files")
+        return [str(f) for f in files]
+    return [file]
+
+
 def check(cfg, system) -> None:
     try:
-        ds = load_file(cfg)
         need = system.min_samples() if isinstance(system, Recording) else 0   # filtered LS trims, decimates
-        check_record(ds, system, ds.meta.get("source", str(cfg.data.path)), min_len=need,
-                     uses_controller=uses_controller(cfg))
+        for f in training_files(cfg):
+            ds = load_file(cfg, f)
+            check_record(ds, system, ds.meta.get("source", str(cfg.data.path)), min_len=need,
+                         uses_controller=uses_controller(cfg))
     except (ValueError, FileNotFoundError) as exc:
         raise ConfigError(str(exc)) from exc
 
 
+def load_training(cfg) -> data.Dataset:
+    """The training records as one dataset: one file as it is; several as segments (column
+    ``segment``; t restarts in each), so no regressor, filter or simulation crosses a boundary
+    (a jump between two recordings is not a motion of the machine)."""
+    files = training_files(cfg)
+    sets = [load_file(cfg, f) for f in files]
+    if len(sets) == 1:
+        return sets[0]
+    cols = ["t", "r", "u", "y"] + (["d"] if any("d" in ds.frame for ds in sets) else [])
+    parts = [{c: (ds[c] if c in ds.frame else np.zeros(len(ds))) for c in cols} for ds in sets]
+    meta = dict(sets[0].meta)
+    meta["source"] = ", ".join(str(ds.meta.get("source", f)) for ds, f in zip(sets, files))
+    return data.Dataset.from_segments(parts, meta)
+
+
 def make(cfg, system, ctx) -> data.Dataset:
-    ds = load_file(cfg)
+    ds = load_training(cfg)
     if isinstance(system, Recording):   # the checks' numbers on the run (check() warned or refused already)
-        d = ds["d"] if "d" in ds.frame else 0.0 * ds["y"]
-        rel = system.ctrl.check(ds["r"], ds["y"], ds["u"], d)
+        segs = list(ds.segments())
+        rel = max(system.ctrl.check(g["r"].to_numpy(), g["y"].to_numpy(), g["u"].to_numpy(),
+                                    g["d"].to_numpy() if "d" in g else 0.0 * g["y"].to_numpy()) for g in segs)
         ctx.metric("controller_equation_error", rel)
+        ctx.metric("segments", len(segs))
         ctx.tag("controller", system.ctrl.describe())
         if not rel < CONTROLLER_RTOL:
             ctx.tag("controller_warning", f"the recorded u is not the configured controller's output "

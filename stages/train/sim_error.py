@@ -179,29 +179,31 @@ def _fit_measured(ctx) -> dict:
     from stages.train.narx import build_model as build_narx_model
     cfg, system = ctx.cfg, ctx.system
     ds = ctx.inputs["generate"]["dataset"]
-    y, u = ds["y"], ds["u"]
-    d = ds["d"] if "d" in ds.frame else np.zeros_like(y)
+    segs = list(ds.segments())                      # one per recording (data.files)
+    u = ds["u"]
     model = build_narx_model(cfg, system)           # w = ū input map, rigid-body physics
     theta_star = np.asarray(ctx.inputs["baseline"]["theta"], dtype=np.float64)
     model.set_physics_estimate(theta_star)
-    w = system.physics.model_input(u)
     if model.use_nn:                                # NN input normalisation and output scale
-        reg = build_regression(model, y, w)
+        reg = build_regression(model, [g["y"].to_numpy(np.float64) for g in segs],
+                               [system.physics.model_input(g["u"].to_numpy(np.float64)) for g in segs])
         phi = torch.as_tensor(reg.phi)
         model.fit_normalisation(phi)
         with torch.no_grad():
             s = float((torch.as_tensor(reg.target) - model.physics_part(phi)).std())
         model.out_scale.fill_(s if s > 0 else 1.0)
-    sig = LoopSignals.recorded(ds["r"], d, y, u, ds["t"], N_INIT)   # from the recorded state (issue 20)
+    col = lambda g, c: g[c].to_numpy(np.float64) if c in g else np.zeros(len(g))  # noqa: E731
+    sigs = [LoopSignals.recorded(col(g, "r"), col(g, "d"), col(g, "y"), col(g, "u"), col(g, "t"), N_INIT)
+            for g in segs]                          # each from its recorded state (issue 20)
     ident = cfg.identify
-    n_train = int(round((1.0 - float(ident.val_fraction)) * y.size))
+    n_trains = [int(round((1.0 - float(ident.val_fraction)) * len(g))) for g in segs]   # each record's head
     lam = float(cfg.regularizer.get("lam", 0.0))
-    fit_ = identify_loop_sim_error(model, bool(system.physics.averaged_input), system.ctrl, sig, u, lam=lam,
-                                   n_train=n_train, n_restarts=int(ident.n_restarts), seed=int(cfg.seed),
+    fit_ = identify_loop_sim_error(model, bool(system.physics.averaged_input), system.ctrl, sigs,
+                                   [col(g, "u") for g in segs], lam=lam, n_train=n_trains, n_restarts=int(ident.n_restarts), seed=int(cfg.seed),
                                    max_iter=int(ident.max_iter), ftol=float(ident.ftol), gtol=float(ident.gtol),
                                    mu0=float(ident.mu0), memo=restart_memo(ctx), geodesic=bool(ident.geodesic),
                                    stat_window=int(ident.stat_window), stat_tol=float(ident.stat_tol),
-                                   n_data=n_train, **lm_progress(ctx))
+                                   n_data=sum(n_trains), **lm_progress(ctx))
     log_restarts(ctx, fit_.restarts, fit_.best)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)
@@ -218,7 +220,9 @@ def _fit_measured(ctx) -> dict:
     for k, v in star.items():
         ctx.metric(f"theta_phy_star/{k}", v)
     _warn_physics_drift(ctx, star, physical)
-    ctx.figure(_figure_measured(fit_, ds["t"], u, fit_.tau_hat, n_train), "identification.png")
+    ctx.figure(_figure_measured(fit_, np.arange(len(ds)) * system.Ts, u, fit_.tau_hat,
+                                np.cumsum([0] + [len(g) for g in segs[:-1]]) + np.array(n_trains)),
+               "identification.png")
     model.eval()
     return {"model": model, "model_input": True, "loop": fit_.loop, "theta_phy_star": theta_star,
             "physical": physical, "val_force_rel_error": fit_.val_force_rel_error}
@@ -250,8 +254,9 @@ def _figure_measured(fit_, t, tau, tau_hat, n_train):
     fig, a1 = _loss_panels(fit_, "normalised cost", f"closed-loop simulation error on the recorded force, "
                            f"n1 = {fit_.loop.n1} (stop: {fit_.restarts[fit_.best].message})")
     a1.plot(t, tau - tau_hat, lw=0.5)
-    a1.axvline(t[n_train - 1], color="k", ls=":", lw=0.8)
-    a1.set_xlabel("t [s] (dotted: start of the validation block)")
+    for n in np.atleast_1d(n_train):
+        a1.axvline(t[n - 1], color="k", ls=":", lw=0.8)
+    a1.set_xlabel("t [s], records end to end (dotted: start of a validation block)")
     a1.set_ylabel("τ - τ̂ [N]")
     fig.tight_layout()
     return fig

@@ -508,6 +508,8 @@ class SkOe:
     oe_check_iter: int = spec(3000, ge=1, le=ITER_MAX)
     geodesic: bool = False
     cost_tol: float = spec(0.0, ge=0, lt=1)
+    stall_window: int = spec(0, ge=0, le=ITER_MAX)
+    stall_tol: float = spec(1e-3, ge=0, lt=1)
 
 
 @schema

@@ -163,3 +163,34 @@ def test_sk_cost_stop_fires_where_the_parameter_test_cannot(problem, sk_none):
     assert min(J) == pytest.approx(min(sk_none.J_OE), rel=1e-6)
     with pytest.raises(ValueError, match="cost_tol must be >= 0"):
         sk_iterations(_pgnn(rs, seed=4), rs, fs, regularizer="none", max_iter=2, cost_tol=-1.0, **LM)
+
+
+def test_stalled_rule():
+    """The best of the last `window` iterates must beat the best before them by more than tol."""
+    from pipeline.identify.sk import _stalled
+    ok = [True] * 8
+    assert not _stalled([5, 4, 3, 2.9, 2.8], ok[:5], 3, 1e-3)                  # still improving
+    assert _stalled([5, 2, 3, 2.0001, 2.5], ok[:5], 3, 1e-3)                    # no gain > 0.1 % on 2
+    assert not _stalled([5, 2, 3, 2.0001, 2.5], ok[:4] + [False], 3, 1e-3)      # an inner solve capped
+    assert not _stalled([5, 2, 3], ok[:3], 3, 1e-3)                             # too few iterates
+
+
+def test_rational_sk_without_fixed_point_stops_stalled_on_its_best_iterate(store, cfg_of):
+    """k_two_mass, rational model: the roots of B are reflected at every step, so SK has no fixed
+    point and the parameter test never passes. With the stall stop it ends within stall_window
+    iterations of its best iterate (reason 'stalled', not a cap, converged stays False) and keeps the model
+    the 30-iteration capped run keeps."""
+    from pipeline import runner, tracking
+    base = ["experiment=k_two_mass", "model=rational", "regularizer=none", "stages=[generate,baseline,train]",
+            "hydra.mode=RUN"]
+    runner.run_job(cfg_of(*base, "run_name=stall"))
+    runner.run_job(cfg_of(*base, "identify.stall_window=0", "run_name=cap"))
+    runs = tracking.search_runs("k_two_mass").set_index("tags.mlflow.runName")
+    st, cap = runs.loc["stall"], runs.loc["cap"]
+    assert st["tags.stop_reason"] == "stalled" and cap["tags.stop_reason"].startswith("max_iter")
+    assert st["metrics.train/stopped_on_cap"] == 0 and cap["metrics.train/stopped_on_cap"] == 1
+    # no gain > stall_tol over the last 10 iterations: at most 10 after the best (sooner when the
+    # best itself gained < stall_tol on the ones before it)
+    assert st["metrics.train/best_iterate"] < st["metrics.train/sk_iterations"] <= st["metrics.train/best_iterate"] + 10
+    assert st["metrics.train/sk_iterations"] < cap["metrics.train/sk_iterations"]
+    assert st["metrics.train/J_OE"] == cap["metrics.train/J_OE"]        # the same best iterate, to the bit

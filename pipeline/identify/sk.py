@@ -141,7 +141,8 @@ class SKResult:
         True when the parameter change fell below ``tol`` (or the criterion's change below
         ``cost_tol``) after an inner solve that converged.
     message : str
-        Outer stop reason: 'tol', 'cost_tol' or 'max_iter'.
+        Outer stop reason: 'tol', 'cost_tol', 'stalled' (no fixed point, the best criterion
+        stopped improving; ``converged`` stays False) or 'max_iter'.
     reflected : list of int
         Iterations after which roots of B were reflected (SPEC §5: tag the run).
     tol : float
@@ -166,7 +167,7 @@ class SKResult:
 
     @property
     def stop_reason(self) -> str:
-        """Outer stop reason ('tol', 'cost_tol' or 'max_iter')."""
+        """Outer stop reason ('tol', 'cost_tol', 'stalled' or 'max_iter')."""
         return self.message
 
     @property
@@ -362,6 +363,7 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
                   regularizer: str = "orthogonal", lam: float = 1.0, column_scale: bool = True,
                   init: str = "equation_error", lm_max_iter: int = 100, lm_ftol: float = 1e-10,
                   lm_gtol: float = 1e-10, geodesic: bool = False, cost_tol: float = 0.0,
+                  stall_window: int = 0, stall_tol: float = 1e-3,
                   rank_rtol: float | None = None, weighted_rank: str = "truncate",
                   callback: Callable[[SKIterate], None] | None = None) -> SKResult:
     """Identify a [K] feedforward by SK iterations ([K] Alg. 5; Alg. 19 with the regulariser).
@@ -384,6 +386,12 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
         converged: the fixed point in cost where the parameters are not unique (the
         unregularised PGNN, [K] K2: g_φ and θ trade along directions that leave the fit
         unchanged, so a parameter-change test never passes).  0 = off.
+    stall_window, stall_tol : int, float
+        Stop (reason 'stalled') when the best criterion over the iterates has not fallen by more
+        than ``stall_tol`` of itself for ``stall_window`` iterations whose inner solves converged:
+        SK without a fixed point (the rational model, whose roots of B are reflected at every
+        step, SPEC §5) has searched to its end; the best iterate is kept, as always, and
+        ``converged`` stays False (it is not a fixed point).  0 = off.
     regularizer : {'orthogonal', 'none'}
         Orthogonal projection-based regulariser [K] (29) or none ([K] Alg. 5).  Ignored for
         the rational model (no approximator).
@@ -432,6 +440,9 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
     seg, M, f = data["segments"], data["M"], data["f"]
     lm_kw = dict(max_iter=lm_max_iter, ftol=lm_ftol, gtol=lm_gtol, geodesic=geodesic)
     tol, cost_tol = tol / TIGHTEN, cost_tol / TIGHTEN   # make reproduce-check CHECK=tighten (lm.TIGHTEN)
+    stall_tol = stall_tol / TIGHTEN
+    if int(stall_window) < 0 or not stall_tol >= 0:
+        raise ValueError(f"stall_window must be >= 0 and stall_tol >= 0, got {stall_window}, {stall_tol}")
     if cost_tol < 0:
         raise ValueError(f"cost_tol must be >= 0, got {cost_tol}")
 
@@ -505,8 +516,13 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
         if cost_tol > 0 and it.lm_converged and abs(J_now - J_prev) <= cost_tol * abs(J_prev):
             converged, message = True, "cost_tol"
             break
+        # ... or, without a fixed point, the best criterion stopped improving (stall_window > 0 only)
+        if stall_window > 0 and _stalled([x.J_OE + lam_eff * x.regularizer for x in iterates],
+                                         [x.lm_converged for x in iterates], int(stall_window), stall_tol):
+            message = "stalled"
+            break
 
-    if not converged:
+    if message == "max_iter":
         n_cap = sum(not it.lm_converged for it in iterates[1:])
         warnings.warn(f"SK iterations did not converge in {max_iter} iterations (last relative "
                       f"parameter change {iterates[-1].change:.2e}, tol {tol:.1e}; {n_cap} inner "
@@ -522,6 +538,15 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
     _restore(model, b.theta, b.phi, b.g_gain)
     return SKResult(model=model, best=best, iterates=iterates, converged=converged,
                     message=message, reflected=reflected, tol=float(tol), lam=lam_eff)
+
+
+def _stalled(J: list, inner_ok: list, window: int, tol: float) -> bool:
+    """The last ``window`` iterates (inner solves converged) did not lower the best J by more
+    than ``tol`` of the best before them."""
+    if len(J) <= window or not all(inner_ok[-window:]):
+        return False
+    before = min(J[:-window])
+    return not min(J[-window:]) < before * (1.0 - tol)
 
 
 def _sk_restart(job: tuple) -> tuple[SKResult, float, bool]:

@@ -243,7 +243,8 @@ def _k3(experiment: str, m: dict, found: dict, rows: list) -> list[str]:
                      row(experiment, key, "oe_check_R_after", g("oe_check/R_after"))]
         # caps beside the claim: SK outer/inner and the check
         cap_parts = []
-        if not on_tol:
+        stalled = str(run.get("tags.stop_reason", "")).startswith("stalled")
+        if not on_tol and not stalled:
             cap_parts.append(f"SK stopped on its iteration cap ({n_it:.0f}, last change {change:.2e} "
                              f"> tol {tol:.0e})")
         if capped:
@@ -265,11 +266,13 @@ def _k3(experiment: str, m: dict, found: dict, rows: list) -> list[str]:
         refl = run.get("tags.sk_reflected", "")
         if refl and refl != "none":
             txt += f"; roots of B were reflected into the unit circle after SK iterations {refl}"
-            if run.get("tags.stop_reason", "").startswith("max_iter"):
+            if run.get("tags.stop_reason", "").startswith(("max_iter", "stalled")):
                 txt += (". **Why K3 does not hold here** (measured, not tuned): with roots of B reflected "
                         "at every step (SPEC §5, needed for a stable filter) SK has no fixed point: the "
                         "parameter change never falls below tol and J_OE drifts up from its best iterate, "
-                        "which the report uses; a direct LM on (7) from that best iterate improves it by "
+                        "which the report uses" + (" (SK stops when the best J_OE has not improved by more "
+                        "than its stall tolerance over its stall window: reason 'stalled', not a cap)"
+                        if stalled else "") + "; a direct LM on (7) from that best iterate improves it by "
                         f"only {imp:.2%}, so the kept model is at the output-error optimum to that margin")
         notes.append(txt + ".")
     lines += [""] + notes + [""]

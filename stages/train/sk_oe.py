@@ -39,7 +39,8 @@ from pipeline.models.rational import RationalFeedforward, basis_coefficients, ba
 from pipeline.models.shared_ar import ReferenceWindow, SharedARPGNN, make_approximator
 from pipeline.errors import ConfigError
 
-VERSION = 2   # 2: SK and the OE check stop on tolerances (stop reasons logged); regularised check on J_OE + λR
+VERSION = 3   # 2: SK and the OE check stop on tolerances (stop reasons logged); regularised check on J_OE + λR;
+              # 3: the 'stalled' stop of SK without a fixed point
 KINDS = ("rational", "pgnn_shared_ar")
 REGULARIZERS = ("none", "orthogonal")
 
@@ -115,7 +116,8 @@ def fit(ctx) -> dict:
               regularizer=reg if is_pgnn else "none",
               lam=float(cfg.regularizer.lam) if reg == "orthogonal" else 0.0,
               lm_max_iter=int(ident.lm_max_iter), lm_ftol=float(ident.lm_ftol),
-              lm_gtol=float(ident.lm_gtol), geodesic=bool(ident.geodesic), cost_tol=float(ident.cost_tol))
+              lm_gtol=float(ident.lm_gtol), geodesic=bool(ident.geodesic), cost_tol=float(ident.cost_tol),
+              stall_window=int(ident.stall_window), stall_tol=float(ident.stall_tol))
     n_restarts = int(ident.n_restarts) if is_pgnn else 1
     seeds = [int(ctx.rng(f"train/restart{i}").integers(2**31 - 1)) for i in range(n_restarts)]
     models = [build_model(m, ds.Ts, rs, s) for s in seeds]
@@ -164,7 +166,7 @@ def fit(ctx) -> dict:
         ctx.metric("restart_lm_iterations", r.n_lm_iter, step=i)
         ctx.metric(f"sk_stopped_on_tol/restart{i}", float(r.converged))
         ctx.metric(f"sk_inner_capped/restart{i}", r.n_inner_capped)
-        ctx.tag(f"stop_reason.restart{i}", r.stop_reason)           # 'tol', 'cost_tol' or 'max_iter'
+        ctx.tag(f"stop_reason.restart{i}", r.stop_reason)           # 'tol', 'cost_tol', 'stalled' or 'max_iter'
         ctx.tag(f"stop_detail.restart{i}", r.summary())
     for it in res.iterates:                                   # the kept restart ([K] (7) per j)
         ctx.metric("sk_J_OE", it.J_OE, step=it.j)
@@ -188,15 +190,15 @@ def fit(ctx) -> dict:
     ctx.metric("sk_inner_all_converged", float(res.inner_converged))
     ctx.metric("sk_lm_iterations", res.n_lm_iter)
     ctx.metric("sk_seconds_per_iteration", res.seconds_per_iter)
-    ctx.metric("sk_not_converged_restarts", sum(not r.converged for r in results))
+    ctx.metric("sk_not_converged_restarts", sum(r.stop_reason == "max_iter" for r in results))   # on the cap
     ctx.metric("sk_inner_capped_restarts", sum(not r.inner_converged for r in results))
     ctx.tag("stop_reason", res.stop_reason + ("" if res.inner_converged else
                                               f" (inner capped ×{res.n_inner_capped})"))
-    ctx.metric("stopped_on_cap", float(not res.converged or not res.inner_converged))
+    ctx.metric("stopped_on_cap", float(res.stop_reason == "max_iter" or not res.inner_converged))
     ctx.tag("stop_detail", res.summary())
     ctx.tag("sk_converged", res.converged)
     ctx.tag("sk_reflected", ",".join(map(str, res.reflected)) or "none")
-    ctx.tag("sk_not_converged_restarts", sum(not r.converged for r in results))
+    ctx.tag("sk_not_converged_restarts", sum(r.stop_reason == "max_iter" for r in results))
 
     # K3 (SPEC §8): does a direct LM from the SK result still improve the cost SK minimises?
     # J_OE ([K] (7)) for the rational TF and the unregularised PGNN; J_OE + λR with R frozen at

@@ -71,6 +71,7 @@ reproduce-check: install  ## rerun every experiment perturbed (CHECK=perturb) or
 	  $(PY) -m pipeline stages=[report] experiment_name=report run_name=report paths.results=$(CHECKED)/results
 	$(PY) -m pipeline.perturbation results/summary.csv $(CHECKED)/results/summary.csv --out results \
 	  --check $(CHECK) --rtol $(CHECK_RTOL) --setting "$(CHECK_ENV)"
+	$(PY) -m pipeline stages=[report] experiment_name=report run_name=report report.update=$(REPORT_UPDATE)   # REPORT.md shows the check
 
 ui: install  ## MLflow UI on http://127.0.0.1:5000 over the same store as the runs
 	@echo "The project's experiments (open a link for its runs table):"

@@ -26,6 +26,11 @@ import numpy as np
 import pandas as pd
 
 KEY = ["experiment", "claim", "variant", "metric"]
+#: a value below this fraction of the largest |value| of its metric in its experiment is *tiny*: its
+#: relative change is measured against that floor (a tracking error of 1e-12 beside 20 in the same
+#: table has no meaningful relative value); one that still moves is reported as ill-determined,
+#: with its spread (both values), not counted as moved
+SCALE_FLOOR = 1e-3
 #: metrics that measure the machine, not the result
 _TIMING = ("seconds", "time", "wall", "_ms", "per_sample_ns", "ns_per_sample")
 
@@ -38,8 +43,10 @@ def _is_timing(metric: str) -> bool:
 def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Per key (reference value, perturbed value, relative change) and per experiment a summary.
 
-    The relative change is |a - b| / max(|a|, |b|) (0 when both are 0, 1 when one is NaN and the
-    other not).  Keys on one side only are counted per experiment (``keys_on_one_side``), not
+    The relative change is |a - b| / max(|a|, |b|, floor) (0 when both are 0, 1 when one is NaN and
+    the other not), floor = SCALE_FLOOR × the largest |reference value| of the same metric in the
+    same experiment; a value whose change exceeds ``rtol`` only because it is below that floor is
+    ``ill_determined`` (its spread is the two values), not counted in ``n_above_rtol``.  Keys on one side only are counted per experiment (``keys_on_one_side``), not
     compared; only the experiments of ``perturbed`` are compared (a check of a subset)."""
     b = perturbed.copy()
     a = reference[reference["experiment"].isin(set(b["experiment"]))].copy()   # a subset rerun: its experiments
@@ -49,13 +56,18 @@ def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02
     m = m[~m["metric"].map(_is_timing)]
     va = pd.to_numeric(m["value_ref"], errors="coerce").to_numpy(float)
     vb = pd.to_numeric(m["value_pert"], errors="coerce").to_numpy(float)
+    scale = pd.Series(np.abs(va)).groupby([m["experiment"].to_numpy(), m["metric"].to_numpy()]).transform("max")
+    floor = SCALE_FLOOR * np.nan_to_num(scale.to_numpy(float))
     with np.errstate(invalid="ignore", divide="ignore"):
-        den = np.maximum(np.abs(va), np.abs(vb))
+        big = np.maximum(np.abs(va), np.abs(vb))
+        den = np.maximum(big, floor)
         rel = np.where(den > 0, np.abs(va - vb) / den, 0.0)
+        rel_raw = np.where(big > 0, np.abs(va - vb) / big, 0.0)
     both_nan = np.isnan(va) & np.isnan(vb)
     rel = np.where(both_nan, 0.0, np.where(np.isnan(va) | np.isnan(vb), 1.0, rel))
     one_side = m["_merge"].to_numpy() != "both"
-    m = m.assign(rel_change=np.where(one_side, np.nan, rel))
+    m = m.assign(rel_change=np.where(one_side, np.nan, rel),
+                 ill_determined=~one_side & (rel <= rtol) & (rel_raw > rtol) & ~np.isnan(va) & ~np.isnan(vb))
     missing = m[one_side].groupby("experiment").size()
     m = m[~one_side]
     rows = []
@@ -67,9 +79,10 @@ def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02
         rows.append({"experiment": exp, "values": len(g), "max_rel_change": float(worst["rel_change"]),
                      "worst_key": f"{worst['claim']}|{worst['variant']}|{worst['metric']}".strip("|"),
                      "n_above_rtol": int((g["rel_change"] > rtol).sum()),
+                     "n_ill_determined": int(g["ill_determined"].sum()),
                      "verdicts_changed": int(verdicts["claim"].nunique()),
                      "keys_on_one_side": int(missing.get(exp, 0))})
-    cols = KEY + ["value_ref", "value_pert", "rel_change"]
+    cols = KEY + ["value_ref", "value_pert", "rel_change", "ill_determined"]
     return m[cols], pd.DataFrame(rows)
 
 
@@ -84,13 +97,16 @@ def markdown(summary: pd.DataFrame, rtol: float, check: str, setting: str) -> st
     lines = [f"# {title}", "",
              f"The whole `make reproduce` rerun with {what} (`{setting}`); values compared key by "
              f"key with the reference `summary.csv` (timings left out). A value that moves by more "
-             f"than {rtol:.0%} comes from a fit that its tolerance does not pin down.", "",
-             "| experiment | values | largest relative change | at | moved > rtol | claim verdicts changed "
-             "| keys on one side only |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]
+             f"than {rtol:.0%} comes from a fit that its tolerance does not pin down. A value below "
+             f"{SCALE_FLOOR:g} of the largest value of its metric in its experiment is compared against "
+             "that floor: where it moves only relative to itself it is counted as *ill-determined* "
+             "(e.g. a tracking error of 1e-12 beside 20 in the same table), its spread in the csv.", "",
+             "| experiment | values | largest relative change | at | moved > rtol | ill-determined (tiny) "
+             "| claim verdicts changed | keys on one side only |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in summary.itertuples():
         lines.append(f"| {r.experiment} | {r.values} | {r.max_rel_change:.3g} | `{r.worst_key}` | "
-                     f"{r.n_above_rtol} | {r.verdicts_changed} | {r.keys_on_one_side} |")
+                     f"{r.n_above_rtol} | {r.n_ill_determined} | {r.verdicts_changed} | {r.keys_on_one_side} |")
     return "\n".join(lines) + "\n"
 
 
@@ -119,6 +135,11 @@ def main(argv=None) -> int:
     md = markdown(summary, args.rtol, args.check, args.setting)
     _atomic_write(out / f"check-{args.check}.csv", keys.to_csv(index=False))
     _atomic_write(out / f"check-{args.check}.md", md)
+    import hashlib
+    import json
+    _atomic_write(out / f"check-{args.check}.json", json.dumps({   # the report shows the check of this summary only
+        "reference_sha256": hashlib.sha256(Path(args.reference).read_bytes()).hexdigest(),
+        "setting": args.setting, "rtol": args.rtol}, indent=1) + "\n")
     print(md)
     return 0
 

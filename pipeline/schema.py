@@ -496,9 +496,9 @@ class SkOe:
     kind: Literal["sk_oe"]
     name: str = "sk_oe"
     max_iter: int = spec(30, ge=1, le=ITER_MAX)
-    tol: float = spec(1e-4, gt=0, lt=1)
+    tol: float = spec(1e-6, gt=0, lt=1)
     lm_max_iter: int = spec(3000, ge=1, le=ITER_MAX)
-    lm_ftol: float = spec(1e-4, ge=0, lt=1)
+    lm_ftol: float = spec(1e-8, ge=0, lt=1)
     lm_gtol: float = spec(1e-10, ge=0, lt=1)
     column_scale: bool = True
     screen_max_iter: int = spec(4, ge=0, le=ITER_MAX)
@@ -506,9 +506,9 @@ class SkOe:
     n_restarts: int = spec(5, ge=1, le=COUNT_MAX)
     n_jobs: int = spec(5, ge=1, le=1024)
     oe_check_iter: int = spec(3000, ge=1, le=ITER_MAX)
-    geodesic: bool = False
-    cost_tol: float = spec(0.0, ge=0, lt=1)
-    stall_window: int = spec(0, ge=0, le=ITER_MAX)
+    geodesic: bool = True
+    cost_tol: float = spec(1e-7, ge=0, lt=1)
+    stall_window: int = spec(10, ge=0, le=ITER_MAX)
     stall_tol: float = spec(1e-3, ge=0, lt=1)
 
 

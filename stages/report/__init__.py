@@ -79,6 +79,7 @@ def run(ctx) -> dict:
         if update:
             table, text = _merge(results, table, text, built, figdir)
         _write(results / "summary.csv", lambda p: table.to_csv(p, index=False))
+        text = _with_checks(text, results)
         old = Path(tempfile.mkdtemp(prefix=".figures-old-", dir=results))
         if (results / "figures").exists():
             os.replace(results / "figures", old / "figures")
@@ -91,6 +92,45 @@ def run(ctx) -> dict:
         shutil.rmtree(figdir, ignore_errors=True)
     ctx.metric("n_rows", len(table))
     return {}
+
+
+def _with_checks(text: str, results: Path) -> str:
+    """REPORT.md with a section per reproduce-check (pipeline/perturbation.py) made against this very
+    summary.csv (its sha256 in check-<check>.json); a check of another summary is named stale."""
+    import hashlib
+    import json
+    digest = hashlib.sha256((results / "summary.csv").read_bytes()).hexdigest()
+    out = []
+    for check, title in (("perturb", "a second machine, emulated"), ("tighten", "tolerances tightened 10x")):
+        meta, csv = results / f"check-{check}.json", results / f"check-{check}.csv"
+        if not (meta.exists() and csv.exists()):
+            continue
+        info = json.loads(meta.read_text())
+        if info.get("reference_sha256") != digest:
+            out += [f"`make reproduce-check CHECK={check}` ({title}): results/check-{check}.md compares another "
+                    "summary.csv than this one (stale); rerun it.", ""]
+            continue
+        k = pd.read_csv(csv)
+        rtol = float(info.get("rtol", 0.02))
+        ill = k["ill_determined"].astype(str).str.lower() == "true" if "ill_determined" in k else False
+        out += [f"### Same numbers on {title} (`make reproduce-check CHECK={check}`, `{info.get('setting', '')}`)", "",
+                f"Per experiment, the largest relative change of a summary value between this run and the "
+                f"rerun, and how many moved by more than {rtol:.0%}; *ill-determined*: values below 1e-3 of the "
+                "largest value of their metric in their experiment that moved only relative to themselves "
+                f"(spread in results/check-{check}.csv). Claim verdicts changed: see results/check-{check}.md.", "",
+                "| experiment | values | largest relative change | at | moved > rtol | ill-determined |",
+                "| --- | --- | --- | --- | --- | --- |"]
+        k = k.assign(ill=ill)
+        for exp, g in k.groupby("experiment", sort=False):
+            w = g.loc[g["rel_change"].idxmax()]
+            key = "|".join(str(x) for x in (w["claim"], w["variant"], w["metric"]) if isinstance(x, str) and x)
+            out.append(f"| {exp} | {len(g)} | {w['rel_change']:.3g} | `{key}` | {int((g['rel_change'] > rtol).sum())} | "
+                       f"{int(g['ill'].sum())} |")
+        out.append("")
+    if not out:
+        return text
+    head, rest = text.split("\n## ", 1) if "\n## " in text else (text, "")
+    return head.rstrip("\n") + "\n\n" + "\n".join(out) + ("\n## " + rest if rest else "")
 
 
 def _build(cfg, figdir: Path, skip_empty: bool = False) -> tuple[pd.DataFrame, str, list[str]]:

@@ -26,10 +26,10 @@ import numpy as np
 import pandas as pd
 
 KEY = ["experiment", "claim", "variant", "metric"]
-#: a value below this fraction of the largest |value| of its metric in its experiment is *tiny*: its
-#: relative change is measured against that floor (a tracking error of 1e-12 beside 20 in the same
-#: table has no meaningful relative value); one that still moves is reported as ill-determined,
-#: with its spread (both values), not counted as moved
+#: a value below this fraction of the largest |value| of its metric for its model (the variant's first
+#: part) in its experiment is *tiny*: its relative change is measured against that floor (a tracking
+#: error of 1e-12 where the same model's error on another reference is 1e-6); one that still moves
+#: is reported as ill-determined, with its spread (both values), not counted as moved
 SCALE_FLOOR = 1e-3
 #: metrics that measure the machine, not the result
 _TIMING = ("seconds", "time", "wall", "_ms", "per_sample_ns", "ns_per_sample")
@@ -44,8 +44,8 @@ def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02
     """Per key (reference value, perturbed value, relative change) and per experiment a summary.
 
     The relative change is |a - b| / max(|a|, |b|, floor) (0 when both are 0, 1 when one is NaN and
-    the other not), floor = SCALE_FLOOR × the largest |reference value| of the same metric in the
-    same experiment; a value whose change exceeds ``rtol`` only because it is below that floor is
+    the other not), floor = SCALE_FLOOR × the largest |reference value| of the same metric for the
+    same model (first part of the variant) in the same experiment; a value whose change exceeds ``rtol`` only because it is below that floor is
     ``ill_determined`` (its spread is the two values), not counted in ``n_above_rtol``.  Keys on one side only are counted per experiment (``keys_on_one_side``), not
     compared; only the experiments of ``perturbed`` are compared (a check of a subset)."""
     b = perturbed.copy()
@@ -56,7 +56,8 @@ def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02
     m = m[~m["metric"].map(_is_timing)]
     va = pd.to_numeric(m["value_ref"], errors="coerce").to_numpy(float)
     vb = pd.to_numeric(m["value_pert"], errors="coerce").to_numpy(float)
-    scale = pd.Series(np.abs(va)).groupby([m["experiment"].to_numpy(), m["metric"].to_numpy()]).transform("max")
+    model = m["variant"].fillna("").astype(str).str.split("/").str[0].to_numpy()   # the model (or system) of the row
+    scale = pd.Series(np.abs(va)).groupby([m["experiment"].to_numpy(), model, m["metric"].to_numpy()]).transform("max")
     floor = SCALE_FLOOR * np.nan_to_num(scale.to_numpy(float))
     with np.errstate(invalid="ignore", divide="ignore"):
         big = np.maximum(np.abs(va), np.abs(vb))
@@ -98,9 +99,10 @@ def markdown(summary: pd.DataFrame, rtol: float, check: str, setting: str) -> st
              f"The whole `make reproduce` rerun with {what} (`{setting}`); values compared key by "
              f"key with the reference `summary.csv` (timings left out). A value that moves by more "
              f"than {rtol:.0%} comes from a fit that its tolerance does not pin down. A value below "
-             f"{SCALE_FLOOR:g} of the largest value of its metric in its experiment is compared against "
-             "that floor: where it moves only relative to itself it is counted as *ill-determined* "
-             "(e.g. a tracking error of 1e-12 beside 20 in the same table), its spread in the csv.", "",
+             f"{SCALE_FLOOR:g} of the largest value of its metric for its model in its experiment is "
+             "compared against that floor: where it moves only relative to itself it is counted as "
+             "*ill-determined* (e.g. a tracking error of 1e-12 where the same model errs by 1e-6 on "
+             "another reference), its spread in the csv.", "",
              "| experiment | values | largest relative change | at | moved > rtol | ill-determined (tiny) "
              "| claim verdicts changed | keys on one side only |",
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
@@ -108,6 +110,15 @@ def markdown(summary: pd.DataFrame, rtol: float, check: str, setting: str) -> st
         lines.append(f"| {r.experiment} | {r.values} | {r.max_rel_change:.3g} | `{r.worst_key}` | "
                      f"{r.n_above_rtol} | {r.n_ill_determined} | {r.verdicts_changed} | {r.keys_on_one_side} |")
     return "\n".join(lines) + "\n"
+
+
+def summary_digest(path: Path) -> str:
+    """sha256 of a summary.csv's content (rows sorted by key, values as text), not of its bytes: a
+    report that rewrites the same rows keeps the digest."""
+    import hashlib
+    t = pd.read_csv(path, dtype=str, keep_default_na=False)
+    t = t.sort_values([c for c in KEY if c in t.columns], kind="stable").reset_index(drop=True)
+    return hashlib.sha256(t.to_csv(index=False).encode()).hexdigest()
 
 
 def _atomic_write(path: Path, text: str) -> None:
@@ -138,7 +149,7 @@ def main(argv=None) -> int:
     import hashlib
     import json
     _atomic_write(out / f"check-{args.check}.json", json.dumps({   # the report shows the check of this summary only
-        "reference_sha256": hashlib.sha256(Path(args.reference).read_bytes()).hexdigest(),
+        "reference_sha256": summary_digest(Path(args.reference)),
         "setting": args.setting, "rtol": args.rtol}, indent=1) + "\n")
     print(md)
     return 0

@@ -32,16 +32,16 @@ def test_compare_reports_the_largest_change_per_experiment_and_skips_timings():
 
 
 def test_a_tiny_value_that_moves_is_ill_determined_not_moved():
-    """Against the floor 1e-3 x the largest value of its metric in its experiment: 1e-9 -> 2e-9
-    beside 20 moves 50 % of itself, 5e-11 of the floor: ill-determined (counted, spread kept), not
-    moved; 1.0 -> 1.1 in the same metric still moves."""
+    """Against the floor 1e-3 x the largest value of its metric for its model in its experiment:
+    1e-9 -> 2e-9 beside 20 moves 50 % of itself, 5e-11 of the floor: ill-determined (counted,
+    spread kept), not moved; 1.0 -> 1.1 of another model in the same metric still moves."""
     def table(v):
-        return pd.DataFrame({"experiment": ["k"] * 3, "claim": [""] * 3, "variant": ["rational", "pgnn", "phys"],
+        return pd.DataFrame({"experiment": ["k"] * 3, "claim": [""] * 3, "variant": ["pgnn/ref1", "pgnn/ref2", "phys"],
                              "metric": ["sq_norm2"] * 3, "value": v, "paper_value": [None] * 3,
                              "claim_holds": [None] * 3})
     keys, summ = compare(table([20.0, 1e-9, 1.0]), table([20.0, 2e-9, 1.1]), rtol=0.02)
     k = keys.set_index("variant")
-    assert k.loc["pgnn", "ill_determined"] and k.loc["pgnn", "rel_change"] == pytest.approx(1e-9 / 0.02)
+    assert k.loc["pgnn/ref2", "ill_determined"] and k.loc["pgnn/ref2", "rel_change"] == pytest.approx(1e-9 / 0.02)
     assert not k.loc["phys", "ill_determined"] and k.loc["phys", "rel_change"] == pytest.approx(0.1 / 1.1)
     s = summ.iloc[0]
     assert s["n_above_rtol"] == 1 and s["n_ill_determined"] == 1
@@ -107,14 +107,14 @@ def test_tightening_check_flags_a_deliberately_unconverged_fit():
 def test_report_shows_the_check_of_its_own_summary_only(tmp_path):
     """The report's check section comes from check-perturb.csv when check-perturb.json names this
     summary.csv's sha256; a check of another summary is named stale."""
-    import hashlib
     import json
+    from pipeline.perturbation import summary_digest
     from stages.report import _with_checks
     (tmp_path / "summary.csv").write_text("experiment,claim,variant,metric,value\nk,,a,m,1\n")
     pd.DataFrame({"experiment": ["k", "k"], "claim": ["", ""], "variant": ["a", "b"], "metric": ["m", "m"],
                   "value_ref": [1.0, 1e-9], "value_pert": [1.5, 2e-9], "rel_change": [1 / 3, 5e-8],
                   "ill_determined": [False, True]}).to_csv(tmp_path / "check-perturb.csv", index=False)
-    digest = hashlib.sha256((tmp_path / "summary.csv").read_bytes()).hexdigest()
+    digest = summary_digest(tmp_path / "summary.csv")
     (tmp_path / "check-perturb.json").write_text(json.dumps({"reference_sha256": digest, "setting": "P=1e-13",
                                                               "rtol": 0.02}))
     md = _with_checks("# Results\n\nhead\n\n## k\n\nsection\n", tmp_path)

@@ -16,24 +16,26 @@ from pipeline.systems.measured import RigidBodyPhysics
 TS = 1e-3
 
 
-def _moving_record(n=3000, k_cut=700):
+def _moving_record(n=3000, k_cut=700, delay=0):
     """A record of the physics loop (EMPS-like cascade, mass 95 kg, viscous + Coulomb) cut at
     sample k_cut, where the axis moves: the recorded start is in motion."""
     t = np.arange(n + k_cut) * TS
     r = 0.1 * (1 - np.cos(2 * np.pi * t / 2.0))
     phys = RigidBodyPhysics(TS, True, ForceTerms(("viscous", "coulomb")))
     th = phys.theta_from_physical({"M": 95.0, "F_v": 200.0, "F_c": 20.0})
-    ctrl = LTIController.cascade(kp=160.18, kv=243.45, gtau=35.15, v_sat=10.0, Ts=TS, delay=0)
+    ctrl = LTIController.cascade(kp=160.18, kv=243.45, gtau=35.15, v_sat=10.0, Ts=TS, delay=delay)
     model = LoopModel.physics_only(phys, th)
     y, tau, _ = simulate_loop(model, ctrl, LoopSignals(r, np.zeros_like(r), 0.0, t))
     cut = slice(k_cut, None)
     return phys, th, ctrl, model, r[cut], y[cut], tau[cut], t[cut] - t[k_cut]
 
 
-def test_recorded_start_replays_its_own_record_exactly_and_rest_does_not():
+@pytest.mark.parametrize("delay", [0, 1, 3])
+def test_recorded_start_replays_its_own_record_exactly_and_rest_does_not(delay):
     """The model that made the record, replayed from the record's first 20 samples, reproduces it
-    to rounding; started at rest (the old replay) it carries a start-up transient."""
-    phys, th, ctrl, model, r, y, tau, t = _moving_record()
+    to rounding, whatever the controller's delay (the commands issued before the start and applied
+    after it come from the record and the law); started at rest it carries a start-up transient."""
+    phys, th, ctrl, model, r, y, tau, t = _moving_record(delay=delay)
     assert abs(y[1] - y[0]) / TS > 0.05                     # the record starts at > 5 cm/s
     d = np.zeros_like(r)
     yh, th_, _ = simulate_loop(model, ctrl, LoopSignals.recorded(r, d, y, tau, t, 20))
@@ -129,3 +131,37 @@ def test_sim_error_fit_over_several_records_recovers_the_loop():
     np.testing.assert_allclose(fit.loop.theta_phy, th, rtol=1e-6)
     assert fit.n_train == 2200 and fit.tau_hat.size == tau.size + tau2.size
     assert fit.val_force_rel_error < 1e-6
+
+
+def test_recorded_start_holds_an_iir_controllers_state():
+    """A filtered PID (IIR, integrating) with a delay of 2: the replay from the record's first 20
+    samples reproduces the record (the filter's state and the commands in flight come from it)."""
+    M, Fv = 12.0, 40.0
+    phys = RigidBodyPhysics(5e-4, True, ForceTerms(("viscous",)))
+    th = phys.theta_from_physical({"M": M, "F_v": Fv})
+    ctrl = LTIController.lti(num=[4.279e6, -8.212e6, 3.939e6], den=[1.0, -1.4361, 0.4361], num_r=None,
+                             gtau=1.0, v_sat=1e9, delay=2)
+    n = 4000
+    t = np.arange(n) * 5e-4
+    r = 0.05 * np.sin(2 * np.pi * 1.0 * t) ** 2
+    model = LoopModel.physics_only(phys, th)
+    y, tau, _ = simulate_loop(model, ctrl, LoopSignals(r, np.zeros(n), 0.0, t))
+    cut = slice(1500, None)
+    sig = LoopSignals.recorded(r[cut], np.zeros(n - 1500), y[cut], tau[cut], t[cut], 20)
+    yh, th_, _ = simulate_loop(model, ctrl, sig)
+    assert loop_errors(y[cut], tau[cut], yh, th_, 20)["force_rel_error"] < 1e-8
+
+
+def test_rk4_replay_of_a_mass_equals_the_one_step_replay_from_a_noisy_record():
+    """For a pure mass the one-step (ZOH on ū) replay is exact, so the RK4 replay must equal it
+    from the same recorded start, even when the record's positions carry noise: both start from the
+    state the record implies (the integrator check compares integrators, not start states)."""
+    phys = RigidBodyPhysics(TS, True, ForceTerms(("viscous",)))
+    th = phys.theta_from_physical({"M": 95.0, "F_v": 0.0})
+    _, _, ctrl, _, r, y, tau, t = _moving_record(1500)
+    y = y + np.random.default_rng(3).normal(0, 1e-6, y.size)        # 1 µm position noise
+    sig = LoopSignals.recorded(r, np.zeros_like(r), y, tau, t, 20)
+    _, tau1, _ = simulate_loop(LoopModel.physics_only(phys, th), ctrl, sig)
+    for n in (1, 16):
+        _, tau_c = replay_rk4(phys, th, ctrl, sig, n)
+        assert np.linalg.norm(tau_c - tau1) <= 1e-9 * np.linalg.norm(tau1), n

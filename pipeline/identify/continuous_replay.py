@@ -11,13 +11,14 @@ closed loop (controller at the samples, as in the kernel) with ``n_sub`` classic
 sub-steps per sample.  As n_sub doubles the scores settle (a sign() Coulomb term limits the order
 near velocity reversals); the settled value minus the one-step replay's is the integrator's own
 error.  Started from the recorded state like the kernel: the first ``n_init`` samples are the
-record's, the state at n_init - 1 is (y, central-difference velocity).
+record's, the state at n_init - 1 the one the one-step replay implies (exact for a mass).
 """
 from __future__ import annotations
 
 import numba
 import numpy as np
 
+from pipeline.identify.measured_loop import ctrl_law
 from pipeline.systems.force_terms import term
 
 
@@ -38,26 +39,27 @@ def _rk4_loop(r, d, yrec, urec, n0, th, codes, tp, Ts, n_sub, br, by, ca, gtau, 
     cc = np.zeros(N)
     vv = np.zeros(N)
     h = Ts / n_sub
+    # the state at n0 - 1 the one-step replay implies (exact for a mass under ZOH): q = y(n0-1),
+    # q̇ = (y(n0-1) - y(n0-2))/Ts + Ts/2 q̈(n0-2), so both start from the same motion
     q = yrec[n0 - 1]
-    v = (yrec[n0] - yrec[n0 - 2]) / (2.0 * Ts)      # the recorded velocity at n0 - 1
+    v2 = (yrec[n0 - 2] - yrec[n0 - 3]) / Ts
+    v = (yrec[n0 - 1] - yrec[n0 - 2]) / Ts + 0.5 * Ts * _accel(yrec[n0 - 2], v2, urec[n0 - 2], th, codes, tp)
     for k in range(N):
-        if k < n0:
+        if k < n0:   # the record, as in the one-step kernel (pipeline.identify.measured_loop._loop)
             y[k] = yrec[k]
             tau[k] = urec[k]
-            cc[k] = urec[k] / gtau - d[k]
-            vv[k] = cc[k]
             uk = urec[k]
+            if k - D >= 0:
+                cc[k - D] = urec[k] / gtau - d[k]
+                vv[k - D] = cc[k - D]
+            if k == n0 - 1:
+                for j in range(max(n0 - D, 0), n0):
+                    vv[j] = ctrl_law(j, r, y, yrec[0], vv, br, by, ca)
+                    cc[j] = min(max(vv[j], -vsat), vsat)
         else:
             y[k] = q
-            vk = 0.0
-            for i in range(br.size):
-                vk += br[i] * r[k - i]
-            for i in range(by.size):
-                vk -= by[i] * y[k - i]
-            for i in range(1, ca.size):
-                vk -= ca[i] * vv[k - i]
-            vv[k] = vk
-            cc[k] = min(max(vk, -vsat), vsat)
+            vv[k] = ctrl_law(k, r, y, yrec[0], vv, br, by, ca)
+            cc[k] = min(max(vv[k], -vsat), vsat)
             uk = gtau * (cc[k - D] + d[k])
             tau[k] = uk
         if k >= n0 - 1:   # integrate [k, k+1] with u(k) held
@@ -76,7 +78,7 @@ def replay_rk4(physics, theta, ctrl, sig, n_sub: int):
     ``RigidBodyPhysics``) in the recorded loop, data timing, ``n_sub`` RK4 sub-steps per sample;
     ``sig`` a :class:`~pipeline.identify.measured_loop.LoopSignals` started from the record."""
     n0 = int(sig.n_init)
-    need = max(3, ctrl.b_y.size, ctrl.b_r.size, ctrl.a.size, int(ctrl.delay) + 1)
+    need = max(4, ctrl.b_y.size, ctrl.b_r.size, ctrl.a.size, int(ctrl.delay) + 1)
     if n0 < need:
         raise ValueError(f"replay_rk4 starts from the recorded state: n_init={n0} must be >= {need}")
     if int(n_sub) < 1:

@@ -128,6 +128,21 @@ class LoopModel:
 
 
 @numba.njit(cache=True)
+def ctrl_law(k, r, y, y0, vv, br, by, ca):
+    """v(k) of the controller A v = B_r r - B_y y (pipeline.systems.controller; r, y held at their
+    first values before k = 0, v zero)."""
+    vk = 0.0
+    for i in range(br.size):
+        vk += br[i] * r[k - i if k - i >= 0 else 0]
+    for i in range(by.size):
+        vk -= by[i] * (y[k - i] if k - i >= 0 else y0)
+    for i in range(1, ca.size):
+        if k - i >= 0:
+            vk -= ca[i] * vv[k - i]
+    return vk
+
+
+@numba.njit(cache=True)
 def _loop(r, d, uff, y0, yrec, urec, n0, n_a, n_b, averaged, th, codes, tp, W1, b1, W2, b2, P, c, so, Ts, br, by, ca,
           gtau, vsat, D, Dt, sens):
     N = r.size
@@ -159,13 +174,21 @@ def _loop(r, d, uff, y0, yrec, urec, n0, n_a, n_b, averaged, th, codes, tp, W1, 
     x = np.zeros(nx)
     h = np.zeros(n1)
     for k in range(N):
-        if k < n0:   # the recorded state: output, applied force and controller output from the record
+        if k < n0:
+            # the recorded state: output and applied force from the record; the controller's output
+            # c(k - D) = u(k)/gtau - d(k) as recorded (the record ran without u_ff) and, once the
+            # record ends, its last D commands (applied after n0) from its law on the recorded y, r
             y[k] = yrec[k]
             u[k] = urec[k]
             tau[k] = urec[k]
-            cc[k] = urec[k] / gtau - d[k]
-            vv[k] = cc[k]
             w[k] = 0.5 * (u[k] + (u[k - 1] if k >= 1 else 0.0)) if averaged else u[k]
+            if k - D >= 0:
+                cc[k - D] = urec[k] / gtau - d[k]
+                vv[k - D] = cc[k - D]
+            if k == n0 - 1:
+                for j in range(max(n0 - D, 0), n0):
+                    vv[j] = ctrl_law(j, r, y, y0, vv, br, by, ca)
+                    cc[j] = min(max(vv[j] + uff[j] / gtau, -vsat), vsat)
             continue
         if k == 0:
             y[0] = y0
@@ -229,15 +252,7 @@ def _loop(r, d, uff, y0, yrec, urec, n0, n_a, n_b, averaged, th, codes, tp, W1, 
                     if k - 1 - j >= 0 and dfdphi[n_a + j] != 0.0:
                         for p in range(NP):
                             Sy[k, p] += dfdphi[n_a + j] * Sw[k - 1 - j, p]
-        # controller A v = B_r r - B_y y (pipeline.systems.controller; r, y held before k = 0)
-        vk = 0.0
-        for i in range(br.size):
-            vk += br[i] * r[k - i if k - i >= 0 else 0]
-        for i in range(by.size):
-            vk -= by[i] * (y[k - i] if k - i >= 0 else y0)
-        for i in range(1, ca.size):
-            if k - i >= 0:
-                vk -= ca[i] * vv[k - i]
+        vk = ctrl_law(k, r, y, y0, vv, br, by, ca)
         vv[k] = vk
         raw = vk + uff[k] / gtau
         sat = 1.0
@@ -335,7 +350,8 @@ def simulate_loop(model: LoopModel, ctrl, sig: LoopSignals, convention: str = "d
     if not (d.shape == r.shape == uff.shape):
         raise ValueError(f"r, d and u_ff must have one length, got {r.shape}, {d.shape}, {uff.shape}")
     n0 = int(sig.n_init)
-    need = max(model.n_a, model.n_b, ctrl.b_y.size, ctrl.b_r.size, ctrl.a.size)
+    need = max(model.n_a, model.n_b + int(model.averaged), ctrl.b_y.size, ctrl.b_r.size, ctrl.a.size,
+               int(ctrl.delay) + 1)
     if 0 < n0 < need:
         raise ValueError(f"a recorded start needs the model's and the controller's whole history: n_init={n0} < {need}")
     yrec = np.ascontiguousarray(sig.y_rec if n0 else np.zeros(1), dtype=np.float64)

@@ -97,9 +97,9 @@ def run(ctx) -> dict:
 def _with_checks(text: str, results: Path) -> str:
     """REPORT.md with a section per reproduce-check (pipeline/perturbation.py) made against this very
     summary.csv (its sha256 in check-<check>.json); a check of another summary is named stale."""
-    import hashlib
     import json
-    digest = hashlib.sha256((results / "summary.csv").read_bytes()).hexdigest()
+    from pipeline.perturbation import summary_digest
+    digest = summary_digest(results / "summary.csv")
     out = []
     for check, title in (("perturb", "a second machine, emulated"), ("tighten", "tolerances tightened 10x")):
         meta, csv = results / f"check-{check}.json", results / f"check-{check}.csv"
@@ -116,7 +116,7 @@ def _with_checks(text: str, results: Path) -> str:
         out += [f"### Same numbers on {title} (`make reproduce-check CHECK={check}`, `{info.get('setting', '')}`)", "",
                 f"Per experiment, the largest relative change of a summary value between this run and the "
                 f"rerun, and how many moved by more than {rtol:.0%}; *ill-determined*: values below 1e-3 of the "
-                "largest value of their metric in their experiment that moved only relative to themselves "
+                "largest value of their metric for their model in their experiment that moved only relative to themselves "
                 f"(spread in results/check-{check}.csv). Claim verdicts changed: see results/check-{check}.md.", "",
                 "| experiment | values | largest relative change | at | moved > rtol | ill-determined |",
                 "| --- | --- | --- | --- | --- | --- |"]

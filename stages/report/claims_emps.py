@@ -111,18 +111,20 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
               "test, published conv. [%] | LM stop |",
               "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     chosen = {}
-    usable = [r for r in pg if r["m"].get(TRAIN_R2, -np.inf) >= X1_R2]
+    usable = {k: [r for r in pg if r["kind"] == k and r["m"].get(TRAIN_R2, -np.inf) >= X1_R2]
+              for k in {r["kind"] for r in pg}}     # per criterion; none usable: that criterion falls back
     for r in sorted(pg, key=lambda r: (r["kind"], r["m"][VAL])):
         m = r["m"]
         lines.append(f"| {r['name']} | {r['kind']} | {m[VAL]:.3f} | {m['evaluate/train/data/force_rel_error']:.3f} | "
                      f"{m.get(TRAIN_R2, float('nan')):.4f} | {m['evaluate/test/data/force_rel_error']:.3f} | "
                      f"{m['evaluate/test/published/force_rel_error']:.3f} | {r['stop']} |")
-        if (r in usable or not usable) and (r["kind"] not in chosen or m[VAL] < chosen[r["kind"]]["m"][VAL]):
+        ok = r in usable[r["kind"]] or not usable[r["kind"]]
+        if ok and (r["kind"] not in chosen or m[VAL] < chosen[r["kind"]]["m"][VAL]):
             chosen[r["kind"]] = r
     lines += ["", f"A PGNN is a candidate if it is a usable simulator on the training file (open-loop R² ≥ {X1_R2}, "
-              "the whole file); among the candidates of each criterion the lowest validation error is chosen"
-              + ("." if usable or not pg else ": **no PGNN qualifies**, so the choice falls back to the lowest "
-                 "validation error alone.")]
+              "the whole file); among the candidates of each criterion the lowest validation error is chosen."
+              + "".join(f" No `{k}` PGNN qualifies: its choice falls back to the lowest validation error alone."
+                        for k, v in sorted(usable.items()) if not v)]
     capped = [r["name"] for r in pg if str(r["stop"]) in ("max_iter", "nan", "None")]
     if capped:
         lines += ["", f"> Stopped on the iteration cap (not converged): {', '.join(capped)}."]
@@ -139,7 +141,7 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
         tr, te = m["evaluate/train/data/force_rel_error"], m["evaluate/test/data/force_rel_error"]
         lines.append(f"| {label} (`{r['name']}`) | {m[VAL]:.3f} | {tr:.3f} | {te:.3f} | {te - tr:+.3f} | "
                      f"{m['evaluate/test/data/position_rel_error']:.5f} | {m['evaluate/test/benchmark_rmse_mm']:.3g} | "
-                     f"{m['evaluate/test/benchmark_r2']:.4f} | "
+                     f"{m.get('evaluate/test/benchmark_r2', float('nan')):.4f} | "
                      f"{m['evaluate/test/published/force_rel_error']:.3f} | "
                      f"{m['evaluate/test/model_based/mae']:.3g} |")
         v = "physics" if label == "physics" else f"pgnn-{r['kind']}"
@@ -148,7 +150,7 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
                 for x in ("force_rel_error", "position_rel_error", "loop_rmse_mm"):
                     rows.append(row(E, f"{v}/{f}/{conv}", x, m[f"evaluate/{f}/{conv}/{x}"]))
             for x in ("benchmark_rmse_mm", "benchmark_r2"):
-                rows.append(row(E, f"{v}/{f}", x, m[f"evaluate/{f}/{x}"]))
+                rows.append(row(E, f"{v}/{f}", x, m.get(f"evaluate/{f}/{x}", float("nan"))))
         rows.append(row(E, f"{v}/train", "validation_force_rel_error", m[VAL]))
         rows.append(row(E, f"{v}/test", "model_based_mae", m["evaluate/test/model_based/mae"]))
     lines += ["", "Open-loop RMSE: the benchmark's simulation convention (the model driven by the recorded force, "
@@ -167,7 +169,7 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
         m = best["m"]
         te, tr = m["evaluate/test/data/force_rel_error"], m["evaluate/train/data/force_rel_error"]
         v = f"pgnn-{best['kind']}/test/data"
-        r2 = m["evaluate/test/benchmark_r2"]
+        r2 = m.get("evaluate/test/benchmark_r2", float("nan"))
         c1, c2, c3, c4 = te < X1_FORCE, te < pte, (te - tr) <= (pte - ptr), r2 >= X1_R2
         rows += [row(E, v, "force_rel_error<4.5", te, "X1", c1, X1_FORCE),
                  row(E, v, "force_rel_error<physics", te, "X1", c2, pte),

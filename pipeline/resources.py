@@ -5,6 +5,9 @@ the entry point (``python -m pipeline``), instead of a traceback.  Only these er
 whose errno is ENOSPC, EDQUOT, EROFS or EACCES, an SQLite store that is read-only, full or cannot
 be opened, and an MLflow request that could not connect.  Anything else (a programming error) is
 not described and keeps its traceback.
+
+:func:`job_cores`: the cores one job may use (the machine's, shared among the jobs the Hydra
+launcher runs at once), so a job's own pool (SK restarts) never outnumbers the free cores.
 """
 from __future__ import annotations
 
@@ -12,6 +15,23 @@ import errno
 import os
 import re
 from pathlib import Path
+
+def job_cores() -> int:
+    """Cores available to this process divided by the jobs the Hydra launcher runs at once
+    (``hydra.launcher.n_jobs`` of a multirun; 1 outside Hydra or for a single run), at least 1."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    jobs = 1
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        if HydraConfig.initialized():
+            hc = HydraConfig.get()
+            if str(hc.mode) in ("RunMode.MULTIRUN", "MULTIRUN"):
+                jobs = int(hc.launcher.get("n_jobs", 1) or 1)
+                jobs = cores if jobs < 0 else jobs         # joblib: -1 = every core
+    except (ImportError, ValueError, AttributeError):
+        pass
+    return max(1, cores // max(1, jobs))
+
 
 #: errno -> (reason, what to do)
 ERRNOS = {

@@ -194,3 +194,16 @@ def test_rational_sk_without_fixed_point_stops_stalled_on_its_best_iterate(store
     assert st["metrics.train/best_iterate"] < st["metrics.train/sk_iterations"] <= st["metrics.train/best_iterate"] + 10
     assert st["metrics.train/sk_iterations"] < cap["metrics.train/sk_iterations"]
     assert st["metrics.train/J_OE"] == cap["metrics.train/J_OE"]        # the same best iterate, to the bit
+
+
+def test_restarts_in_processes_equal_restarts_in_process(problem):
+    """The restart pool's size (pipeline.resources.job_cores caps it at the free cores) changes no
+    number: two restarts in two loky processes equal the same two run in this process, to the bit."""
+    from pipeline.identify.sk import sk_restarts
+    from pipeline.resources import job_cores
+    rs, fs = problem
+    kw = dict(regularizer="none", lam=0.0, max_iter=2, tol=1e-30, **LM)
+    a = sk_restarts([_pgnn(rs, seed=s) for s in (1, 2)], rs, fs, n_jobs=1, **kw)
+    b = sk_restarts([_pgnn(rs, seed=s) for s in (1, 2)], rs, fs, n_jobs=2, **kw)
+    assert [r.J_OE for r, *_ in a] == [r.J_OE for r, *_ in b]
+    assert job_cores() >= 1      # outside a Hydra multirun: every core of this process

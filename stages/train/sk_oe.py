@@ -38,6 +38,7 @@ from pipeline.identify.sk import output_error_lm, sk_restarts
 from pipeline.models.rational import RationalFeedforward, basis_coefficients, basis_matrix
 from pipeline.models.shared_ar import ReferenceWindow, SharedARPGNN, make_approximator
 from pipeline.errors import ConfigError
+from pipeline.resources import job_cores
 
 VERSION = 3   # 2: SK and the OE check stop on tolerances (stop reasons logged); regularised check on J_OE + λR;
               # 3: the 'stalled' stop of SK without a fixed point
@@ -128,7 +129,8 @@ def fit(ctx) -> dict:
     def bar(desc):   # progress over restarts (stderr, quiet in tests and logs)
         return lambda it, n: ctx.progress(it, desc=desc, total=n)
     if screen:   # every restart on a short budget; the best by training cost is then converged
-        outs = sk_restarts(models, rs, fs, n_jobs=int(ident.n_jobs), progress=bar("SK restarts (screening)"),
+        outs = sk_restarts(models, rs, fs, n_jobs=min(int(ident.n_jobs), job_cores()),   # never more than free cores
+                           progress=bar("SK restarts (screening)"),
                            **{**kw, "max_iter": int(ident.screen_max_iter),
                               "lm_max_iter": int(ident.screen_lm_max_iter)})
     else:

@@ -45,9 +45,10 @@ def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02
 
     The relative change is |a - b| / max(|a|, |b|, floor) (0 when both are 0, 1 when one is NaN and
     the other not), floor = SCALE_FLOOR × the largest |reference value| of the same metric for the
-    same model (first part of the variant) in the same experiment; a value whose change exceeds ``rtol`` only because it is below that floor is
-    ``ill_determined`` (its spread is the two values), not counted in ``n_above_rtol``.  Keys on one side only are counted per experiment (``keys_on_one_side``), not
-    compared; only the experiments of ``perturbed`` are compared (a check of a subset)."""
+    same model (first part of the variant) in the same experiment; a value whose change exceeds
+    ``rtol`` only because it is below that floor is ``ill_determined`` (its spread is the two
+    values), not counted in ``n_above_rtol``.  Keys on one side only are counted per experiment
+    (``keys_on_one_side``), not compared; only the experiments of ``perturbed`` are compared (a check of a subset)."""
     b = perturbed.copy()
     a = reference[reference["experiment"].isin(set(b["experiment"]))].copy()   # a subset rerun: its experiments
     for d in (a, b):
@@ -146,7 +147,6 @@ def main(argv=None) -> int:
     md = markdown(summary, args.rtol, args.check, args.setting)
     _atomic_write(out / f"check-{args.check}.csv", keys.to_csv(index=False))
     _atomic_write(out / f"check-{args.check}.md", md)
-    import hashlib
     import json
     _atomic_write(out / f"check-{args.check}.json", json.dumps({   # the report shows the check of this summary only
         "reference_sha256": summary_digest(Path(args.reference)),

@@ -199,7 +199,8 @@ def _integrator_check(inv, system, sig, y, tau) -> dict[str, float]:
             continue
         for n in SUBSTEPS:
             y_c, tau_c = replay_rk4(system.physics, theta, system.ctrl, sig, n)
-            out[f"{pre}integrator/rk4_n{n}/force_rel_error"] = loop_errors(y, tau, y_c, tau_c, N_INIT)["force_rel_error"]
+            e = loop_errors(y, tau, y_c, tau_c, N_INIT)["force_rel_error"]
+            out[f"{pre}integrator/rk4_n{n}/force_rel_error"] = e
     return out
 
 

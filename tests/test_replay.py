@@ -121,7 +121,8 @@ def test_sim_error_fit_over_several_records_recovers_the_loop():
     from pipeline.models.pgnn import PGNN, physics_features_for
     phys, th, ctrl, model, r, y, tau, t = _moving_record(1500, k_cut=700)
     _, _, _, _, r2, y2, tau2, t2 = _moving_record(1200, k_cut=1500)
-    sigs = [LoopSignals.recorded(a, np.zeros_like(a), b, c, tt, 20) for a, b, c, tt in ((r, y, tau, t), (r2, y2, tau2, t2))]
+    sigs = [LoopSignals.recorded(a, np.zeros_like(a), b, c, tt, 20)
+            for a, b, c, tt in ((r, y, tau, t), (r2, y2, tau2, t2))]
     pg = PGNN(2, 1, 0, structure="invertible", physics=physics_features_for(phys, "forward", 2, 1, 0, True),
               hidden=(), use_nn=False)
     with torch.no_grad():

@@ -36,11 +36,15 @@ z ≈ 1 and lose ~8 digits (SPEC §2.1).
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:   # annotations only; imported where used (start-up, issue 19)
+    import control
+
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-import control
 import numpy as np
 from numba import njit
 from scipy.linalg import toeplitz
@@ -82,6 +86,7 @@ def _ss_filter(A, B, C, D, u):  # pragma: no cover - compiled
 
 
 def _as_discrete_siso_ss(sys) -> control.StateSpace:
+    import control   # python-control on first use (1 s of every job's start-up)
     if not isinstance(sys, (control.StateSpace, control.TransferFunction)):
         raise TypeError(f"the ILC model must be a python-control StateSpace or TransferFunction, "
                         f"got {type(sys).__name__}")
@@ -125,6 +130,7 @@ class LTIFilter:
 
     def inverse(self) -> "LTIFilter":
         """The causal inverse G^-1 (needs D ≠ 0); raises if it is unstable (non-minimum phase)."""
+        import control   # python-control on first use (1 s of every job's start-up)
         if self._D == 0.0:
             raise ValueError("the model has no direct feedthrough (D = 0): its lifted matrix has "
                              "a zero diagonal and no causal inverse; use preconditioner='none'")
@@ -171,6 +177,7 @@ def process_sensitivity(P, C) -> control.StateSpace:
 
     Both discrete with one dt; returned as a state-space model (u = C(r - y) + u_ff).
     """
+    import control   # python-control on first use (1 s of every job's start-up)
     return control.ss(control.feedback(control.ss(P), control.ss(C), sign=-1))
 
 

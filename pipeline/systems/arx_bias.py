@@ -18,10 +18,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import numpy as np
-from scipy.signal import lfilter
 
 from pipeline.identify.least_squares import solve_scaled as least_squares
-from pipeline.systems.base import PhysicsModel, SimResult, System, check_signal
+from pipeline.systems.base import PhysicsModel, SimResult, System, check_signal, lfilter
 
 
 def lagged(x: np.ndarray, lags) -> np.ndarray:

@@ -143,3 +143,10 @@ class System(ABC):
     @abstractmethod
     def physics(self) -> PhysicsModel:
         """The nominal physics model structure a user would derive for this plant."""
+
+
+def lfilter(b, a, x, axis: int = -1):
+    """``scipy.signal.lfilter``, imported on first use: scipy.signal is 0.6 s of a cached job's
+    start-up, which never filters (issue 19)."""
+    from scipy.signal import lfilter as _lfilter
+    return _lfilter(b, a, x, axis=axis)

@@ -28,9 +28,13 @@ Physics model: [B1] (32), :class:`LinearMotorPhysics`.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:   # annotations only; imported where used (start-up, issue 19)
+    import control as ct
+
 import math
 
-import control as ct
 import numpy as np
 from numba import njit
 
@@ -61,6 +65,7 @@ def lead_lag_controller(m: float, f_v: float, Ts: float, crossover_hz: float = 2
     (C_s, C_z) : StateSpace
         C(s) [N/m] and its Tustin discretisation (dt = Ts).
     """
+    import control as ct   # python-control on first use (1 s of every job's start-up)
     wc = 2.0 * math.pi * float(crossover_hz)
     wz, wp, wi, wl = wc / 3.0, 3.0 * wc, wc / 5.0, 10.0 * wc
     s = ct.tf("s")
@@ -424,14 +429,17 @@ class LinearMotor(System):
 
     def controller(self) -> ct.TransferFunction:
         """C(z): the Tustin-discretised lead-lag + integrator + low-pass [N/m], dt = Ts."""
+        import control as ct   # python-control on first use (1 s of every job's start-up)
         return ct.tf(self._Cz)
 
     def linear_plant(self) -> ct.StateSpace:
         """ZOH discretisation of the nominal rigid body P = 1/(m s² + f_v s) [m/N]."""
+        import control as ct   # python-control on first use (1 s of every job's start-up)
         return ct.sample_system(ct.ss(ct.tf([1.0], [self.m, self.f_v, 0.0])), self.Ts, "zoh")
 
     def sensitivity(self) -> ct.StateSpace:
         """S = 1/(1 + P C) of the nominal discrete loop."""
+        import control as ct   # python-control on first use (1 s of every job's start-up)
         return ct.feedback(ct.ss([], [], [], [[1.0]], dt=self.Ts), self.linear_plant() * self._Cz)
 
     def learning_model(self):
@@ -440,6 +448,7 @@ class LinearMotor(System):
 
     def process_sensitivity(self) -> ct.StateSpace:
         """PS = P/(1 + P C) of the nominal discrete loop [m/N] (from u_ff to y)."""
+        import control as ct   # python-control on first use (1 s of every job's start-up)
         return ct.feedback(self.linear_plant(), self._Cz)
 
     def noise(self, n: int, rng: np.random.Generator) -> np.ndarray:

@@ -21,7 +21,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import signal
 
 from pipeline.systems.base import System, check_signal
 from pipeline.systems.controller import LTIController
@@ -132,6 +131,7 @@ class RigidBodyPhysics(LinearMotorPhysics):
         (``scipy.signal.decimate``, zero phase) of τ and of every regressor column; ``trim``
         samples at each end are dropped (filter transients).  Returns (X = [q̈, T_1, …], τ, q, q̇)
         on the kept rows."""
+        from scipy import signal   # on first use: 0.6 s of every job's start-up
         y = check_signal("y", y)
         u = check_signal("u", u, y.shape[0])
         nyq = 0.5 / self.Ts
@@ -207,7 +207,8 @@ class RigidBodyPhysics(LinearMotorPhysics):
                 out[name] = share([col])
         if "cogging" not in have:
             travel = float(q.max() - q.min())
-            step = float(np.percentile(np.abs(np.diff(q)), 99.5)) if q.size > 1 else 0.0   # not the jumps between records
+            # the 99.5th percentile, not the max: the jumps between stacked records are not steps
+            step = float(np.percentile(np.abs(np.diff(q)), 99.5)) if q.size > 1 else 0.0
             lo, hi = 4 * step, travel / 3
             if travel > 0 and 0 < lo < hi:
                 best = (0.0, math.nan)

@@ -26,14 +26,17 @@ coefficients reach ~1e12 at Ts = 1e-3):
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:   # annotations only; imported where used (start-up, issue 19)
+    import control
+
 from collections.abc import Mapping
 
-import control
 import numpy as np
 from numba import njit
-from scipy.signal import lfilter
 
-from pipeline.systems.base import PhysicsModel, SimResult, System, check_signal
+from pipeline.systems.base import PhysicsModel, SimResult, System, check_signal, lfilter
 
 #: min over x of sech(x) (1 - x tanh x): the most negative slope of v ↦ sech(αv) v, per unit
 _MIN_SECH_SLOPE = -0.2511478713708375
@@ -330,6 +333,7 @@ class TwoMassStribeck(System):
 
         States ``[x1, v1, x2, v2]`` [m, m/s, m, m/s], input f [N], output x1 [m].
         """
+        import control   # python-control on first use (1 s of every job's start-up)
         c = self.c1 if damping is None else float(damping)
         m1, m2, k1, k2, d2 = self.m1, self.m2, self.k1, self.k2, self.d2
         A = np.array([[0.0, 1.0, 0.0, 0.0],
@@ -350,6 +354,7 @@ class TwoMassStribeck(System):
         ``ξ(k+1) = Φ ξ(k) + Γ f(k)``, ``y(k) = C Φ ξ(k) + C Γ f(k)``.  This is the model for
         norm-optimal ILC (SPEC §2.1: use damping c1).
         """
+        import control   # python-control on first use (1 s of every job's start-up)
         Phi, Gamma = self._backward_euler(self.c1 if damping is None else float(damping))
         C = np.array([[1.0, 0.0, 0.0, 0.0]])
         return control.ss(Phi, Gamma[:, None], C @ Phi, C @ Gamma[:, None], self.Ts)

@@ -1,7 +1,8 @@
 """data.kind=measured: load a measured record (Parquet/CSV with t, r, u, y(, d), or EMPS .mat).
 
 ``data.path`` is a file, or a folder holding ``data.file`` (the training record; EMPS:
-``DATA_EMPS``) or ``data.files`` (several training records, each a segment of the dataset).  Before any work (:func:`check`): the file exists and parses, every value is a
+``DATA_EMPS``) or ``data.files`` (several training records, each a segment of the dataset).
+Before any work (:func:`check`): the file exists and parses, every value is a
 finite, plausible number, the sample time (t column and/or sidecar ``Ts``) is positive,
 uniform, increasing and equal to ``system.Ts``; for a measured system (:class:`pipeline.systems.
 measured.Recording`) the file's controller constants match the config and the recorded force

@@ -116,7 +116,8 @@ def _with_checks(text: str, results: Path) -> str:
         out += [f"### Same numbers on {title} (`make reproduce-check CHECK={check}`, `{info.get('setting', '')}`)", "",
                 f"Per experiment, the largest relative change of a summary value between this run and the "
                 f"rerun, and how many moved by more than {rtol:.0%}; *ill-determined*: values below 1e-3 of the "
-                "largest value of their metric for their model in their experiment that moved only relative to themselves "
+                "largest value of their metric for their model in their experiment that moved only relative to "
+                "themselves "
                 f"(spread in results/check-{check}.csv). Claim verdicts changed: see results/check-{check}.md.", "",
                 "| experiment | values | largest relative change | at | moved > rtol | ill-determined |",
                 "| --- | --- | --- | --- | --- | --- |"]
@@ -124,7 +125,8 @@ def _with_checks(text: str, results: Path) -> str:
         for exp, g in k.groupby("experiment", sort=False):
             w = g.loc[g["rel_change"].idxmax()]
             key = "|".join(str(x) for x in (w["claim"], w["variant"], w["metric"]) if isinstance(x, str) and x)
-            out.append(f"| {exp} | {len(g)} | {w['rel_change']:.3g} | `{key}` | {int((g['rel_change'] > rtol).sum())} | "
+            moved = int((g["rel_change"] > rtol).sum())
+            out.append(f"| {exp} | {len(g)} | {w['rel_change']:.3g} | `{key}` | {moved} | "
                        f"{int(g['ill'].sum())} |")
         out.append("")
     if not out:

@@ -31,7 +31,8 @@ from pipeline.systems.arx_bias import ARXPhysics
 from pipeline.systems.measured import Recording
 
 THETA_STAR = ("arx", "sim_error", "oracle")   # oracle: the plant's true linear part (an oracle, simulation only)
-VERSION = 3   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zeros logged; 3: measured loop from the recorded state
+VERSION = 3   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zeros logged;
+              # 3: measured loop from the recorded state
 
 
 def check(cfg, system) -> None:
@@ -199,7 +200,8 @@ def _fit_measured(ctx) -> dict:
     n_trains = [int(round((1.0 - float(ident.val_fraction)) * len(g))) for g in segs]   # each record's head
     lam = float(cfg.regularizer.get("lam", 0.0))
     fit_ = identify_loop_sim_error(model, bool(system.physics.averaged_input), system.ctrl, sigs,
-                                   [col(g, "u") for g in segs], lam=lam, n_train=n_trains, n_restarts=int(ident.n_restarts), seed=int(cfg.seed),
+                                   [col(g, "u") for g in segs], lam=lam, n_train=n_trains,
+                                   n_restarts=int(ident.n_restarts), seed=int(cfg.seed),
                                    max_iter=int(ident.max_iter), ftol=float(ident.ftol), gtol=float(ident.gtol),
                                    mu0=float(ident.mu0), memo=restart_memo(ctx), geodesic=bool(ident.geodesic),
                                    stat_window=int(ident.stat_window), stat_tol=float(ident.stat_tol),

@@ -114,10 +114,11 @@ def markdown(summary: pd.DataFrame, rtol: float, check: str, setting: str) -> st
 
 
 def summary_digest(path: Path) -> str:
-    """sha256 of a summary.csv's content (rows sorted by key, values as text), not of its bytes: a
-    report that rewrites the same rows keeps the digest."""
+    """sha256 of a summary.csv's content (rows sorted by key, values as text, timings left out as
+    in :func:`compare`), not of its bytes: a rerun with the same results keeps the digest."""
     import hashlib
     t = pd.read_csv(path, dtype=str, keep_default_na=False)
+    t = t[~t["metric"].map(_is_timing)]
     t = t.sort_values([c for c in KEY if c in t.columns], kind="stable").reset_index(drop=True)
     return hashlib.sha256(t.to_csv(index=False).encode()).hexdigest()
 

@@ -235,8 +235,9 @@ EDGE_WINDOW = 0.06
 def _after_disturbance_edges(d, tau, tau_hat, n: int, start: int = 0) -> dict[str, float]:
     """Where the force error sits relative to the disturbance steps (EMPS test pulses): the share of
     ‖τ - τ̂‖² within ``n`` samples after a step of d, and the relative force error outside them."""
+    edges = np.flatnonzero(np.diff(np.asarray(d)) != 0) + 1     # on the whole record: a step at `start` counts
+    edges = edges[edges >= start] - start
     d, tau, tau_hat = (np.asarray(x)[start:] for x in (d, tau, tau_hat))
-    edges = np.flatnonzero(np.diff(d) != 0) + 1
     if edges.size == 0:
         return {}
     near = np.zeros(len(tau), bool)

@@ -166,3 +166,14 @@ def test_rk4_replay_of_a_mass_equals_the_one_step_replay_from_a_noisy_record():
     for n in (1, 16):
         _, tau_c = replay_rk4(phys, th, ctrl, sig, n)
         assert np.linalg.norm(tau_c - tau1) <= 1e-9 * np.linalg.norm(tau1), n
+
+
+def test_a_disturbance_step_at_the_first_scored_sample_counts():
+    """The force-error share after disturbance steps, scored from sample 20: a step exactly at 20
+    is a step (found on the whole record, then windowed), like one later on."""
+    from stages.evaluate import _after_disturbance_edges
+    tau, tau_hat = np.ones(100), np.zeros(100)
+    for k in (20, 50):
+        d = np.zeros(100)
+        d[k:] = 1.0
+        assert _after_disturbance_edges(d, tau, tau_hat, 5, 20)["data/force_error_share_after_steps"] == 5 / 80

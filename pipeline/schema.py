@@ -510,6 +510,7 @@ class SkOe:
     cost_tol: float = spec(1e-7, ge=0, lt=1)
     stall_window: int = spec(10, ge=0, le=ITER_MAX)
     stall_tol: float = spec(1e-3, ge=0, lt=1)
+    output_tol: float = spec(0.0, ge=0, lt=1)
 
 
 @schema

@@ -207,3 +207,29 @@ def test_restarts_in_processes_equal_restarts_in_process(problem):
     b = sk_restarts([_pgnn(rs, seed=s) for s in (1, 2)], rs, fs, n_jobs=2, **kw)
     assert [r.J_OE for r, *_ in a] == [r.J_OE for r, *_ in b]
     assert job_cores() >= 1      # outside a Hydra multirun: every core of this process
+
+
+def test_sk_output_change_is_the_output_step_over_the_output_error(problem):
+    """output_change = ‖F^j(r) − F^{j−1}(r)‖ / √J_OE^j (recomputed here from the iterates' θ, φ);
+    with output_tol the 'tol' stop also waits for it, so the stopping step's output moved by at most
+    output_tol of its error, and no earlier step with a converged inner solve met both tests."""
+    rs, fs = problem
+    res = sk_iterations(_pgnn(rs, seed=4), rs, fs, regularizer="none", lam=0.0, max_iter=50,
+                        tol=1e-4, output_tol=1e-6, **LM)
+    assert res.message == "tol" and res.converged
+
+    def out(it):
+        m = _pgnn(rs, seed=4)
+        m.set_theta(it.theta)
+        m.set_phi(torch.from_numpy(it.phi))
+        with torch.no_grad():
+            return np.concatenate([y for y in m.feedforward(rs)])
+
+    its = res.iterates
+    for a, b in zip(its[-3:-1], its[-2:]):
+        want = np.linalg.norm(out(b) - out(a)) / np.sqrt(b.J_OE)
+        assert b.output_change == pytest.approx(want, rel=1e-6, abs=1e-12)
+    assert its[-1].output_change <= 1e-6
+    assert not any(it.change < 1e-4 and it.lm_converged and it.output_change <= 1e-6 for it in its[1:-1])
+    plain = sk_iterations(_pgnn(rs, seed=4), rs, fs, regularizer="none", lam=0.0, max_iter=50, tol=1e-4, **LM)
+    assert len(plain.iterates) <= len(its)

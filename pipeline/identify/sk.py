@@ -86,6 +86,9 @@ class SKIterate:
         computed with λ > 0).
     change : float
         Relative parameter change from the previous iterate (column-scaled θ, and φ).
+    output_change : float
+        Change of the model's output on the training data from the previous iterate, relative to
+        this iterate's output error: ‖F^j(r) − F^{j-1}(r)‖ / ‖f̂ − F^j(r)‖ = ‖Δŷ‖ / √J_OE.
     n_reflected : int
         Roots of B reflected into the unit circle after this step.
     condition : float
@@ -114,6 +117,7 @@ class SKIterate:
     J_weighted: float = math.nan
     regularizer: float = 0.0
     change: float = math.inf
+    output_change: float = math.inf
     n_reflected: int = 0
     condition: float = math.nan
     n_truncated: int = 0
@@ -225,12 +229,19 @@ def _has_approximator(model) -> bool:
     return hasattr(model, "g_and_jacobian")
 
 
-def oe_cost(model: RationalFeedforward, data: dict) -> float:
-    """J_OE = ‖f̂ − F_θ,φ(r)‖² ([K] (7)) [N²]; inf when B is unstable."""
+def _oe_output(model: RationalFeedforward, data: dict) -> np.ndarray | None:
+    """F_θ,φ(r), the model's output on the training references; None when B is unstable."""
     if not model.is_stable():
-        return math.inf
+        return None
     with torch.no_grad():
-        f = model.simulate(data["inputs"]).numpy()
+        return model.simulate(data["inputs"]).numpy()
+
+
+def oe_cost(model: RationalFeedforward, data: dict, output: np.ndarray | None = None) -> float:
+    """J_OE = ‖f̂ − F_θ,φ(r)‖² ([K] (7)) [N²]; inf when B is unstable."""
+    f = _oe_output(model, data) if output is None else output
+    if f is None:
+        return math.inf
     e = data["f"] - f
     c = float(e @ e)
     return c if math.isfinite(c) else math.inf
@@ -363,7 +374,7 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
                   regularizer: str = "orthogonal", lam: float = 1.0, column_scale: bool = True,
                   init: str = "equation_error", lm_max_iter: int = 100, lm_ftol: float = 1e-10,
                   lm_gtol: float = 1e-10, geodesic: bool = False, cost_tol: float = 0.0,
-                  stall_window: int = 0, stall_tol: float = 1e-3,
+                  stall_window: int = 0, stall_tol: float = 1e-3, output_tol: float = 0.0,
                   rank_rtol: float | None = None, weighted_rank: str = "truncate",
                   callback: Callable[[SKIterate], None] | None = None) -> SKResult:
     """Identify a [K] feedforward by SK iterations ([K] Alg. 5; Alg. 19 with the regulariser).
@@ -386,6 +397,12 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
         converged: the fixed point in cost where the parameters are not unique (the
         unregularised PGNN, [K] K2: g_φ and θ trade along directions that leave the fit
         unchanged, so a parameter-change test never passes).  0 = off.
+    output_tol : float
+        With ``output_tol > 0`` the 'tol' and 'cost_tol' stops also need the step's output change
+        ‖Δŷ‖/√J_OE (:attr:`SKIterate.output_change`) at most ``output_tol``: the model's output
+        moved by a small fraction of its own error, so what is computed from it (a tracking error,
+        which is that error propagated) has settled to about that fraction (issue 19: parameters
+        changing by 1e-6 still moved the regularised PGNN's held-out tracking by 6 %).
     stall_window, stall_tol : int, float
         Stop (reason 'stalled') when the best criterion over the iterates has not fallen by more
         than ``stall_tol`` of itself for ``stall_window`` iterations whose inner solves converged:
@@ -440,6 +457,9 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
     seg, M, f = data["segments"], data["M"], data["f"]
     lm_kw = dict(max_iter=lm_max_iter, ftol=lm_ftol, gtol=lm_gtol, geodesic=geodesic)
     tol, cost_tol = tol / TIGHTEN, cost_tol / TIGHTEN   # make reproduce-check CHECK=tighten (lm.TIGHTEN)
+    output_tol = output_tol / TIGHTEN
+    if not output_tol >= 0:
+        raise ValueError(f"output_tol must be >= 0, got {output_tol}")
     stall_tol = stall_tol / TIGHTEN
     if int(stall_window) < 0 or not stall_tol >= 0:
         raise ValueError(f"stall_window must be >= 0 and stall_tol >= 0, got {stall_window}, {stall_tol}")
@@ -457,7 +477,8 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
     if lam_eff > 0:                                # R^0 with the weighting of j = 0 (B^0 = 1)
         with torch.no_grad():
             reg0 = float(orthogonal_regularizer(sub0, model.exogenous_extra(data["inputs"]).numpy()))
-    iterates = [SKIterate(j=0, theta=snap[0], phi=snap[1], g_gain=snap[2], J_OE=oe_cost(model, data),
+    y_prev = _oe_output(model, data)
+    iterates = [SKIterate(j=0, theta=snap[0], phi=snap[1], g_gain=snap[2], J_OE=oe_cost(model, data, y_prev),
                           regularizer=reg0, n_reflected=n_ref, lm_message="initialisation",
                           seconds=time.perf_counter() - t0)]
     reflected = [0] if n_ref else []
@@ -498,8 +519,14 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
         if has_g:
             change = max(change, float(np.linalg.norm(snap[1] - prev.phi)
                                        / max(np.linalg.norm(snap[1]), 1e-300)))
-        it = SKIterate(j=j, theta=snap[0], phi=snap[1], g_gain=snap[2], J_OE=oe_cost(model, data),
-                       J_weighted=J_w, regularizer=reg, change=change, n_reflected=n_ref,
+        y_now = _oe_output(model, data)
+        J_OE = oe_cost(model, data, y_now)
+        out_change = math.inf if y_now is None or y_prev is None or not J_OE > 0 else \
+            float(np.linalg.norm(y_now - y_prev) / math.sqrt(J_OE))
+        y_prev = y_now
+        it = SKIterate(j=j, theta=snap[0], phi=snap[1], g_gain=snap[2], J_OE=J_OE,
+                       J_weighted=J_w, regularizer=reg, change=change, output_change=out_change,
+                       n_reflected=n_ref,
                        condition=sub.condition, n_truncated=sub.n_truncated, lm_iter=lm_iter,
                        lm_message=lm_msg, lm_converged=lm_conv, weighting=den.copy(),
                        seconds=time.perf_counter() - t0)
@@ -508,12 +535,13 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
             callback(it)
         # converged: the parameters stopped moving *and* this step's inner solve converged (a
         # small change from an LM stopped on its cap is not a fixed point of the SK map)
-        if change < tol and it.lm_converged:
+        settled = output_tol <= 0 or out_change <= output_tol
+        if change < tol and it.lm_converged and settled:
             converged, message = True, "tol"
             break
         # ... or the criterion stopped moving ([K] (30): J_OE + λR; cost_tol > 0 only)
         J_prev, J_now = prev.J_OE + lam_eff * prev.regularizer, it.J_OE + lam_eff * it.regularizer
-        if cost_tol > 0 and it.lm_converged and abs(J_now - J_prev) <= cost_tol * abs(J_prev):
+        if cost_tol > 0 and it.lm_converged and settled and abs(J_now - J_prev) <= cost_tol * abs(J_prev):
             converged, message = True, "cost_tol"
             break
         # ... or, without a fixed point, the best criterion stopped improving (stall_window > 0 only)

@@ -118,7 +118,8 @@ def fit(ctx) -> dict:
               lam=float(cfg.regularizer.lam) if reg == "orthogonal" else 0.0,
               lm_max_iter=int(ident.lm_max_iter), lm_ftol=float(ident.lm_ftol),
               lm_gtol=float(ident.lm_gtol), geodesic=bool(ident.geodesic), cost_tol=float(ident.cost_tol),
-              stall_window=int(ident.stall_window), stall_tol=float(ident.stall_tol))
+              stall_window=int(ident.stall_window), stall_tol=float(ident.stall_tol),
+              output_tol=float(ident.output_tol))
     n_restarts = int(ident.n_restarts) if is_pgnn else 1
     seeds = [int(ctx.rng(f"train/restart{i}").integers(2**31 - 1)) for i in range(n_restarts)]
     models = [build_model(m, ds.Ts, rs, s) for s in seeds]
@@ -175,6 +176,7 @@ def fit(ctx) -> dict:
         ctx.metric("sk_J_weighted", it.J_weighted, step=it.j)
         ctx.metric("sk_regularizer", it.regularizer, step=it.j)
         ctx.metric("sk_param_change", it.change, step=it.j)
+        ctx.metric("sk_output_change", it.output_change, step=it.j)
         ctx.metric("sk_seconds", it.seconds, step=it.j)
         ctx.metric("sk_condition", it.condition, step=it.j)
         ctx.metric("sk_truncated", it.n_truncated, step=it.j)
@@ -186,6 +188,7 @@ def fit(ctx) -> dict:
     ctx.metric("best_iterate", res.best)
     ctx.metric("sk_iterations", len(res.iterates) - 1)
     ctx.metric("sk_last_change", res.iterates[-1].change)
+    ctx.metric("sk_last_output_change", res.iterates[-1].output_change)
     ctx.metric("sk_tol", res.tol)
     ctx.metric("sk_stopped_on_tol", float(res.converged))
     ctx.metric("sk_inner_capped", res.n_inner_capped)

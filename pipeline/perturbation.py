@@ -31,8 +31,23 @@ KEY = ["experiment", "claim", "variant", "metric"]
 #: error of 1e-12 where the same model's error on another reference is 1e-6); one that still moves
 #: is reported as ill-determined, with its spread (both values), not counted as moved
 SCALE_FLOOR = 1e-3
+#: the summary row of a trained model's training cost (what its fit minimised); a value row belongs to
+#: the fit whose variant is its longest '/'-prefix (``equation/sigma1e-08/direct`` for
+#: ``equation/sigma1e-08/direct/v0.05``)
+FIT_METRIC = "fit_cost"
+#: two fits whose training costs agree to this fraction are equally good fits of the same data: a value
+#: computed from them that still moves is not determined by the data (the nonconvex fit has several
+#: parameter vectors of that cost: different tracking errors at one training error), reported as
+#: ill-determined with its spread. A fit whose cost moved more than this landed somewhere else: its
+#: values count as moved
+FIT_RTOL = 1e-3
 #: metrics that measure the machine, not the result
 _TIMING = ("seconds", "time", "wall", "_ms", "per_sample_ns", "ns_per_sample")
+#: metrics that describe the solver's path, not its result: iteration counts, the last step's size, the
+#: tolerance itself (a setting: tightened on purpose), a check LM's remaining gain, and rounding-level
+#: differences of the exported C/Python laws from the study (1e-15 -> 2e-15 is not a result moving)
+_SOLVER_PATH = ("iterations", "rel_change", "sk_tol", "oe_check_max_iter", "oe_check_improvement",
+                "c_max_rel_diff", "python_max_rel_diff")
 
 
 def _is_timing(metric: str) -> bool:
@@ -40,15 +55,38 @@ def _is_timing(metric: str) -> bool:
     return any(t in m for t in _TIMING)
 
 
+def _is_solver_path(metric: str) -> bool:
+    return any(t in metric for t in _SOLVER_PATH)
+
+
+def _fit_of(variants: pd.Series, fits: set[str]) -> list[str]:
+    """Per variant, the longest '/'-prefix of it that is a fit's variant ('' if none)."""
+    out = []
+    for v in variants:
+        parts, hit = str(v).split("/"), ""
+        for n in range(len(parts), 0, -1):
+            if "/".join(parts[:n]) in fits:
+                hit = "/".join(parts[:n])
+                break
+        out.append(hit)
+    return out
+
+
+#: per-key category (``compare``): counted as moved only in 'moved'
+CATEGORIES = ("same", "moved", "tiny", "equal_fit", "solver_path")
+
+
 def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Per key (reference value, perturbed value, relative change) and per experiment a summary.
+    """Per key (reference value, perturbed value, relative change, category) and per experiment a summary.
 
     The relative change is |a - b| / max(|a|, |b|, floor) (0 when both are 0, 1 when one is NaN and
     the other not), floor = SCALE_FLOOR × the largest |reference value| of the same metric for the
-    same model (first part of the variant) in the same experiment; a value whose change exceeds
-    ``rtol`` only because it is below that floor is ``ill_determined`` (its spread is the two
-    values), not counted in ``n_above_rtol``.  Keys on one side only are counted per experiment
-    (``keys_on_one_side``), not compared; only the experiments of ``perturbed`` are compared (a check of a subset)."""
+    same model (first part of the variant) in the same experiment.  Categories: ``solver_path``
+    (iterations, step sizes, tolerances: listed, not compared); ``tiny`` (within ``rtol`` of the floor,
+    not of itself: ill-determined); ``equal_fit`` (moved by more than ``rtol``, but the fit it comes
+    from reached the same training cost to FIT_RTOL on both sides: ill-determined by the data);
+    ``moved``; ``same``.  Keys on one side only are counted per experiment (``keys_on_one_side``),
+    not compared; only the experiments of ``perturbed`` are compared (a check of a subset)."""
     b = perturbed.copy()
     a = reference[reference["experiment"].isin(set(b["experiment"]))].copy()   # a subset rerun: its experiments
     for d in (a, b):
@@ -68,24 +106,86 @@ def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02
     both_nan = np.isnan(va) & np.isnan(vb)
     rel = np.where(both_nan, 0.0, np.where(np.isnan(va) | np.isnan(vb), 1.0, rel))
     one_side = m["_merge"].to_numpy() != "both"
-    m = m.assign(rel_change=np.where(one_side, np.nan, rel),
-                 ill_determined=~one_side & (rel <= rtol) & (rel_raw > rtol) & ~np.isnan(va) & ~np.isnan(vb))
+    m = m.assign(rel_change=np.where(one_side, np.nan, rel), rel_raw=rel_raw)
     missing = m[one_side].groupby("experiment").size()
-    m = m[~one_side]
-    rows = []
+    m = m[~one_side].copy()
+    # the fit each value comes from, and how far that fit's training cost moved
+    fit_rows = m[m["metric"] == FIT_METRIC]
+    fit_change = {(e, v): c for e, v, c in zip(fit_rows["experiment"], fit_rows["variant"], fit_rows["rel_change"])}
+    m["fit"] = ""
     for exp, g in m.groupby("experiment", sort=False):
-        i = int(np.argmax(g["rel_change"].to_numpy()))
-        worst = g.iloc[i]
-        verdicts = g[g["claim_holds_ref"].astype(str) != g["claim_holds_pert"].astype(str)]
-        verdicts = verdicts[verdicts["claim"] != ""]
-        rows.append({"experiment": exp, "values": len(g), "max_rel_change": float(worst["rel_change"]),
-                     "worst_key": f"{worst['claim']}|{worst['variant']}|{worst['metric']}".strip("|"),
-                     "n_above_rtol": int((g["rel_change"] > rtol).sum()),
-                     "n_ill_determined": int(g["ill_determined"].sum()),
+        fits = {v for (e, v) in fit_change if e == exp}
+        m.loc[g.index, "fit"] = _fit_of(g["variant"], fits) if fits else ""
+    m["fit_rel_change"] = [fit_change.get((e, f), np.nan) if f else np.nan
+                           for e, f in zip(m["experiment"], m["fit"])]
+    r, rr = m["rel_change"].to_numpy(float), m["rel_raw"].to_numpy(float)
+    nan_one = m["value_ref"].isna().to_numpy() | m["value_pert"].isna().to_numpy()
+    cat = np.where(r > rtol, "moved", np.where((rr > rtol) & ~nan_one, "tiny", "same"))
+    equal_fit = (cat == "moved") & (m["fit_rel_change"].to_numpy(float) <= FIT_RTOL) & (m["metric"] != FIT_METRIC)
+    cat = np.where(equal_fit, "equal_fit", cat)
+    cat = np.where(m["metric"].map(_is_solver_path).to_numpy(bool), "solver_path", cat)
+    m["category"] = cat
+    m["ill_determined"] = np.isin(cat, ("tiny", "equal_fit"))
+    cols = KEY + ["value_ref", "value_pert", "rel_change", "category", "ill_determined", "fit", "fit_rel_change",
+                  "claim_holds_ref", "claim_holds_pert"]
+    keys = m[cols]
+    return keys, summarise(keys, rtol, missing.to_dict())
+
+
+def summarise(keys: pd.DataFrame, rtol: float, one_side: dict | None = None) -> pd.DataFrame:
+    """Per experiment, from :func:`compare`'s keys (or check-<check>.csv): result values compared, the
+    largest relative change among them and its key, how many moved, how many are ill-determined (tiny,
+    equal fits), how many fits landed elsewhere (training cost moved > FIT_RTOL), verdicts changed."""
+    one_side = one_side or {}
+    rows = []
+    for exp, g in keys.groupby("experiment", sort=False):
+        cat = g["category"].astype(str)
+        res = g[cat != "solver_path"]
+        counted = res[cat[res.index] == "moved"]
+        pool = counted if len(counted) else res
+        worst = pool.sort_values("rel_change", kind="stable").iloc[-1] if len(pool) else None
+        fits = g[g["metric"] == FIT_METRIC]
+        verdicts = g[g["claim_holds_ref"].astype(str) != g["claim_holds_pert"].astype(str)] \
+            if "claim_holds_ref" in g else g.iloc[:0]
+        verdicts = verdicts[verdicts["claim"].fillna("") != ""]
+        rows.append({"experiment": exp, "values": len(res),
+                     "max_rel_change": float(pool["rel_change"].max()) if len(pool) else 0.0,
+                     "worst_key": "" if worst is None else
+                     "|".join(str(x) for x in (worst["claim"], worst["variant"], worst["metric"])
+                              if isinstance(x, str) and x),
+                     "n_above_rtol": int(len(counted)),
+                     "n_ill_determined": int((cat == "tiny").sum()),
+                     "n_equal_fit": int((cat == "equal_fit").sum()),
+                     "fits_moved": f"{int((fits['rel_change'] > FIT_RTOL).sum())} of {len(fits)}",
+                     "n_solver_path": int((cat == "solver_path").sum()),
                      "verdicts_changed": int(verdicts["claim"].nunique()),
-                     "keys_on_one_side": int(missing.get(exp, 0))})
-    cols = KEY + ["value_ref", "value_pert", "rel_change", "ill_determined"]
-    return m[cols], pd.DataFrame(rows)
+                     "keys_on_one_side": int(one_side.get(exp, 0))})
+    return pd.DataFrame(rows)
+
+
+def table_lines(summary: pd.DataFrame) -> list[str]:
+    """The per-experiment table of a check (check-<check>.md and REPORT.md show the same one)."""
+    lines = ["| experiment | values | largest relative change (of the moved ones) | at | moved > rtol "
+             "| ill-determined: tiny | ill-determined: equal fits | fits moved > 0.1 % | claim verdicts changed "
+             "| solver-path values (not compared) |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in summary.itertuples():
+        lines.append(f"| {r.experiment} | {r.values} | {r.max_rel_change:.3g} | `{r.worst_key}` | "
+                     f"{r.n_above_rtol} | {r.n_ill_determined} | {r.n_equal_fit} | {r.fits_moved} | "
+                     f"{r.verdicts_changed} | {r.n_solver_path} |")
+    return lines
+
+
+EXPLAIN = (f"A value below {SCALE_FLOOR:g} of the largest value of its metric for its model in its experiment is "
+           "compared against that floor: where it moves only relative to itself it is *ill-determined: tiny* (a "
+           "tracking error of 1e-12 where the same model errs by 1e-6 on another reference). A value that moves "
+           f"although the fit it comes from reached the same training cost (`{FIT_METRIC}` rows, to "
+           f"{FIT_RTOL:.1%}) is *ill-determined: equal fits*: the data do not determine it (the nonconvex fit has "
+           "several parameter vectors of that cost, with different tracking); its spread is both values in the "
+           "csv. *Fits moved*: trained models whose training cost moved by more than that, i.e. landed "
+           "elsewhere; their values count as moved. Solver-path values (iteration counts, the last step's size, "
+           "the tolerance itself, a check LM's remaining gain, rounding-level C/Python differences) are listed, "
+           "not compared. Ratios of two fits are attached to the first.")
 
 
 _WHAT = {"perturb": ("Perturbation check (a second machine, emulated)",
@@ -99,17 +199,8 @@ def markdown(summary: pd.DataFrame, rtol: float, check: str, setting: str) -> st
     lines = [f"# {title}", "",
              f"The whole `make reproduce` rerun with {what} (`{setting}`); values compared key by "
              f"key with the reference `summary.csv` (timings left out). A value that moves by more "
-             f"than {rtol:.0%} comes from a fit that its tolerance does not pin down. A value below "
-             f"{SCALE_FLOOR:g} of the largest value of its metric for its model in its experiment is "
-             "compared against that floor: where it moves only relative to itself it is counted as "
-             "*ill-determined* (e.g. a tracking error of 1e-12 where the same model errs by 1e-6 on "
-             "another reference), its spread in the csv.", "",
-             "| experiment | values | largest relative change | at | moved > rtol | ill-determined (tiny) "
-             "| claim verdicts changed | keys on one side only |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for r in summary.itertuples():
-        lines.append(f"| {r.experiment} | {r.values} | {r.max_rel_change:.3g} | `{r.worst_key}` | "
-                     f"{r.n_above_rtol} | {r.n_ill_determined} | {r.verdicts_changed} | {r.keys_on_one_side} |")
+             f"than {rtol:.0%} comes from a fit that its tolerance does not pin down. " + EXPLAIN, ""]
+    lines += table_lines(summary)
     return "\n".join(lines) + "\n"
 
 
@@ -151,7 +242,8 @@ def main(argv=None) -> int:
     import json
     _atomic_write(out / f"check-{args.check}.json", json.dumps({   # the report shows the check of this summary only
         "reference_sha256": summary_digest(Path(args.reference)),
-        "setting": args.setting, "rtol": args.rtol}, indent=1) + "\n")
+        "setting": args.setting, "rtol": args.rtol,
+        "keys_on_one_side": {r.experiment: r.keys_on_one_side for r in summary.itertuples()}}, indent=1) + "\n")
     print(md)
     return 0
 

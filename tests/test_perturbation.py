@@ -106,18 +106,56 @@ def test_tightening_check_flags_a_deliberately_unconverged_fit():
 
 def test_report_shows_the_check_of_its_own_summary_only(tmp_path):
     """The report's check section comes from check-perturb.csv when check-perturb.json names this
-    summary.csv's sha256; a check of another summary is named stale."""
+    summary.csv's sha256 (the same table as check-perturb.md); a check of another summary is named
+    stale, one written before the categories existed is named old."""
     import json
-    from pipeline.perturbation import summary_digest
+    from pipeline.perturbation import markdown, summary_digest
     from stages.report import _with_checks
+
+    def table(v):
+        return pd.DataFrame({"experiment": ["k", "k"], "claim": ["", ""], "variant": ["a/r1", "a/r2"],
+                             "metric": ["m", "m"], "value": v, "paper_value": [None] * 2, "claim_holds": [None] * 2})
     (tmp_path / "summary.csv").write_text("experiment,claim,variant,metric,value\nk,,a,m,1\n")
-    pd.DataFrame({"experiment": ["k", "k"], "claim": ["", ""], "variant": ["a", "b"], "metric": ["m", "m"],
-                  "value_ref": [1.0, 1e-9], "value_pert": [1.5, 2e-9], "rel_change": [1 / 3, 5e-8],
-                  "ill_determined": [False, True]}).to_csv(tmp_path / "check-perturb.csv", index=False)
+    keys, summ = compare(table([1.0, 1e-9]), table([1.5, 2e-9]), rtol=0.02)
+    keys.to_csv(tmp_path / "check-perturb.csv", index=False)
     digest = summary_digest(tmp_path / "summary.csv")
     (tmp_path / "check-perturb.json").write_text(json.dumps({"reference_sha256": digest, "setting": "P=1e-13",
                                                               "rtol": 0.02}))
     md = _with_checks("# Results\n\nhead\n\n## k\n\nsection\n", tmp_path)
-    assert "| k | 2 | 0.333 | `a|m` | 1 | 1 |" in md and md.index("Same numbers") < md.index("## k")
+    line = "| k | 2 | 0.333 | `a/r1|m` | 1 | 1 | 0 | 0 of 0 | 0 | 0 |"
+    assert line in md and md.index("Same numbers") < md.index("## k")
+    assert line in markdown(summ, 0.02, "perturb", "P=1e-13")
+    keys.drop(columns=["category"]).to_csv(tmp_path / "check-perturb.csv", index=False)
+    assert "older version" in _with_checks("# Results\n\n## k\n", tmp_path)
     (tmp_path / "check-perturb.json").write_text(json.dumps({"reference_sha256": "0" * 64}))
     assert "(stale)" in _with_checks("# Results\n\n## k\n", tmp_path)
+
+
+def test_values_of_equal_fits_are_ill_determined_and_of_moved_fits_moved():
+    """A value row belongs to the fit whose variant is its longest '/'-prefix. Fit 'eq/direct' reached
+    the same training cost on both sides (5e-5 relative < FIT_RTOL 1e-3): its tracking value that moved
+    30 % is ill-determined (equal fits), not moved; fit 'eq/newton' landed 5 % higher: its value that
+    moved counts as moved, and so does the fit's own cost row; 'eq/directly' is not under 'eq/direct'.
+    Iteration counts are solver path, listed but not compared."""
+    from pipeline.perturbation import FIT_METRIC, FIT_RTOL
+
+    rows = [("eq/direct", FIT_METRIC, 1.0, 1.00005), ("eq/direct/v0.05", "mae", 1e-6, 1.3e-6),
+            ("eq/newton", FIT_METRIC, 1.0, 1.05), ("eq/newton/v0.05", "mae", 1e-6, 1.3e-6),
+            ("eq/directly/v0.05", "mae", 2e-6, 2.6e-6), ("eq/direct", "sk_iterations", 4.0, 9.0)]
+
+    def table(i):
+        return pd.DataFrame({"experiment": ["b1"] * len(rows), "claim": [""] * len(rows),
+                             "variant": [r[0] for r in rows], "metric": [r[1] for r in rows],
+                             "value": [r[i] for r in rows], "paper_value": [None] * len(rows),
+                             "claim_holds": [None] * len(rows)})
+    keys, summ = compare(table(2), table(3), rtol=0.02)
+    k = keys.set_index(["variant", "metric"])["category"]
+    assert 5e-5 < FIT_RTOL
+    assert k[("eq/direct/v0.05", "mae")] == "equal_fit" and k[("eq/direct", FIT_METRIC)] == "same"
+    assert k[("eq/newton/v0.05", "mae")] == "moved" and k[("eq/newton", FIT_METRIC)] == "moved"
+    assert k[("eq/directly/v0.05", "mae")] == "moved" and k[("eq/direct", "sk_iterations")] == "solver_path"
+    assert keys.set_index(["variant", "metric"]).loc[("eq/direct/v0.05", "mae"), "fit"] == "eq/direct"
+    s = summ.iloc[0]
+    got = (s["values"], s["n_above_rtol"], s["n_equal_fit"], s["fits_moved"], s["n_solver_path"])
+    assert got == (5, 3, 1, "1 of 2", 1)
+    assert s["max_rel_change"] == pytest.approx(0.3 / 1.3)

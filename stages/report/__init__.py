@@ -98,7 +98,7 @@ def _with_checks(text: str, results: Path) -> str:
     """REPORT.md with a section per reproduce-check (pipeline/perturbation.py) made against this very
     summary.csv (its sha256 in check-<check>.json); a check of another summary is named stale."""
     import json
-    from pipeline.perturbation import summary_digest
+    from pipeline.perturbation import EXPLAIN, summarise, summary_digest, table_lines
     digest = summary_digest(results / "summary.csv")
     out = []
     for check, title in (("perturb", "a second machine, emulated"), ("tighten", "tolerances tightened 10x")):
@@ -110,24 +110,19 @@ def _with_checks(text: str, results: Path) -> str:
             out += [f"`make reproduce-check CHECK={check}` ({title}): results/check-{check}.md compares another "
                     "summary.csv than this one (stale); rerun it.", ""]
             continue
-        k = pd.read_csv(csv)
+        k = pd.read_csv(csv, dtype={"claim": str, "variant": str, "metric": str})
         rtol = float(info.get("rtol", 0.02))
-        ill = k["ill_determined"].astype(str).str.lower() == "true" if "ill_determined" in k else False
+        if "category" not in k:
+            out += [f"`make reproduce-check CHECK={check}`: results/check-{check}.csv was written by an older "
+                    "version of the check (no categories); rerun it.", ""]
+            continue
+        k[["claim", "variant"]] = k[["claim", "variant"]].fillna("")
+        keys_one_side = info.get("keys_on_one_side", {})
         out += [f"### Same numbers on {title} (`make reproduce-check CHECK={check}`, `{info.get('setting', '')}`)", "",
                 f"Per experiment, the largest relative change of a summary value between this run and the "
-                f"rerun, and how many moved by more than {rtol:.0%}; *ill-determined*: values below 1e-3 of the "
-                "largest value of their metric for their model in their experiment that moved only relative to "
-                "themselves "
-                f"(spread in results/check-{check}.csv). Claim verdicts changed: see results/check-{check}.md.", "",
-                "| experiment | values | largest relative change | at | moved > rtol | ill-determined |",
-                "| --- | --- | --- | --- | --- | --- |"]
-        k = k.assign(ill=ill)
-        for exp, g in k.groupby("experiment", sort=False):
-            w = g.loc[g["rel_change"].idxmax()]
-            key = "|".join(str(x) for x in (w["claim"], w["variant"], w["metric"]) if isinstance(x, str) and x)
-            moved = int((g["rel_change"] > rtol).sum())
-            out.append(f"| {exp} | {len(g)} | {w['rel_change']:.3g} | `{key}` | {moved} | "
-                       f"{int(g['ill'].sum())} |")
+                f"rerun, and how many moved by more than {rtol:.0%}. " + EXPLAIN +
+                f" Per key: results/check-{check}.csv.", ""]
+        out += table_lines(summarise(k, rtol, keys_one_side))
         out.append("")
     if not out:
         return text

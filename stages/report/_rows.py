@@ -14,3 +14,11 @@ def run_metrics(run: pd.Series) -> dict[str, float]:
     """``{<stage>/<name>: value}`` of the run's logged metrics (missing ones left out)."""
     return {c[len("metrics."):]: float(run[c]) for c in run.index
             if c.startswith("metrics.") and pd.notna(run[c])}
+
+
+def fit_cost_row(experiment, variant, metrics: dict, key: str = "train/cost") -> list[dict]:
+    """The ``fit_cost`` row of a trained model (its training cost; [] if the run has none): the
+    reproduce checks (pipeline/perturbation.py) tell from it whether a fit landed elsewhere."""
+    from pipeline.perturbation import FIT_METRIC
+    v = metrics.get(key)
+    return [] if v is None else [row(experiment, variant, FIT_METRIC, v)]

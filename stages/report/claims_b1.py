@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 
 from stages.report._figures import copy_figures, load_errors
-from stages.report._rows import row, run_metrics
+from stages.report._rows import fit_cost_row, row, run_metrics
 
 EXPERIMENTS = ("b1_arx_bias", "b1_linear_motor", "b1_noise_sweep")
 METHODS = ("physics", "direct", "newton", "analytic")
@@ -111,6 +111,7 @@ def _linear_motor(experiment, runs, figdir):
                   "| --- |" + " --- |" * (len(refs) + 1)]
         for mt in have:
             m = table[(noise, mt)]
+            rows += fit_cost_row(experiment, f"{noise}/{mt}", m)
             vals = [m.get(f"evaluate/{r}/mae") for r in refs]
             peak = m.get("evaluate/v0.15/max_abs")
             lines.append(f"| {LABEL[mt]} | " + " | ".join("" if v is None else f"{v:.3g}" for v in vals)
@@ -452,6 +453,7 @@ def _noise_sweep(experiment, runs, figdir):
                     vals.append("" if v is None else f"{v:.3g}")
             lines.append(f"| {s} | {sg:g} | " + " | ".join(vals) + " |")
             for mt in METHODS:
+                rows += fit_cost_row(experiment, f"{s}/sigma{sg:g}/{mt}", table.get((s, sg, mt), {}))
                 for k, v in sorted(table.get((s, sg, mt), {}).items()):  # stable row order
                     if k.startswith("evaluate/") and k.rsplit("/", 1)[1] in ("mae", "max_abs"):
                         rows.append(row(experiment, f"{s}/sigma{sg:g}/{mt}/{k.split('/')[1]}",

@@ -17,7 +17,7 @@ import pandas as pd
 
 from pipeline import tracking
 from stages.report._figures import copy_figures
-from stages.report._rows import row
+from stages.report._rows import fit_cost_row, row
 
 EXPERIMENTS = ("b2_rot_trans",)
 CLAIMS_WITHOUT_FITS = ("B2e",)      # computed here on known models, no trained fit feeds it
@@ -55,6 +55,7 @@ def sweep_table(runs: pd.DataFrame) -> pd.DataFrame:
         d["fhofc_seconds"] = _metric(run, f"invert/{REF}/fhofc_seconds")
         d["train_seconds"] = _metric(run, "train/seconds")
         d["train_iterations"] = _metric(run, "train/iterations")
+        d["train_cost"] = _metric(run, "train/cost")
         d["max_iter"] = float(run.get("params.identify.max_iter", "nan"))
         d["n_restarts"] = float(run.get("params.identify.n_restarts", "nan"))
         rows.append(d)
@@ -163,6 +164,8 @@ def _sweep_section(tab, rows, figdir) -> list[str]:
                   f"{'holds' if t['bound_holds'] else 'VIOLATED'} | {t['fhofc_seconds']:.3f} | "
                   f"{t['train_seconds'] or 0:.1f} |")
         v = f"n1={t['n1']}/gamma={t['gamma']:g}"
+        if t["gamma"] == tab["gamma"].min() and pd.notna(t["train_cost"]):   # one fit per n1, shared by the γ runs
+            rows += fit_cost_row(EXPERIMENTS[0], f"n1={t['n1']}", {"train/cost": t["train_cost"]})
         for k in BOUND:
             rows.append(_row(v, k, t[k]))
         # B2a: (15) holds on every run; |ε| ≤ 0.25 tracking for n1 ≥ 8 with γ = 1e-6
@@ -239,7 +242,8 @@ def _il_curves(il) -> dict:
             "ideal_rms": _history(run["run_id"], f"invert/{REF}/ideal_rms") if nz else None,
             "zeros": run.get("tags.zeros") or "", "stop": run.get("tags.stop_reason") or "?",
             "iterations": _metric(run, "train/iterations"),
-            "ident": _metric(run, "train/identification_error")}
+            "ident": _metric(run, "train/identification_error"),
+            "metrics": {"train/cost": _metric(run, "train/cost")} if _metric(run, "train/cost") is not None else {}}
     return curves
 
 
@@ -277,6 +281,8 @@ def _il_section(il, rows, figdir) -> list[str]:
             stop = f"**CAP** {stop}"
         md.append(f"| {'linear' if n1 == 0 else f'PGNN n1={n1}'} | {ESTIMATORS.get(est, est)} | {c['zeros']} | "
                   f"{stop} | {'yes' if nz else 'v = 0'} | " + ", ".join(f"{v:.3g}" for v in c["trial_rms"]) + " |")
+        if not nz:                     # one fit per (n1, estimator): the noise only enters the trials
+            rows += fit_cost_row(EXPERIMENTS[0], f"n1={n1}/{est}", c["metrics"])
         for i, v in enumerate(c["trial_rms"]):
             rows.append(_row(f"n1={n1}/{est}/noise={nz}/trial={i}", "trial_rms", v,
                              paper={(32, 6): 4.96e-9, (0, 6): 1.14e-8}.get((n1, i)) if est == "sim_error" and not nz

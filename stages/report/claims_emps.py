@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from stages.report._figures import load_errors
-from stages.report._rows import row, run_metrics
+from stages.report._rows import fit_cost_row, row, run_metrics
 
 EXPERIMENTS = ("emps",)
 #: published figures (EMPS README; the authors' simulation convention)
@@ -145,6 +145,8 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
                      f"{m['evaluate/test/published/force_rel_error']:.3f} | "
                      f"{m['evaluate/test/model_based/mae']:.3g} |")
         v = "physics" if label == "physics" else f"pgnn-{r['kind']}"
+        if label != "physics":
+            rows += fit_cost_row(E, v, m)
         for f in ("train", "test"):
             for conv in ("data", "published"):
                 for x in ("force_rel_error", "position_rel_error", "loop_rmse_mm"):

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from stages.report._figures import copy_figures
-from stages.report._rows import row, run_metrics
+from stages.report._rows import fit_cost_row, row, run_metrics
 
 EXPERIMENTS = ("k_two_mass",)
 STRIBECK = "d0.03_v0.05"               # the Stribeck-dominated held-out reference (SPEC §2.1)
@@ -237,6 +237,7 @@ def _k3(experiment: str, m: dict, found: dict, rows: list) -> list[str]:
                  row(experiment, key, "oe_check_lm_iterations", chk_it),
                  row(experiment, key, "oe_check_max_iter", chk_cap),
                  row(experiment, key, "oe_check_improvement", imp, "K3", imp_ok)]
+        rows += fit_cost_row(experiment, key, {"c": before}, key="c")   # what SK minimised: J_OE (+ λR)
         if reg:
             rows += [row(experiment, key, "oe_check_lam", lam),
                      row(experiment, key, "oe_check_R_before", g("oe_check/R_before")),

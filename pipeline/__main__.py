@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import signal
 import sys
+import time
 from pathlib import Path
 
 import hydra
@@ -15,12 +16,14 @@ from pipeline.runner import ConfigError, run_job, run_name_with_overrides
 
 # an absolute path: the `pgnn-ff` console script imports this module from outside the package folder
 @hydra.main(version_base="1.3", config_path=str(Path(__file__).resolve().parent.parent / "conf"), config_name="config")
-def _main(cfg: DictConfig) -> None:
+def _main(cfg: DictConfig) -> dict:
     try:
         from hydra.core.hydra_config import HydraConfig
         hc = HydraConfig.get()
         cfg.run_name = run_name_with_overrides(cfg, hc.overrides.task, hc.sweeper.get("params"))
+        t0 = time.perf_counter()
         run_job(cfg)
+        return {"seconds": time.perf_counter() - t0}    # the job's time (hydra/sweeper=queue orders by it)
     except ConfigError as exc:  # bad input: one clear line, no traceback, exit code 2
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)

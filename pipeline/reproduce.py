@@ -1,15 +1,16 @@
-"""``make reproduce``'s driver: run the paper experiments one after another and time them.
+"""``make reproduce``'s driver: every job of the paper experiments in one queue, timed.
 
     python -m pipeline.reproduce [--results DIR] [--jobs N] EXPERIMENT [EXPERIMENT ...]
 
-Each experiment is ``python -m pipeline experiment=<name> hydra/launcher=local
-hydra.launcher.n_jobs=N`` in a subprocess: a sweep runs N jobs at once through Hydra's joblib
-launcher (N = the machine's cores by default; ``--jobs 1`` runs them one after another), each job
-single-threaded, so results are bit-identical to a serial run.  Its output streams through.  After each, one line:
-its wall time, its number of jobs, and an ETA for the rest from the previous run's
-``results/timings.csv``.  At the end ``results/timings.csv`` is written atomically (experiment,
-jobs, wall_seconds, cores_used, cores_available, git_sha); a subset run updates its own rows and
-keeps the others, like ``report.update``.
+One ``python -m pipeline -m hydra/sweeper=queue hydra.sweeper.experiments=[...] hydra/launcher=local
+hydra.launcher.n_jobs=N`` in a subprocess: every experiment's sweep (one job where it has none) in
+one job list, longest first by the previous run's job times (``hydra_plugins/pgnn_queue``,
+:mod:`pipeline.job_queue`), run N at once through Hydra's joblib launcher (N = the machine's cores by
+default; ``--jobs 1`` runs them one after another), each job single-threaded, so results are
+bit-identical to a serial run in any order.  Its output streams through.  ``results/timings.csv``
+holds each job's wall time (experiment, job = its overrides, wall_seconds, git_sha; the next run's
+order) and a ``total`` row: the whole queue's wall time, its job time, and the cores it kept busy.
+A subset run replaces its experiments' rows and keeps the others.
 """
 from __future__ import annotations
 
@@ -23,28 +24,9 @@ from pathlib import Path
 
 import pandas as pd
 
-COLUMNS = ["experiment", "jobs", "wall_seconds", "cores_used", "cores_available", "git_sha"]
+from pipeline import job_queue
+
 _STAGE_LINE = re.compile(r"^\[(?P<run>.+)\] (?:generate|baseline|train|invert|evaluate|report): ")  # names may hold [ ]
-
-
-def eta_seconds(previous: pd.DataFrame | None, remaining: list[str]) -> float | None:
-    """Sum of the previous wall times of the ``remaining`` experiments (None if any is unknown)."""
-    if previous is None or previous.empty:
-        return None
-    known = dict(zip(previous["experiment"], previous["wall_seconds"]))
-    if any(e not in known for e in remaining):
-        return None
-    return float(sum(known[e] for e in remaining))
-
-
-def merge(previous: pd.DataFrame | None, rows: list[dict]) -> pd.DataFrame:
-    """The new rows replace the previous rows of their experiments; the order of the new run
-    first, then the experiments it did not run."""
-    new = pd.DataFrame(rows, columns=COLUMNS)
-    if previous is None or previous.empty:
-        return new
-    kept = previous[~previous["experiment"].isin(new["experiment"])]
-    return pd.concat([new, kept[COLUMNS]], ignore_index=True)
 
 
 def _stream(fd: int) -> set[str]:
@@ -79,37 +61,35 @@ def run(experiments: list[str], results: Path, python: str = sys.executable,
         jobs: int | None = None) -> pd.DataFrame:
     from pipeline.tracking import git_sha
     path = results / "timings.csv"
-    previous = pd.read_csv(path) if path.exists() else None
     cores = cores_available()
     jobs = jobs or cores
     threads = int(os.environ.get("OMP_NUM_THREADS", "1") or 1)      # BLAS threads per job
-    rows, t_all = [], time.perf_counter()
-    for i, exp in enumerate(experiments):
-        print(f"== experiment={exp} ({i + 1}/{len(experiments)})", flush=True)
-        t0 = time.perf_counter()
-        env = dict(os.environ)
-        if sys.stderr.isatty():                       # keep the progress bars through the pipe
-            env.setdefault("PIPELINE_PROGRESS", "1")
-        proc = subprocess.Popen([python, "-m", "pipeline", f"experiment={exp}", "hydra/launcher=local",
-                                 f"hydra.launcher.n_jobs={jobs}"], stderr=subprocess.PIPE, env=env)
-        runs = _stream(proc.stderr.fileno())
-        if proc.wait() != 0:
-            raise SystemExit(f"experiment {exp} failed (exit code {proc.returncode}); timings not written")
-        wall = time.perf_counter() - t0
-        rows.append({"experiment": exp, "jobs": len(runs), "wall_seconds": round(wall, 1),
-                     "cores_used": min(jobs, max(len(runs), 1)) * threads, "cores_available": cores,
-                     "git_sha": git_sha()[:12]})
-        eta = eta_seconds(previous, experiments[i + 1:])
-        rest = "done" if i + 1 == len(experiments) else \
-            (f"ETA {_fmt(eta)} for the {len(experiments) - i - 1} left" if eta is not None
-             else "ETA unknown (no earlier timings for the rest)")
-        print(f"== {exp}: {_fmt(wall)}, {len(runs)} job(s); total {_fmt(time.perf_counter() - t_all)}; {rest}",
-              flush=True)
-    table = merge(previous, rows)
-    results.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    table.to_csv(tmp, index=False)
-    os.replace(tmp, path)
+    env = dict(os.environ)
+    if sys.stderr.isatty():                       # keep the progress bars through the pipe
+        env.setdefault("PIPELINE_PROGRESS", "1")
+    print(f"== {len(experiments)} experiments in one queue, {jobs} jobs at once: {' '.join(experiments)}",
+          flush=True)
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([python, "-m", "pipeline", "-m", "hydra/sweeper=queue",
+                             f"hydra.sweeper.experiments=[{','.join(experiments)}]",
+                             f"hydra.sweeper.timings='{path}'", "hydra/launcher=local",
+                             f"hydra.launcher.n_jobs={jobs}"], stderr=subprocess.PIPE, env=env)
+    runs = _stream(proc.stderr.fileno())
+    if proc.wait() != 0:
+        raise SystemExit(f"make reproduce failed (exit code {proc.returncode}); see the job's error above")
+    wall = time.perf_counter() - t0
+    table = job_queue.read_timings(path)
+    if table is None:
+        raise SystemExit(f"{path}: the queue did not write its job times")
+    mine = table[table["experiment"].isin(experiments)]
+    busy = float(mine["wall_seconds"].sum())
+    total = {"experiment": job_queue.TOTAL,
+             "job": f"{len(runs)} jobs of {len(experiments)} experiments, {jobs} at once ({threads} thread(s) each) "
+                    f"on {cores} cores; job time {busy:.0f} s, {busy / (wall * jobs):.0%} of the cores busy",
+             "wall_seconds": round(wall, 1), "git_sha": git_sha()[:12]}
+    table = pd.concat([table, pd.DataFrame([total])], ignore_index=True)[job_queue.COLUMNS]
+    job_queue.write_csv(path, table)
+    print(f"== done: {_fmt(wall)} wall; {total['job']}", flush=True)
     return table
 
 

@@ -253,6 +253,7 @@ def search_runs(experiment: str):
 
 try:  # the Hydra callback lives here so that tracking stays in one module
     from hydra.experimental.callback import Callback
+    from omegaconf import OmegaConf
 
     class MultirunCallback(Callback):
         """Parent MLflow run around a Hydra multirun; jobs attach to it (DESIGN).
@@ -262,30 +263,45 @@ try:  # the Hydra callback lives here so that tracking stays in one module
         for joblib, on the node for submitit, which receive this callback pickled with it).  The
         parent ends FINISHED when every child finished, FAILED otherwise; if the sweep dies an
         ``atexit`` hook marks it FAILED (an exception) or KILLED (Ctrl-C, SIGTERM: with the children
-        still RUNNING, whose workers the launcher killed) instead of leaving it RUNNING."""
+        still RUNNING, whose workers the launcher killed) instead of leaving it RUNNING.
+
+        One parent per experiment: ``make reproduce``'s one queue of every experiment's jobs
+        (``hydra/sweeper=queue``) announces each sweep with ``on_multirun_start`` and its config, and
+        a job attaches to the parent of its own experiment (``experiment_name``)."""
 
         def __init__(self) -> None:
             self.failed = 0
-            self.parent_run_id: str | None = None
+            self.parents: dict[str, str] = {}     # experiment_name -> parent run id
             self.cache = ""
 
         def on_multirun_start(self, config, **kwargs) -> None:
             import atexit
-            c = client()
-            exp_id = experiment_id(str(config.experiment_name))
-            choice = (config.get("hydra", {}).get("runtime", {}).get("choices", {}) or {}).get("experiment")
-            run = c.create_run(exp_id, run_name=f"{choice or config.experiment_name}-sweep",   # one name per sweep file
-                               tags={"git_sha": git_sha(), "experiment": str(config.experiment_name),
-                                     "sweep": "parent"})
-            self.parent_run_id = run.info.run_id
-            os.environ[PARENT_ENV] = run.info.run_id
             self.cache = str(cache_dir(config))
-            atexit.register(self._close, "FAILED")
-            interrupts.on_abort(("run", self.parent_run_id), lambda: self._close("KILLED"))
+            choice = OmegaConf.select(config, "hydra.runtime.choices.experiment", default=None)
+            if OmegaConf.select(config, "hydra.sweeper.experiments", default=None) and choice is None:
+                return                        # the queue itself: it announces each experiment's sweep
+            c = client()
+            name = str(config.experiment_name)
+            run = c.create_run(experiment_id(name), run_name=f"{choice or name}-sweep",   # one name per sweep file
+                               tags={"git_sha": git_sha(), "experiment": name, "sweep": "parent"})
+            if not self.parents:
+                atexit.register(self._close, "FAILED")
+            self.parents[name] = run.info.run_id
+            os.environ[PARENT_ENV] = run.info.run_id
+            interrupts.on_abort(("run", run.info.run_id), lambda: self._close("KILLED"))
+
+        @property
+        def parent_run_id(self) -> str | None:
+            """The parent of a one-experiment sweep (None before it starts or after it ends)."""
+            return next(iter(self.parents.values()), None)
 
         def on_job_start(self, config, **kwargs) -> None:
-            if self.parent_run_id:          # a worker process of a parallel launcher
-                os.environ[PARENT_ENV] = self.parent_run_id
+            name = str(OmegaConf.select(config, "experiment_name", default=""))
+            parent = self.parents.get(name) or (self.parent_run_id if len(self.parents) == 1 else None)
+            if parent:                        # a worker process of a parallel launcher
+                os.environ[PARENT_ENV] = parent
+            else:                             # a single-job experiment of the queue: no parent
+                os.environ.pop(PARENT_ENV, None)
 
         def on_job_end(self, config, job_return, **kwargs) -> None:
             from hydra.core.utils import JobStatus
@@ -293,20 +309,24 @@ try:  # the Hydra callback lives here so that tracking stays in one module
                 self.failed += 1
 
         def on_multirun_end(self, config, **kwargs) -> None:
-            self._close("FAILED" if self.failed or self._unfinished_children() else "FINISHED")
+            for name, run_id in list(self.parents.items()):
+                self._close_one(name, "FAILED" if self.failed or self._unfinished_children(run_id) else "FINISHED")
+            os.environ.pop(PARENT_ENV, None)
 
-        def _unfinished_children(self) -> int:
+        def _unfinished_children(self, run_id: str) -> int:
             """Children not FINISHED (parallel launchers report job ends in their workers)."""
-            if not self.parent_run_id:
-                return 0
             runs = client().search_runs(
-                [client().get_run(self.parent_run_id).info.experiment_id],
-                filter_string=f"tags.mlflow.parentRunId = '{self.parent_run_id}'", max_results=10000)
+                [client().get_run(run_id).info.experiment_id],
+                filter_string=f"tags.mlflow.parentRunId = '{run_id}'", max_results=10000)
             return sum(r.info.status != "FINISHED" for r in runs)
 
         def _close(self, status: str) -> None:
-            run_id, self.parent_run_id = self.parent_run_id, None
+            for name in list(self.parents):
+                self._close_one(name, status)
             os.environ.pop(PARENT_ENV, None)
+
+        def _close_one(self, name: str, status: str) -> None:
+            run_id = self.parents.pop(name, None)
             if not run_id:
                 return
             interrupts.discard(("run", run_id))

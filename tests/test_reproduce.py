@@ -1,4 +1,4 @@
-"""make reproduce's driver: per-experiment wall time, jobs, ETA, results/timings.csv (issue 10, item 4)."""
+"""make reproduce's driver: one queue of every experiment's jobs, longest first, results/timings.csv (issues 10, 19)."""
 from __future__ import annotations
 
 import pandas as pd
@@ -6,27 +6,71 @@ import pandas as pd
 from pipeline import reproduce
 
 
-def test_eta_and_merge_from_the_previous_timings():
-    prev = pd.DataFrame([{"experiment": e, "jobs": 1, "wall_seconds": s, "cores_used": 1, "cores_available": 2,
-                          "git_sha": "old"} for e, s in (("a", 10.0), ("b", 20.0), ("c", 30.5))])
-    assert reproduce.eta_seconds(prev, ["b", "c"]) == 50.5
-    assert reproduce.eta_seconds(prev, ["b", "new"]) is None and reproduce.eta_seconds(None, ["a"]) is None
-    merged = reproduce.merge(prev, [{"experiment": "b", "jobs": 4, "wall_seconds": 7.0, "cores_used": 1,
-                                     "cores_available": 2, "git_sha": "new"}])
-    assert list(merged["experiment"]) == ["b", "a", "c"]                 # the rerun first, the rest kept
-    assert merged.set_index("experiment").loc["b", "wall_seconds"] == 7.0
+def _prev(rows):
+    return pd.DataFrame([{"experiment": e, "job": j, "wall_seconds": w, "git_sha": "old"} for e, j, w in rows])
 
 
-def test_driver_times_an_experiment_and_counts_its_jobs(store, capsys):
+def test_longest_first_from_the_previous_job_times():
+    """LPT order: a job's own previous time, else its experiment's mean, unknown jobs first (in the
+    given order), ties in the given order; the written file keeps other experiments' rows."""
+    from pipeline.job_queue import Job, longest_first, read_timings, write_timings
+    jobs = [Job("a", ("x=1", "experiment=a")), Job("a", ("x=2", "experiment=a")), Job("b", ("experiment=b",)),
+            Job("new", ("experiment=new",)), Job("a", ("x=3", "experiment=a")), Job("c", ("experiment=c",))]
+    prev = _prev([("a", "x=1", 5.0), ("a", "x=2", 30.0), ("b", "", 12.0), ("c", "", 12.0)])
+    got = [(j.experiment, j.key) for j in longest_first(jobs, prev)]
+    # x=3 has no time of its own: its experiment's mean (17.5) places it between 30 and 12
+    assert got == [("new", ""), ("a", "x=2"), ("a", "x=3"), ("b", ""), ("c", ""), ("a", "x=1")]
+    assert [j.key for j in longest_first(jobs, None)] == [j.key for j in jobs]      # no times: as given
+    import tempfile
+    from pathlib import Path
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "timings.csv"
+        _prev([("a", "x=1", 5.0), ("z", "", 99.0)]).to_csv(path, index=False)
+        write_timings(path, jobs[:2], [1.0, 2.0], read_timings(path))
+        t = read_timings(path)
+        assert list(zip(t["experiment"], t["job"], t["wall_seconds"])) == [("a", "x=1", 1.0), ("a", "x=2", 2.0),
+                                                                             ("z", "", 99.0)]
+
+
+def test_queue_holds_every_job_of_each_experiments_sweep(tmp_path):
+    """hydra/sweeper=queue expands each experiment's own sweep as Hydra's basic sweeper does (b2_rot_trans:
+    2 γ x 10 n1 = 20 jobs, physics_arx: 1) into one list, longest first by the timings given."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    _prev([("b2_rot_trans", "invert.gamma=5e-05 model.hidden=[4]", 50.0), ("physics_arx", "", 20.0),
+           ("b2_rot_trans", "invert.gamma=1e-06 model.hidden=[48]", 40.0)]).to_csv(tmp_path / "t.csv", index=False)
+    out = subprocess.run([sys.executable, "-m", "pipeline", "-m", "hydra/sweeper=queue",
+                          "hydra.sweeper.experiments=[physics_arx,b2_rot_trans]", "hydra.sweeper.dry_run=true",
+                          f"hydra.sweeper.timings='{tmp_path / 't.csv'}'", f"hydra.sweep.dir={tmp_path}/sweep"],
+                         capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], check=True).stdout
+    lines = [ln.split("\t") for ln in out.splitlines() if "\t" in ln]
+    assert len(lines) == 21 and "queue: 21 jobs of 2 experiments" in out
+    hidden = ["[48]", "[32]", "[24]", "[20]", "[16]", "[8]", "[4]", "[2]", "[1]", "[]"]
+    want = {("b2_rot_trans", f"invert.gamma={g} model.hidden={h}") for g in ("1e-06", "5e-05") for h in hidden}
+    assert {(e, k) for _, e, k in lines} == want | {("physics_arx", "")}
+    # the jobs of b2_rot_trans without a time of their own are estimated at its mean (45 s): after
+    # the 50 s job, before its own 40 s one and physics_arx's 20 s, in their sweep order
+    assert lines[0][1:] == ["b2_rot_trans", "invert.gamma=5e-05 model.hidden=[4]"]
+    assert [float(t) for t, _, _ in lines[1:-2]] == [45.0] * 18
+    assert [k for _, e, k in lines[1:3]] == ["invert.gamma=1e-06 model.hidden=[32]",
+                                             "invert.gamma=1e-06 model.hidden=[24]"]
+    assert lines[-2][1:] == ["b2_rot_trans", "invert.gamma=1e-06 model.hidden=[48]"]
+    assert lines[-1][1:] == ["physics_arx", ""] and float(lines[-1][0]) == 20.0
+
+
+def test_driver_times_the_queue_and_counts_its_jobs(store, capsys):
     results = store / "results"
     table = reproduce.run(["physics_arx"], results)
     out = capsys.readouterr()
-    assert "== physics_arx: " in out.out and "1 job(s)" in out.out and "done" in out.out
+    assert "== done: " in out.out and "1 jobs of 1 experiments" in out.out
     assert "[arx_bias-" in out.err                                        # the job's own lines streamed
-    on_disk = pd.read_csv(results / "timings.csv")
-    assert list(on_disk.columns) == reproduce.COLUMNS and on_disk.loc[0, "experiment"] == "physics_arx"
-    assert on_disk.loc[0, "jobs"] == 1 and on_disk.loc[0, "wall_seconds"] > 0
-    assert len(table) == 1 and table.loc[0, "wall_seconds"] == on_disk.loc[0, "wall_seconds"]
+    on_disk = pd.read_csv(results / "timings.csv", keep_default_na=False)
+    assert list(on_disk["experiment"]) == ["physics_arx", "total"]
+    job, total = on_disk.iloc[0], on_disk.iloc[1]
+    assert 0 < job["wall_seconds"] <= total["wall_seconds"]
+    assert f"{reproduce.cores_available()} at once" in total["job"]
+    assert len(table) == 2
 
 
 def test_job_lines_with_brackets_in_run_names_are_counted():

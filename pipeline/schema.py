@@ -498,7 +498,7 @@ class SkOe:
     max_iter: int = spec(30, ge=1, le=ITER_MAX)
     tol: float = spec(1e-6, gt=0, lt=1)
     lm_max_iter: int = spec(3000, ge=1, le=ITER_MAX)
-    lm_ftol: float = spec(1e-8, ge=0, lt=1)
+    lm_ftol: float = spec(1e-9, ge=0, lt=1)
     lm_gtol: float = spec(1e-10, ge=0, lt=1)
     column_scale: bool = True
     screen_max_iter: int = spec(4, ge=0, le=ITER_MAX)

@@ -41,10 +41,25 @@ def tracking_uri() -> str:
     return uri
 
 
+#: SQLite stores this process has opened (created and migrated under a file lock)
+_OPENED: set[str] = set()
+
+
 def client() -> MlflowClient:
     uri = tracking_uri()
     mlflow.set_tracking_uri(uri)
-    return MlflowClient(uri)
+    if not uri.startswith("sqlite:///") or uri in _OPENED:
+        return MlflowClient(uri)
+    # MLflow creates and migrates a new SQLite store when a client first opens it; two processes doing
+    # that at once (the first jobs of a parallel sweep on a fresh store) break it ("duplicate column
+    # name", "_alembic_tmp_* already exists"). The first open of each process runs under a lock beside
+    # the database: one creates it, the others find it made.
+    from filelock import FileLock
+    with FileLock(uri[len("sqlite:///"):] + ".open.lock"):
+        c = MlflowClient(uri)
+        c.search_experiments(max_results=1)
+    _OPENED.add(uri)
+    return c
 
 
 def experiment_id(name: str) -> str:

@@ -202,3 +202,38 @@ def test_failed_sweep_marks_parent_failed(tmp_path):
     parent = runs[runs["tags.sweep"] == "parent"]
     assert list(parent["status"]) == ["FAILED"]                 # never left RUNNING
     assert (tmp_path / "artifacts").exists()                   # artifacts beside the database
+
+
+_OPEN_AT_ONCE = """
+import os, sys, time
+from pathlib import Path
+from pipeline import tracking                      # imports done before the barrier
+me, other = Path(sys.argv[1] + ".ready" + sys.argv[2]), Path(sys.argv[1] + ".ready" + sys.argv[3])
+me.touch()
+while not other.exists():
+    time.sleep(0.001)
+c = tracking.client()
+c.create_run(tracking.experiment_id("race"), run_name="r" + sys.argv[2])
+print("ok")
+"""
+
+
+def test_two_jobs_opening_a_fresh_sqlite_store_at_once_both_finish(tmp_path):
+    """Issue 24 item 1: two processes that first open a new SQLite store at the same moment (a parallel
+    sweep's first jobs) both create their runs; without the lock one died in MLflow's migration in every
+    try ("duplicate column name", "table experiments already exists"). Two fresh stores, the two
+    processes released together by a file barrier after their imports."""
+    for trial in range(2):
+        db = tmp_path / f"s{trial}" / "m.db"
+        db.parent.mkdir()
+        env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{db}"}
+        procs = [subprocess.Popen([sys.executable, "-c", _OPEN_AT_ONCE, str(db), a, b], env=env, cwd=ROOT,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                 for a, b in (("1", "2"), ("2", "1"))]
+        outs = [p.communicate(timeout=300) for p in procs]
+        for p, (out, err) in zip(procs, outs):
+            assert p.returncode == 0 and out.strip() == "ok", err[-2000:]
+        import mlflow
+        runs = mlflow.MlflowClient(f"sqlite:///{db}").search_runs(
+            [mlflow.MlflowClient(f"sqlite:///{db}").get_experiment_by_name("race").experiment_id])
+        assert sorted(r.info.run_name for r in runs) == ["r1", "r2"]

@@ -62,7 +62,8 @@ def run(experiments: list[str], results: Path, python: str = sys.executable,
     from pipeline.tracking import git_sha
     from pipeline.runner import ROOT
     path = results / "timings.csv"
-    if not path.exists() and (ROOT / "results" / "timings.csv").exists():   # a check's rerun: order by the reference's times
+    # a check's rerun (its own results folder): ordered by the reference run's job times
+    if not path.exists() and (ROOT / "results" / "timings.csv").exists():
         results.mkdir(parents=True, exist_ok=True)
         job_queue.write_csv(path, pd.read_csv(ROOT / "results" / "timings.csv", dtype={"job": str},
                                               keep_default_na=False))
@@ -79,7 +80,7 @@ def run(experiments: list[str], results: Path, python: str = sys.executable,
                              f"hydra.sweeper.experiments=[{','.join(experiments)}]",
                              f"hydra.sweeper.timings='{path}'", "hydra/launcher=local",
                              f"hydra.launcher.n_jobs={jobs}"], stderr=subprocess.PIPE, env=env)
-    runs = _stream(proc.stderr.fileno())
+    _stream(proc.stderr.fileno())
     if proc.wait() != 0:
         raise SystemExit(f"make reproduce failed (exit code {proc.returncode}); see the job's error above")
     wall = time.perf_counter() - t0
@@ -89,7 +90,7 @@ def run(experiments: list[str], results: Path, python: str = sys.executable,
     mine = table[table["experiment"].isin(experiments)]
     busy = float(mine["wall_seconds"].sum())
     total = {"experiment": job_queue.TOTAL,
-             "job": f"{len(runs)} jobs of {len(experiments)} experiments, {jobs} at once ({threads} thread(s) each) "
+             "job": f"{len(mine)} jobs of {len(experiments)} experiments, {jobs} at once ({threads} thread(s) each) "
                     f"on {cores} cores; job time {busy:.0f} s, {busy / (wall * jobs):.0%} of the cores busy",
              "wall_seconds": round(wall, 1), "git_sha": git_sha()[:12]}
     table = pd.concat([table, pd.DataFrame([total])], ignore_index=True)[job_queue.COLUMNS]

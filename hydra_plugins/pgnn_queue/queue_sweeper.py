@@ -68,7 +68,8 @@ class QueueSweeper(Sweeper):
 
         from pipeline import job_queue
         if not self.experiments:
-            raise ValueError("hydra/sweeper=queue needs hydra.sweeper.experiments=[name,...] "
+            from hydra.errors import ConfigCompositionException   # Hydra prints its message, one line
+            raise ConfigCompositionException("hydra/sweeper=queue needs hydra.sweeper.experiments=[name,...] "
                              "(conf/experiment/<name>.yaml)")
         assert self.hydra_context is not None and self.launcher is not None and self.config is not None
         parser = OverridesParser.create(config_loader=self.hydra_context.config_loader)

@@ -221,9 +221,9 @@ print("ok")
 def test_two_jobs_opening_a_fresh_sqlite_store_at_once_both_finish(tmp_path):
     """Issue 24 item 1: two processes that first open a new SQLite store at the same moment (a parallel
     sweep's first jobs) both create their runs; without the lock one died in MLflow's migration in every
-    try ("duplicate column name", "table experiments already exists"). Two fresh stores, the two
+    try ("duplicate column name", "table experiments already exists"). A fresh store, the two
     processes released together by a file barrier after their imports."""
-    for trial in range(2):
+    for trial in range(1):
         db = tmp_path / f"s{trial}" / "m.db"
         db.parent.mkdir()
         env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{db}"}

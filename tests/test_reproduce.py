@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import pandas as pd
+import pytest
 
 from pipeline import reproduce
 
@@ -116,3 +117,22 @@ def test_committed_summary_has_one_row_per_key():
     dup = table[table.duplicated(KEY, keep=False)]
     assert dup.empty, dup[KEY].to_string()
     assert len(table) > 100
+
+
+@pytest.mark.slow      # a 4-job sweep and a single job through the joblib launcher (~40 s on 2 cores)
+def test_queue_gives_each_swept_experiment_its_parent_and_the_same_runs(store):
+    """A queue of physics_arx (one job, no sweep) and b2_rot_trans_linear (a 4-job sweep): the sweep's
+    four runs are children of one parent 'b2_rot_trans_linear-sweep' that ends FINISHED; the single job
+    has no parent (as when it runs alone); the run names are the experiments' own."""
+    import mlflow
+    reproduce.run(["physics_arx", "b2_rot_trans_linear"], store / "results")
+    c = mlflow.MlflowClient()
+    runs = mlflow.search_runs(search_all_experiments=True)
+    parents = runs[runs["tags.sweep"] == "parent"]
+    assert list(parents["tags.mlflow.runName"]) == ["b2_rot_trans_linear-sweep"]
+    assert c.get_run(parents["run_id"].iloc[0]).info.status == "FINISHED"
+    kids = runs[runs["tags.mlflow.parentRunId"] == parents["run_id"].iloc[0]]
+    assert len(kids) == 4 and set(kids["status"]) == {"FINISHED"}
+    assert all(n.startswith("rot_trans_nmp-il_fhofc-linear_") for n in kids["tags.mlflow.runName"])
+    single = runs[runs["tags.mlflow.runName"] == "arx_bias-physics-s0"]
+    assert len(single) == 1 and single["tags.sweep"].iloc[0] == "single"

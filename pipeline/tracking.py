@@ -270,6 +270,12 @@ try:  # the Hydra callback lives here so that tracking stays in one module
     from hydra.experimental.callback import Callback
     from omegaconf import OmegaConf
 
+    def _sweep_key(config) -> str:
+        """The sweep a job belongs to: its experiment file (several files share an MLflow experiment:
+        b2_rot_trans, b2_rot_trans_il and b2_rot_trans_linear all log to b2_rot_trans), else its name."""
+        return str(OmegaConf.select(config, "hydra.runtime.choices.experiment", default=None)
+                   or OmegaConf.select(config, "experiment_name", default=""))
+
     class MultirunCallback(Callback):
         """Parent MLflow run around a Hydra multirun; jobs attach to it (DESIGN).
 
@@ -280,13 +286,13 @@ try:  # the Hydra callback lives here so that tracking stays in one module
         ``atexit`` hook marks it FAILED (an exception) or KILLED (Ctrl-C, SIGTERM: with the children
         still RUNNING, whose workers the launcher killed) instead of leaving it RUNNING.
 
-        One parent per experiment: ``make reproduce``'s one queue of every experiment's jobs
+        One parent per experiment file: ``make reproduce``'s one queue of every experiment's jobs
         (``hydra/sweeper=queue``) announces each sweep with ``on_multirun_start`` and its config, and
-        a job attaches to the parent of its own experiment (``experiment_name``)."""
+        a job attaches to the parent of its own experiment file's sweep (:func:`_sweep_key`)."""
 
         def __init__(self) -> None:
             self.failed = 0
-            self.parents: dict[str, str] = {}     # experiment_name -> parent run id
+            self.parents: dict[str, str] = {}     # sweep (experiment file) -> parent run id
             self.cache = ""
 
         def on_multirun_start(self, config, **kwargs) -> None:
@@ -301,7 +307,7 @@ try:  # the Hydra callback lives here so that tracking stays in one module
                                tags={"git_sha": git_sha(), "experiment": name, "sweep": "parent"})
             if not self.parents:
                 atexit.register(self._close, "FAILED")
-            self.parents[name] = run.info.run_id
+            self.parents[_sweep_key(config)] = run.info.run_id
             os.environ[PARENT_ENV] = run.info.run_id
             interrupts.on_abort(("run", run.info.run_id), lambda: self._close("KILLED"))
 
@@ -311,8 +317,11 @@ try:  # the Hydra callback lives here so that tracking stays in one module
             return next(iter(self.parents.values()), None)
 
         def on_job_start(self, config, **kwargs) -> None:
-            name = str(OmegaConf.select(config, "experiment_name", default=""))
-            parent = self.parents.get(name) or (self.parent_run_id if len(self.parents) == 1 else None)
+            queue = bool(OmegaConf.select(config, "hydra.sweeper.experiments", default=None))
+            # one sweep: every job is its child (even one whose experiment_name the sweep varies);
+            # the queue: each job the child of its own experiment file's sweep, if that is one
+            parent = self.parents.get(_sweep_key(config)) or \
+                (self.parent_run_id if len(self.parents) == 1 and not queue else None)
             if parent:                        # a worker process of a parallel launcher
                 os.environ[PARENT_ENV] = parent
             else:                             # a single-job experiment of the queue: no parent

@@ -237,3 +237,41 @@ def test_two_jobs_opening_a_fresh_sqlite_store_at_once_both_finish(tmp_path):
         runs = mlflow.MlflowClient(f"sqlite:///{db}").search_runs(
             [mlflow.MlflowClient(f"sqlite:///{db}").get_experiment_by_name("race").experiment_id])
         assert sorted(r.info.run_name for r in runs) == ["r1", "r2"]
+
+
+def test_queue_callback_one_parent_per_experiment_file_even_when_files_share_an_experiment(store):
+    """make reproduce's queue: b2_rot_trans and b2_rot_trans_linear both log to the MLflow experiment
+    b2_rot_trans; each sweep gets its own parent, each job attaches to its own file's parent, a job of an
+    unswept file (physics_arx) to none, and every parent ends FINISHED (none left RUNNING)."""
+    import mlflow
+    from omegaconf import OmegaConf
+
+    from pipeline.tracking import PARENT_ENV, MultirunCallback
+
+    def cfg(choice, name):
+        return OmegaConf.create({"experiment_name": name, "paths": {"cache": str(store / "cache")},
+                                 "hydra": {"runtime": {"choices": {"experiment": choice}},
+                                           "sweeper": {"experiments": ["b2_rot_trans", "b2_rot_trans_linear",
+                                                                       "physics_arx"]}}})
+    master = OmegaConf.create({"experiment_name": "default", "paths": {"cache": str(store / "cache")},
+                               "hydra": {"runtime": {"choices": {"experiment": None}},
+                                         "sweeper": {"experiments": ["b2_rot_trans"]}}})
+    cb = MultirunCallback()
+    cb.on_multirun_start(master)                       # the queue itself opens nothing
+    assert cb.parents == {}
+    cb.on_multirun_start(cfg("b2_rot_trans", "b2_rot_trans"))
+    cb.on_multirun_start(cfg("b2_rot_trans_linear", "b2_rot_trans"))
+    assert set(cb.parents) == {"b2_rot_trans", "b2_rot_trans_linear"} and len(set(cb.parents.values())) == 2
+    seen = {}
+    for choice, name in (("b2_rot_trans", "b2_rot_trans"), ("b2_rot_trans_linear", "b2_rot_trans"),
+                         ("physics_arx", "physics_baseline")):
+        cb.on_job_start(cfg(choice, name))
+        seen[choice] = os.environ.get(PARENT_ENV)
+    assert seen["b2_rot_trans"] == cb.parents["b2_rot_trans"]
+    assert seen["b2_rot_trans_linear"] == cb.parents["b2_rot_trans_linear"]
+    assert seen["physics_arx"] is None
+    ids = list(cb.parents.values())
+    cb.on_multirun_end(master)
+    c = mlflow.MlflowClient()
+    assert [c.get_run(i).info.status for i in ids] == ["FINISHED", "FINISHED"] and cb.parents == {}
+    assert PARENT_ENV not in os.environ

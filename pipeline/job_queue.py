@@ -61,8 +61,8 @@ def longest_first(jobs: list[Job], previous: pd.DataFrame | None) -> list[Job]:
     return [jobs[i] for i in order]
 
 
-def plan_line(ordered: list[Job], previous: pd.DataFrame | None, n_jobs: int) -> str:
-    est = estimates(ordered, previous)
+def plan_line(ordered: list[Job], est: list[float | None], n_jobs: int) -> str:
+    """One line on the plan: jobs, experiments, and the previous times (``est``, per ordered job)."""
     n_exp = len({j.experiment for j in ordered})
     known = [s for s in est if s is not None]
     line = f"queue: {len(ordered)} jobs of {n_exp} experiments, longest first, {n_jobs} at once"

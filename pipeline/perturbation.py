@@ -72,10 +72,6 @@ def _fit_of(variants: pd.Series, fits: set[str]) -> list[str]:
     return out
 
 
-#: per-key category (``compare``): counted as moved only in 'moved'
-CATEGORIES = ("same", "moved", "tiny", "equal_fit", "solver_path")
-
-
 def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Per key (reference value, perturbed value, relative change, category) and per experiment a summary.
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -65,8 +66,7 @@ def run(experiments: list[str], results: Path, python: str = sys.executable,
     # a check's rerun (its own results folder): ordered by the reference run's job times
     if not path.exists() and (ROOT / "results" / "timings.csv").exists():
         results.mkdir(parents=True, exist_ok=True)
-        job_queue.write_csv(path, pd.read_csv(ROOT / "results" / "timings.csv", dtype={"job": str},
-                                              keep_default_na=False))
+        shutil.copyfile(ROOT / "results" / "timings.csv", path)
     cores = cores_available()
     jobs = jobs or cores
     threads = int(os.environ.get("OMP_NUM_THREADS", "1") or 1)      # BLAS threads per job

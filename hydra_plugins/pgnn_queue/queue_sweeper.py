@@ -53,7 +53,7 @@ class QueueSweeper(Sweeper):
             hydra_context=hydra_context, task_function=task_function, config=config)
 
     def _experiment_config(self, name: str, arguments: List[str]) -> DictConfig:
-        """The experiment's own composition (its hydra.sweeper.params and hydra.mode)."""
+        """The experiment's own composition (its hydra.sweeper.params)."""
         assert self.config is not None and self.hydra_context is not None
         return self.hydra_context.config_loader.load_configuration(
             config_name=self.config.hydra.job.config_name,
@@ -86,11 +86,11 @@ class QueueSweeper(Sweeper):
                 self.hydra_context.callbacks.on_multirun_start(config=cfg)
         previous = job_queue.read_timings(Path(self.timings)) if self.timings else None
         ordered = job_queue.longest_first(jobs, previous)
-        print(job_queue.plan_line(ordered, previous, int(self.config.hydra.launcher.get("n_jobs") or 1)),
-              flush=True)
+        est = job_queue.estimates(ordered, previous)
+        print(job_queue.plan_line(ordered, est, int(self.config.hydra.launcher.get("n_jobs") or 1)), flush=True)
         if self.dry_run:
-            for job, est in zip(ordered, job_queue.estimates(ordered, previous)):
-                print(f"{'?' if est is None else f'{est:.1f}'}\t{job.experiment}\t{job.key}", flush=True)
+            for job, sec in zip(ordered, est):
+                print(f"{'?' if sec is None else f'{sec:.1f}'}\t{job.experiment}\t{job.key}", flush=True)
             return []
         sweep_dir = Path(self.config.hydra.sweep.dir)
         sweep_dir.mkdir(parents=True, exist_ok=True)
@@ -101,7 +101,7 @@ class QueueSweeper(Sweeper):
         for r in results:
             _ = r.return_value             # a failed job raises here, as with the basic sweeper
         if self.timings:
-            seconds = [(r.return_value or {}).get("seconds") if isinstance(r.return_value, dict) else None
+            seconds = [r.return_value.get("seconds") if isinstance(r.return_value, dict) else None
                        for r in results]
             job_queue.write_timings(Path(self.timings), ordered, seconds, previous)
         return [results]

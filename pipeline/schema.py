@@ -470,6 +470,7 @@ class Narx:
     geodesic: bool = False
     stat_window: int = spec(10, ge=0, le=ITER_MAX)
     stat_tol: float = spec(0.1, ge=0, le=100)
+    stat_frac: float = spec(0.0, ge=0, lt=1)
 
 
 @schema
@@ -488,7 +489,8 @@ class SimError:
     patience: int = spec(5, ge=1, le=ITER_MAX)
     geodesic: bool = True
     stat_window: int = spec(10, ge=0, le=ITER_MAX)
-    stat_tol: float = spec(0.1, ge=0, le=100)
+    stat_tol: float = spec(1.0, ge=0, le=100)
+    stat_frac: float = spec(0.3, ge=0, lt=1)
 
 
 @schema

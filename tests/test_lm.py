@@ -242,3 +242,21 @@ def test_statistical_stop_waits_for_the_decrement_on_a_slow_crawl(monkeypatch):
                                  stat_tol=0.1, mu0=100.0)
     assert window.message == "stat" and window.n_iter < res.n_iter
     assert window.cost - c_min > 1.5 * threshold
+
+
+def test_statistical_stop_with_a_growing_window_waits_out_a_crawl():
+    # a tanh fit under σ = 1e-4 noise crawls (plain LM: the cost still falls after 2000 steps).
+    # A fixed window of 10 steps stops at step ~330, ~25 thresholds 0.1·sqrt(2/N)·C above a
+    # 2000-step run's cost; the window of the last 30 % of the run (stat_frac, the [B2] setting)
+    # stops at ~1090, within ~2 of them (allowed 4: the reference itself is still falling)
+    res_fn, th0 = _tanh_net_problem(1e-4)
+    ref = levenberg_marquardt(res_fn, th0, max_iter=2000, ftol=0.0, gtol=0.0)
+    threshold = 0.1 * np.sqrt(2 / 400) * ref.cost
+    fixed = levenberg_marquardt(res_fn, th0, max_iter=2000, ftol=0.0, gtol=0.0, stat_window=10, stat_tol=0.1)
+    grown = levenberg_marquardt(res_fn, th0, max_iter=2000, ftol=0.0, gtol=0.0, stat_window=10, stat_tol=0.1,
+                                stat_frac=0.3)
+    assert fixed.message == grown.message == "stat"
+    assert fixed.cost - ref.cost > 10 * threshold
+    assert grown.cost - ref.cost < 4 * threshold and grown.n_iter > 2 * fixed.n_iter
+    with pytest.raises(ValueError, match="stat_frac"):
+        levenberg_marquardt(res_fn, th0, stat_window=10, stat_frac=1.0)

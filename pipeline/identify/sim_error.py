@@ -1026,7 +1026,7 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
                        n_restarts: int = 1, seed: int = 0, val_fraction: float = 0.0, max_iter: int = 100,
                        ftol: float = 1e-10, gtol: float = 1e-10, mu0: float = 1e-3, patience: int = 5,
                        linear_max_iter: int = 50, geodesic: bool = False, stat_window: int = 0,
-                       stat_tol: float = 0.1, progress: Callable | None = None,
+                       stat_tol: float = 0.1, stat_frac: float = 0.0, progress: Callable | None = None,
                        on_iteration: Callable | None = None, memo: Callable | None = None,
                        screen_iter: int = 0) -> SimErrorFit:
     """Closed-loop simulation-error identification of a PGNN, [B2] (16), by Levenberg–Marquardt.
@@ -1063,7 +1063,7 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
     val_fraction : float
         Contiguous tail of the record for early stopping (0 = none); the simulation still
         runs through it.
-    max_iter, ftol, gtol, mu0, patience, geodesic, stat_window, stat_tol
+    max_iter, ftol, gtol, mu0, patience, geodesic, stat_window, stat_tol, stat_frac
         Passed to :func:`pipeline.identify.lm.levenberg_marquardt` (the statistical stop's N is
         the number of training samples; the θ*_phy refinement uses them too).
     linear_max_iter : int
@@ -1119,7 +1119,7 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
                                       jacobian=lambda th: torch.from_numpy(jac_l(th.numpy())),
                                       max_iter=linear_max_iter, ftol=ftol, gtol=gtol, mu0=mu0,
                                       geodesic=geodesic, stat_window=stat_window, stat_tol=stat_tol,
-                                      n_data=N - n_val)
+                                      stat_frac=stat_frac, n_data=N - n_val)
             ts = out.theta.numpy().copy()
             linear_stop, linear_history, linear_iter = out.message, out.history, out.n_iter
     else:
@@ -1152,7 +1152,8 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
                                               val_fn=val_fn, max_iter=max_iter, ftol=ftol, gtol=gtol, mu0=mu0,
                                               patience=patience, progress=progress, on_iteration=on_iteration,
                                               memo=memo, screen_iter=screen_iter, geodesic=geodesic,
-                                              stat_window=stat_window, stat_tol=stat_tol, n_data=N - n_val)
+                                              stat_window=stat_window, stat_tol=stat_tol, stat_frac=stat_frac,
+                                              n_data=N - n_val)
     else:   # the linear model (n1 = 0) is θ*_phy: fitting (16) toward itself would only trade it off
         from pipeline.identify.narx import RestartResult
         th = model.parameter_vector()

@@ -84,7 +84,7 @@ def fit(ctx) -> dict:
                          gtol=float(ident.gtol), mu0=float(ident.mu0),
                          patience=int(ident.patience), geodesic=bool(ident.geodesic),
                          stat_window=int(ident.stat_window), stat_tol=float(ident.stat_tol),
-                         screen_iter=int(ident.screen_iter),
+                         stat_frac=float(ident.stat_frac), screen_iter=int(ident.screen_iter),
                          **lm_progress(ctx),
                          theta_star=ctx.inputs["baseline"]["theta"] if isinstance(system, Recording) else None,
                          memo=restart_memo(ctx))

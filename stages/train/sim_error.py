@@ -100,7 +100,7 @@ def fit(ctx) -> dict:
                               ftol=float(ident.ftol), gtol=float(ident.gtol), mu0=float(ident.mu0),
                               patience=int(ident.patience), linear_max_iter=int(ident.linear_max_iter),
                               geodesic=bool(ident.geodesic), stat_window=int(ident.stat_window),
-                              stat_tol=float(ident.stat_tol),
+                              stat_tol=float(ident.stat_tol), stat_frac=float(ident.stat_frac),
                               memo=restart_memo(ctx), screen_iter=int(ident.get("screen_iter", 0)),
                               **lm_progress(ctx))
     log_restarts(ctx, fit_.restarts, fit_.best)
@@ -205,7 +205,7 @@ def _fit_measured(ctx) -> dict:
                                    max_iter=int(ident.max_iter), ftol=float(ident.ftol), gtol=float(ident.gtol),
                                    mu0=float(ident.mu0), memo=restart_memo(ctx), geodesic=bool(ident.geodesic),
                                    stat_window=int(ident.stat_window), stat_tol=float(ident.stat_tol),
-                                   n_data=sum(n_trains) - N_INIT * len(segs), **lm_progress(ctx))
+                                   stat_frac=float(ident.stat_frac), n_data=sum(n_trains) - N_INIT * len(segs), **lm_progress(ctx))
     log_restarts(ctx, fit_.restarts, fit_.best)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)

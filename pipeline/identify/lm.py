@@ -190,7 +190,7 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
                         callback: Callable[[int, torch.Tensor, float], bool | None] | None = None,
                         geodesic: bool = False, geodesic_h: float = 0.1, geodesic_alpha: float = 0.75,
                         stat_window: int = 0, stat_tol: float = 0.1, stat_frac: float = 0.0,
-                        n_data: int | None = None) -> LMResult:
+                        n_data: int | None = None, stat_history: list[float] | None = None) -> LMResult:
     """Minimise ``||residual(θ)||²`` by Levenberg–Marquardt.
 
     Parameters
@@ -235,6 +235,9 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
         steps (0: a fixed window).  On a slow crawl the decrease over a fixed W steps says little
         about the decrease still to come; over the last fraction of the run it does (module
         docstring).
+    stat_history : list of float, optional
+        Costs of the accepted steps of an earlier run that ended at ``theta0`` (a restart continued
+        after screening): the statistical window counts them as this run's first steps.
     n_data : int, optional
         N of the statistical stop: the number of noisy samples in the residual (default: its
         length).
@@ -297,6 +300,7 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
         raise ValueError("geodesic acceleration needs J δv and Jᵀw: give jacobian.jvp(θ, v) and "
                          "jacobian.vjp(θ, w) beside jacobian.normal_equations, or set geodesic=False")
     n_stat = int(n_data) if n_data is not None else r.numel()
+    past = [float(c) for c in (stat_history or [])]
     stat_scale = stat_tol * math.sqrt(2.0 / max(n_stat, 1))
     n_jac = n_accel = 0
     J = None
@@ -408,9 +412,10 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
             # statistical stop: the decrease over W accepted steps is below stat_tol of the
             # cost's sampling standard deviation sqrt(2/N)·C (module docstring)
             # (confirmed by the Gauss–Newton decrement at the new iterate, at the loop's top)
-            window = max(stat_window, math.ceil(stat_frac * (len(history) - 1)))
-            stat_pending = bool(stat_window and len(history) > window and
-                                history[-1 - window] - cost <= stat_scale * cost)
+            seen = past + history
+            window = max(stat_window, math.ceil(stat_frac * (len(seen) - 1)))
+            stat_pending = bool(stat_window and len(seen) > window and
+                                seen[-1 - window] - cost <= stat_scale * cost)
         else:
             mu *= nu
             nu *= 2.0

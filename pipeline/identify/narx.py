@@ -493,7 +493,8 @@ def best_of_restarts(model: PGNN, residual, jacobian, n_restarts: int, seed: int
         t0 = time.perf_counter()
         cb = None if on_iteration is None else (lambda it, th, c: on_iteration(best, first.n_iter + it, c))
         res = levenberg_marquardt(residual, first.theta, jacobian=jacobian, val_cost=val_fn, callback=cb,
-                                  max_iter=max_iter - first.n_iter, **lm_options)
+                                  max_iter=max_iter - first.n_iter, stat_history=first.history[:-1],
+                                  **lm_options)
         out[best] = RestartResult(first.seed, res.cost, res.val_cost, first.history + res.history[1:],
                                   first.val_history + res.val_history[1:], first.n_iter + res.n_iter,
                                   res.message, first.seconds + time.perf_counter() - t0, res.theta)

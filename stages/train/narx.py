@@ -27,6 +27,8 @@ from pipeline.errors import ConfigError
 from pipeline.systems.measured import Recording
 from stages.train import lm_progress, log_restarts, restart_memo
 
+VERSION = 2   # 2: the statistical window spans a continued restart's screening steps (issue 19)
+
 STRUCTURES = ("forward", "inverse", "invertible")
 
 

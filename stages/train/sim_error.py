@@ -31,8 +31,9 @@ from pipeline.systems.arx_bias import ARXPhysics
 from pipeline.systems.measured import Recording
 
 THETA_STAR = ("arx", "sim_error", "oracle")   # oracle: the plant's true linear part (an oracle, simulation only)
-VERSION = 3   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zeros logged;
-              # 3: measured loop from the recorded state
+VERSION = 4   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zeros logged;
+              # 3: measured loop from the recorded state; 4: the statistical window spans a continued
+              # restart's screening steps (issue 19)
 
 
 def check(cfg, system) -> None:

@@ -480,7 +480,7 @@ class SimError:
     theta_star: Literal["arx", "sim_error", "oracle"] = "sim_error"
     linear_max_iter: int = spec(500, ge=0, le=ITER_MAX)
     n_restarts: int = spec(3, ge=1, le=COUNT_MAX)
-    max_iter: int = spec(5000, ge=0, le=ITER_MAX)
+    max_iter: int = spec(8000, ge=0, le=ITER_MAX)
     screen_iter: int = spec(300, ge=0, le=ITER_MAX)
     ftol: float = spec(1e-10, ge=0, lt=1)
     gtol: float = spec(1e-10, ge=0, lt=1)

@@ -19,6 +19,8 @@ from typing import Any
 
 from filelock import FileLock
 
+from pipeline.errors import ConfigError
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -86,17 +88,37 @@ def cache_key_file() -> Path:
                 or Path.home() / ".config" / "pgnn-feedforward" / "cache.key")
 
 
+#: shortest signing key accepted (HMAC-SHA256's block of security: 32 random bytes)
+KEY_MIN_BYTES = 32
+
+
 def _signing_key() -> bytes:
+    """This user's signing key, created on first use: 32 random bytes written to a temporary file
+    and linked into place (never a partial key file, even on a full disk); a key shorter than
+    32 bytes is refused (an empty key would let anyone sign a forged entry)."""
     path = cache_key_file()
     if path not in _KEYS:
         path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-            with os.fdopen(fd, "wb") as f:
-                f.write(os.urandom(32))
-        except FileExistsError:
-            pass
-        _KEYS[path] = path.read_bytes()
+        if not path.exists():
+            tmp = path.with_name(f".{path.name}.{HOST}-{os.getpid()}-{time.time_ns()}")
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            try:
+                with os.fdopen(fd, "wb") as f:
+                    f.write(os.urandom(KEY_MIN_BYTES))
+                    f.flush()
+                    os.fsync(f.fileno())
+                try:
+                    os.link(tmp, path)          # atomic and exclusive: another process's key wins
+                except FileExistsError:
+                    pass
+            finally:
+                tmp.unlink(missing_ok=True)
+        key = path.read_bytes()
+        if len(key) < KEY_MIN_BYTES:
+            raise ConfigError(f"the cache signing key {path} holds {len(key)} bytes, fewer than "
+                                 f"{KEY_MIN_BYTES}: it cannot be trusted. Delete it (a new one is made; "
+                                 "entries signed with the old one are recomputed)")
+        _KEYS[path] = key
     return _KEYS[path]
 
 

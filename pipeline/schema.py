@@ -87,6 +87,14 @@ def _references_rule(v) -> str | None:
     items = list(v.values()) if isinstance(v, dict) else v
     if not isinstance(items, list) or not all(isinstance(s, dict) for s in items):
         return "give a list of reference specs {name: ..., kind: ..., ...} (see conf/evaluate/*.yaml)"
+    keys = list(v) if isinstance(v, dict) else [None] * len(items)
+    names = [str(s.get("name", k if k is not None else f"ref{i}")) for i, (k, s) in enumerate(zip(keys, items))]
+    bad = [n for n in names if not SAFE_NAME.fullmatch(n)]
+    if bad:          # a name is a metric key and a file name: no '/', '..' or spaces
+        return f"reference name(s) {bad} are not names: use letters, digits, '.', '_' and '-'"
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:        # the second would silently replace the first in every table
+        return f"reference name(s) {twice} given more than once: give each reference its own name"
     return None
 
 

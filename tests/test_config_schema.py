@@ -73,6 +73,10 @@ PROBES = [
     pytest.param(["experiment=b2_rot_trans", "hydra.mode=RUN", "identify.theta_star=ls"],
                  ["identify.theta_star='ls'; choose one of ('arx', 'sim_error', 'oracle')"], id="theta_star"),
     pytest.param([*TWO_MASS, "system.alpha=${oops}"], ["config does not resolve"], id="interpolation"),
+    pytest.param([*TWO_MASS[:1], "data.references=[{name:a,kind:b2_R},{name:a,kind:b2_R,repeats:2}]",
+                  "stages=[generate]"], ["reference name(s) ['a'] given more than once"], id="reference-twice"),
+    pytest.param([*TWO_MASS[:1], "data.references=[{name:'x/../y',kind:b2_R}]", "stages=[generate]"],
+                 ["reference name(s) ['x/../y'] are not names"], id="reference-path"),
 ]
 
 

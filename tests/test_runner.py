@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import mlflow
 import numpy as np
@@ -371,3 +372,31 @@ def test_no_two_configs_of_a_sweep_share_a_run_name(store):
     assert (runs.groupby("tags.mlflow.runName")["tags.config_hash"].nunique() == 1).all()
     assert any(n.startswith("two_mass_stribeck-physics-s1-data.references=") and n.endswith("-noise.std=1e-07")
                for n in runs["tags.mlflow.runName"])
+
+
+def test_a_short_or_empty_cache_key_is_refused_and_a_new_key_is_whole(tmp_path, monkeypatch):
+    """Issue 24 item 3: an empty key file (what a full disk could leave) would let anyone sign a
+    forged entry; a key under 32 bytes is refused with the fix named. A new key is written to a
+    temporary and linked into place: the key file is whole (32 bytes) or absent, never partial."""
+    from pipeline import cache
+    from pipeline.errors import ConfigError
+    for content in (b"", b"k" * 31):
+        key = tmp_path / f"short{len(content)}.key"
+        key.write_bytes(content)
+        monkeypatch.setenv("PIPELINE_CACHE_KEY_FILE", str(key))
+        with pytest.raises(ConfigError, match=f"holds {len(content)} bytes.*Delete it"):
+            cache._signing_key()
+    fresh = tmp_path / "sub" / "new.key"
+    monkeypatch.setenv("PIPELINE_CACHE_KEY_FILE", str(fresh))
+    assert len(cache._signing_key()) == 32 and fresh.read_bytes() == cache._signing_key()
+    assert (fresh.stat().st_mode & 0o777) == 0o600
+    assert [p.name for p in fresh.parent.iterdir()] == ["new.key"]      # no temporary left
+
+    def full_disk(fd):                       # the key cannot reach the disk: no key file is left
+        raise OSError(28, "No space left on device")
+    failing = tmp_path / "full" / "k.key"
+    monkeypatch.setenv("PIPELINE_CACHE_KEY_FILE", str(failing))
+    monkeypatch.setattr(os, "fsync", full_disk)
+    with pytest.raises(OSError, match="No space"):
+        cache._signing_key()
+    assert not failing.exists() and list(failing.parent.iterdir()) == []

@@ -188,14 +188,18 @@ def _without(node, dotted: str):
 def stage_key(cfg: DictConfig, name: str, mod, upstream_keys: dict[str, str],
               exclude: tuple[str, ...] = ()) -> str:
     version = [getattr(mod, "VERSION", 1)]
+    impl = None
     if getattr(mod, "KIND_KEY", None):  # the chosen implementation's VERSION counts too
-        version.append(getattr(implementation(name, str(OmegaConf.select(cfg, mod.KIND_KEY))),
-                               "VERSION", 1))
+        impl = implementation(name, str(OmegaConf.select(cfg, mod.KIND_KEY)))
+        version.append(getattr(impl, "VERSION", 1))
     config = {k: _select(cfg, k) for k in mod.DEPENDS}
     for dotted in exclude:   # a part's key (StageContext.memo) leaves out keys it does not depend on
         config = _without(config, dotted)
     payload = {"stage": name, "version": version, "config": config,
                "upstream": {u: upstream_keys[u] for u in mod.UPSTREAM}}
+    contents = getattr(impl, "content_key", None)    # what it reads besides the config (a measured
+    if contents is not None:                         # file's bytes: another file under one name reruns)
+        payload["contents"] = contents(cfg)
     if exclude:
         payload["exclude"] = sorted(exclude)
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()

@@ -203,6 +203,18 @@ def test_user_csv_round_trips_load_identify_evaluate(store, cfg_of, tmp_path):
     assert run["metrics.evaluate/test/data/force_rel_error"] < 1.0   # the model class holds the record
 
 
+def test_a_recording_replaced_under_its_name_is_reread_not_served_from_the_cache(store, cfg_of, tmp_path):
+    """Issue 24 item 6: the measured data's cache key holds the files' SHA-256, so another valid
+    recording written under the same name reruns generate (and everything after it)."""
+    path = _csv(tmp_path, n=2000)
+    ov = [*_measured_overrides(path), "stages=[generate]"]
+    first = runner.run_job(cfg_of(*ov))["generate"]["dataset"].frame
+    assert runner.run_job(cfg_of(*ov))["generate"]["dataset"].frame.equals(first)    # cached, same
+    _csv(tmp_path, n=2500)                                    # another valid record, same file name
+    again = runner.run_job(cfg_of(*ov))["generate"]["dataset"].frame
+    assert len(first) == 2000 and len(again) == 2500
+
+
 @pytest.mark.parametrize("case, match", [
     ("dt10ms", r"rec\.csv: the data are sampled at Ts = 0\.01 s but system 'measured' has Ts = 0\.001 s; "
                r"set system\.Ts"),

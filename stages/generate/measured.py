@@ -11,6 +11,7 @@ Evaluation references of kind ``measured`` (:func:`reference`) load the test fil
 """
 from __future__ import annotations
 
+import hashlib
 import warnings
 from pathlib import Path
 
@@ -32,6 +33,35 @@ def _folder_and_file(cfg, file: str | None) -> tuple[Path, str | None]:
     p = Path(str(cfg.data.path))
     p = p if p.is_absolute() else ROOT / p
     return p, (str(file) if file not in (None, "") else None)
+
+
+_HASHES: dict[tuple, str] = {}      # (path, size, mtime_ns) -> SHA-256, per process
+
+
+def _sha256(path: Path) -> str:
+    st = path.stat()
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key not in _HASHES:
+        h = hashlib.sha256()
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        _HASHES[key] = h.hexdigest()
+    return _HASHES[key]
+
+
+def content_key(cfg) -> dict[str, str]:
+    """SHA-256 of every file the measured data may be read from (``data.path`` itself, or every
+    file in that folder: the training files and the evaluation references' files): part of the
+    stage's cache key (runner.stage_key), so a recording replaced under the same name is reread,
+    never served from the cache of the old one (issue 24). A missing path adds nothing here:
+    :func:`check` names it before any work."""
+    folder, _ = _folder_and_file(cfg, None)
+    if folder.is_file():
+        return {folder.name: _sha256(folder)}
+    if not folder.is_dir():
+        return {}
+    return {p.name: _sha256(p) for p in sorted(folder.iterdir()) if p.is_file() and not p.name.startswith(".")}
 
 
 def load_file(cfg, file: str | None = None) -> data.Dataset:

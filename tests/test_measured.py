@@ -399,3 +399,19 @@ def test_measured_pgnn_trainings_and_the_emps_report_section(store, cfg_of, tmp_
     md = (results / "REPORT.md").read_text()
     assert "Stopped on the iteration cap (not converged)" in md     # max_iter=3 is flagged
     assert "model-based" in md
+
+
+def test_a_reference_file_is_read_beside_a_data_path_that_is_a_file(tmp_path):
+    """Issue 24 item 7: with the training file itself as data.path, a reference's own file is read
+    from the same folder, not replaced by the training file."""
+    from omegaconf import OmegaConf
+    from stages.generate import measured
+    train, test = _csv(tmp_path, "train", n=2000), _csv(tmp_path, "test", n=1500)
+    cfg = OmegaConf.create({"data": {"path": str(train), "format": "table", "file": None}})
+    assert len(measured.load_file(cfg).frame) == 2000                     # data.path: the training file
+    assert len(measured.load_file(cfg, test.name).frame) == 1500          # the reference's own file
+    assert len(measured.load_file(cfg, train.name).frame) == 2000
+    if (EMPS / "DATA_EMPS.mat").exists():                                 # EMPS: a .mat file as data.path
+        emps = OmegaConf.create({"data": {"path": str(EMPS / "DATA_EMPS.mat"), "format": "emps", "file": None}})
+        trained_on = measured.load_file(emps).frame
+        assert not measured.load_file(emps, "DATA_EMPS_PULSES").frame.equals(trained_on)

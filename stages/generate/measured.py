@@ -71,6 +71,10 @@ def load_file(cfg, file: str | None = None) -> data.Dataset:
     if fmt not in FORMATS:
         raise ConfigError(f"data.format={fmt!r}; choose one of {FORMATS}")
     folder, name = _folder_and_file(cfg, file if file is not None else cfg.data.get("file"))
+    if folder.is_file() and name is not None and name not in (folder.name, folder.stem):
+        folder = folder.parent       # data.path is the training file: another file is read beside it
+    elif folder.is_file() and fmt == "emps":
+        folder, name = folder.parent, folder.stem
     if fmt == "emps":
         return data.load_emps(folder, name or "DATA_EMPS")
     target = folder

@@ -302,8 +302,15 @@ def plan(cfg: DictConfig, names: list[str], modules: dict) -> dict[str, str]:
     return keys
 
 
+#: seconds the last :func:`run_job` of this process waited for other jobs computing its entries (the
+#: job queue orders by a job's own work: a job that found its model being trained is short next time)
+WAITED = 0.0
+
+
 def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, dict]:
     """Run the selected stages of one job; returns every stage's result by name."""
+    global WAITED
+    WAITED = 0.0
     names, system, modules = validate(cfg)
     keys = plan(cfg, names, modules)
     store = cache_dir(cfg)
@@ -336,7 +343,9 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, 
                 except TimeoutError:  # another job computes this entry now: wait for it, then load
                     print(f"[{cfg.run_name}] {name}: waiting for another job computing the same result",
                           file=sys.stderr, flush=True)
+                    t_wait = time.perf_counter()
                     lock.acquire()
+                    WAITED += time.perf_counter() - t_wait
             try:
                 loaded = _load_trusted(final) if cacheable and (final / "record.json").exists() else None
                 hit = loaded is not None

@@ -400,3 +400,39 @@ def test_a_short_or_empty_cache_key_is_refused_and_a_new_key_is_whole(tmp_path, 
     with pytest.raises(OSError, match="No space"):
         cache._signing_key()
     assert not failing.exists() and list(failing.parent.iterdir()) == []
+
+
+def test_time_spent_waiting_for_another_jobs_entry_is_measured(store, cfg_of, monkeypatch, tmp_path):
+    """The job queue orders by a job's own work (results/timings.csv): a job that waits while another
+    job computes the same entry reports the wait in ``runner.WAITED``, which the job's seconds leave
+    out (pipeline/__main__.py). Another process holds the generate entry's lock until 1 s after the
+    job says it waits."""
+    import builtins
+    import subprocess
+    import sys
+    import threading
+    import time
+    from pipeline.cache import _locked
+    cfg = cfg_of(*SHORT_TWO_MASS, "stages=[generate]")
+    _, _, modules = runner.validate(cfg)
+    key = runner.plan(cfg, ["generate"], modules)["generate"]
+    lock = _locked(runner.cache_dir(cfg) / "generate" / key[:20])
+    release = tmp_path / "release"
+    holder = subprocess.Popen([sys.executable, "-c", "import os, sys, time; from filelock import FileLock; "
+                               "l = FileLock(sys.argv[1]); l.acquire(); print('held', flush=True)\n"
+                               "while not os.path.exists(sys.argv[2]): time.sleep(0.05)",
+                               lock.lock_file, str(release)], stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held"
+
+    def said(*args, **kw):                  # the runner's "waiting for another job" line starts the clock
+        if any("waiting for another job" in str(a) for a in args):
+            threading.Timer(1.0, release.touch).start()
+        builtins.print(*args, **kw)
+    monkeypatch.setattr(runner, "print", said, raising=False)
+    t0 = time.perf_counter()
+    runner.run_job(cfg)
+    took = time.perf_counter() - t0
+    holder.wait(timeout=60)
+    assert 0.9 < runner.WAITED <= took
+    runner.run_job(cfg)                      # cached, nobody holds the lock: no wait
+    assert runner.WAITED == 0.0

@@ -19,8 +19,6 @@ from typing import Any
 
 from filelock import FileLock
 
-from pipeline.errors import ConfigError
-
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -78,6 +76,10 @@ class UntrustedCache(Exception):
     """A cache entry not signed with this machine's cache key (written elsewhere, or altered)."""
 
 
+class ShortKey(ValueError):
+    """The signing key file holds fewer than KEY_MIN_BYTES bytes (the runner reports it as bad input)."""
+
+
 _KEYS: dict[Path, bytes] = {}   # signing key per key file, read once
 
 
@@ -115,7 +117,7 @@ def _signing_key() -> bytes:
                 tmp.unlink(missing_ok=True)
         key = path.read_bytes()
         if len(key) < KEY_MIN_BYTES:
-            raise ConfigError(f"the cache signing key {path} holds {len(key)} bytes, fewer than "
+            raise ShortKey(f"the cache signing key {path} holds {len(key)} bytes, fewer than "
                                  f"{KEY_MIN_BYTES}: it cannot be trusted. Delete it (a new one is made; "
                                  "entries signed with the old one are recomputed)")
         _KEYS[path] = key

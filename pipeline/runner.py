@@ -39,8 +39,9 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline import interrupts, tracking
-from pipeline.cache import (HOST, UntrustedCache, _load_trusted, _locked, _tmp_name, _write_signed,  # noqa: F401
-                            cache_dir, cache_key_file, pid_alive, remove_stale_temporaries)
+from pipeline.cache import (HOST, ShortKey, UntrustedCache, _load_trusted, _locked, _signing_key,  # noqa: F401
+                            _tmp_name, _write_signed, cache_dir, cache_key_file, pid_alive,
+                            remove_stale_temporaries)
 from pipeline.errors import ORDER, SAFE_NAME, ConfigError  # noqa: F401  (re-exported)
 
 ROOT = tracking.ROOT
@@ -270,6 +271,10 @@ def validate(cfg: DictConfig) -> tuple[list[str], Any, dict]:
     for n in names:
         if hasattr(modules[n], "validate"):
             modules[n].validate(cfg, system)
+    try:
+        _signing_key()          # a short or empty cache signing key is bad input: named before any work
+    except ShortKey as exc:
+        raise ConfigError(str(exc)) from None
     return names, system, modules
 
 

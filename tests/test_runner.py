@@ -374,18 +374,19 @@ def test_no_two_configs_of_a_sweep_share_a_run_name(store):
                for n in runs["tags.mlflow.runName"])
 
 
-def test_a_short_or_empty_cache_key_is_refused_and_a_new_key_is_whole(tmp_path, monkeypatch):
+def test_a_short_or_empty_cache_key_is_refused_and_a_new_key_is_whole(tmp_path, monkeypatch, cfg_of):
     """Issue 24 item 3: an empty key file (what a full disk could leave) would let anyone sign a
     forged entry; a key under 32 bytes is refused with the fix named. A new key is written to a
     temporary and linked into place: the key file is whole (32 bytes) or absent, never partial."""
     from pipeline import cache
-    from pipeline.errors import ConfigError
     for content in (b"", b"k" * 31):
         key = tmp_path / f"short{len(content)}.key"
         key.write_bytes(content)
         monkeypatch.setenv("PIPELINE_CACHE_KEY_FILE", str(key))
-        with pytest.raises(ConfigError, match=f"holds {len(content)} bytes.*Delete it"):
+        with pytest.raises(cache.ShortKey, match=f"holds {len(content)} bytes.*Delete it"):
             cache._signing_key()
+    with pytest.raises(runner.ConfigError, match="holds 31 bytes"):      # a job names it before any work
+        runner.validate(cfg_of(*SHORT_TWO_MASS, "stages=[generate]"))
     fresh = tmp_path / "sub" / "new.key"
     monkeypatch.setenv("PIPELINE_CACHE_KEY_FILE", str(fresh))
     assert len(cache._signing_key()) == 32 and fresh.read_bytes() == cache._signing_key()
@@ -402,6 +403,7 @@ def test_a_short_or_empty_cache_key_is_refused_and_a_new_key_is_whole(tmp_path, 
     assert not failing.exists() and list(failing.parent.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_time_spent_waiting_for_another_jobs_entry_is_measured(store, cfg_of, monkeypatch, tmp_path):
     """The job queue orders by a job's own work (results/timings.csv): a job that waits while another
     job computes the same entry reports the wait in ``runner.WAITED``, which the job's seconds leave

@@ -8,8 +8,9 @@ one job list, longest first by the previous run's job times (``hydra_plugins/pgn
 :mod:`pipeline.job_queue`), run N at once through Hydra's joblib launcher (N = the machine's cores by
 default; ``--jobs 1`` runs them one after another), each job single-threaded, so results are
 bit-identical to a serial run in any order.  Its output streams through.  ``results/timings.csv``
-holds each job's wall time without its waits for another job's identical entry (experiment, job = its
-overrides, wall_seconds, git_sha; the next run's order) and a ``total`` row: the whole queue's wall time, its job time, and the cores it kept busy.
+holds each job's wall time without its waits for another job's identical entry (experiment,
+job = its overrides, wall_seconds, git_sha; the next run's order) and a ``total`` row: the whole
+queue's wall time, its job time, and the cores it kept busy.
 A subset run replaces its experiments' rows and keeps the others.
 """
 from __future__ import annotations

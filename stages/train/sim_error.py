@@ -206,7 +206,8 @@ def _fit_measured(ctx) -> dict:
                                    max_iter=int(ident.max_iter), ftol=float(ident.ftol), gtol=float(ident.gtol),
                                    mu0=float(ident.mu0), memo=restart_memo(ctx), geodesic=bool(ident.geodesic),
                                    stat_window=int(ident.stat_window), stat_tol=float(ident.stat_tol),
-                                   stat_frac=float(ident.stat_frac), n_data=sum(n_trains) - N_INIT * len(segs), **lm_progress(ctx))
+                                   stat_frac=float(ident.stat_frac), n_data=sum(n_trains) - N_INIT * len(segs),
+                                   **lm_progress(ctx))
     log_restarts(ctx, fit_.restarts, fit_.best)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)

@@ -60,6 +60,7 @@ def test_queue_holds_every_job_of_each_experiments_sweep(tmp_path):
     assert lines[-1][1:] == ["physics_arx", ""] and float(lines[-1][0]) == 20.0
 
 
+@pytest.mark.slow     # real jobs through the queue (~11 s); make reproduce runs the same path
 def test_driver_times_the_queue_and_counts_its_jobs(store, capsys):
     results = store / "results"
     table = reproduce.run(["physics_arx"], results)

@@ -189,6 +189,7 @@ def test_four_parallel_jobs_to_an_mlflow_server_lose_nothing(sweep_store, mlflow
             assert len(metrics) == len(_science(next(iter(serial.values()))))
 
 
+@pytest.mark.slow     # a real failing sweep (~9 s)
 def test_failed_sweep_marks_parent_failed(tmp_path):
     import mlflow
     env = {**os.environ, "PIPELINE_CACHE": str(tmp_path / "cache"),

@@ -28,8 +28,8 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	@$(PY) -c "import torch; print('installed torch', torch.__version__, '(CUDA build: large)' if torch.version.cuda else '(CPU build)')"
 	touch $@
 
-test: install  ## fast test suite (< 10 min on 2 cores)
-	$(PY) -m pytest -q
+test: install  ## fast test suite, one worker per core (pytest-xdist; a file's tests stay on one worker)
+	$(PY) -m pytest -q -n auto --dist loadfile
 
 test-full: install  ## every test, including the slow ones (sweeps, whole experiments)
 	$(PY) -m pytest -q -m ''

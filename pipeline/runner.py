@@ -271,6 +271,11 @@ def validate(cfg: DictConfig) -> tuple[list[str], Any, dict]:
     for n in names:
         if hasattr(modules[n], "validate"):
             modules[n].validate(cfg, system)
+    cache = Path(os.path.abspath(cache_dir(cfg)))
+    source = [ROOT / d for d in ("pipeline", "stages", "conf", "tests", "hydra_plugins")]
+    if cache == Path(cache.anchor) or cache == Path.home() or any(cache == s or s in cache.parents for s in source):
+        raise ConfigError(f"paths.cache={cache} is the file system's root, the home folder or inside the source "
+                          "tree; give the cache a folder of its own, e.g. paths.cache=.cache (the default)")
     try:
         _signing_key()          # a short or empty cache signing key is bad input: named before any work
     except ShortKey as exc:

@@ -75,6 +75,8 @@ PROBES = [
     pytest.param([*TWO_MASS, "system.alpha=${oops}"], ["config does not resolve"], id="interpolation"),
     pytest.param([*TWO_MASS[:1], "data.references=[{name:a,kind:b2_R},{name:a,kind:b2_R,repeats:2}]",
                   "stages=[generate]"], ["reference name(s) ['a'] given more than once"], id="reference-twice"),
+    pytest.param([*TWO_MASS, "paths.cache=/"], ["paths.cache=/ is the file system's root"], id="cache-root"),
+    pytest.param([*TWO_MASS, f"paths.cache={ROOT}/pipeline/c"], ["inside the source tree"], id="cache-in-source"),
     pytest.param([*TWO_MASS[:1], "data.references=[{name:'x/../y',kind:b2_R}]", "stages=[generate]"],
                  ["reference name(s) ['x/../y'] are not names"], id="reference-path"),
 ]

@@ -10,8 +10,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from pipeline import interrupts, resources
-from pipeline import runner
+from pipeline import interrupts, resources, runner
 from pipeline.runner import ConfigError, run_job, run_name_with_overrides
 
 

@@ -117,9 +117,9 @@ def _signing_key() -> bytes:
                 tmp.unlink(missing_ok=True)
         key = path.read_bytes()
         if len(key) < KEY_MIN_BYTES:
-            raise ShortKey(f"the cache signing key {path} holds {len(key)} bytes, fewer than "
-                                 f"{KEY_MIN_BYTES}: it cannot be trusted. Delete it (a new one is made; "
-                                 "entries signed with the old one are recomputed)")
+            raise ShortKey(f"the cache signing key {path} holds {len(key)} bytes, fewer than {KEY_MIN_BYTES}: "
+                           "it cannot be trusted. Delete it (a new one is made; entries signed with the old one "
+                           "are recomputed)")
         _KEYS[path] = key
     return _KEYS[path]
 

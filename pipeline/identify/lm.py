@@ -412,10 +412,11 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
             # statistical stop: the decrease over W accepted steps is below stat_tol of the
             # cost's sampling standard deviation sqrt(2/N)·C (module docstring)
             # (confirmed by the Gauss–Newton decrement at the new iterate, at the loop's top)
-            seen = past + history
-            window = max(stat_window, math.ceil(stat_frac * (len(seen) - 1)))
-            stat_pending = bool(stat_window and len(seen) > window and
-                                seen[-1 - window] - cost <= stat_scale * cost)
+            n_seen = len(past) + len(history)       # the earlier run's costs count as this run's first
+            window = max(stat_window, math.ceil(stat_frac * (n_seen - 1)))
+            i = n_seen - 1 - window
+            stat_pending = bool(stat_window and i >= 0 and
+                                (past[i] if i < len(past) else history[i - len(past)]) - cost <= stat_scale * cost)
         else:
             mu *= nu
             nu *= 2.0

@@ -69,15 +69,22 @@ def _locked(final: Path) -> FileLock:
     """The lock of one cache entry (``<cache>/.locks/<stage>-<key>.lock``): held while it is computed."""
     locks = final.parent.parent / ".locks"
     locks.mkdir(parents=True, exist_ok=True)
-    return FileLock(str(locks / f"{final.parent.name}-{final.name}.lock"))
+    lock = locks / f"{final.parent.name}-{final.name}.lock"
+    if lock.is_symlink():   # never open (and truncate) whatever a planted link points at
+        lock.unlink()
+    return FileLock(str(lock))
 
 
 class UntrustedCache(Exception):
     """A cache entry not signed with this machine's cache key (written elsewhere, or altered)."""
 
 
-class ShortKey(ValueError):
-    """The signing key file holds fewer than KEY_MIN_BYTES bytes (the runner reports it as bad input)."""
+class BadKey(ValueError):
+    """The signing key file cannot be used (the runner reports it as bad input, before any work)."""
+
+
+class ShortKey(BadKey):
+    """The signing key file holds fewer than KEY_MIN_BYTES bytes."""
 
 
 _KEYS: dict[Path, bytes] = {}   # signing key per key file, read once
@@ -115,6 +122,9 @@ def _signing_key() -> bytes:
                     pass
             finally:
                 tmp.unlink(missing_ok=True)
+        if not path.is_file():
+            raise BadKey(f"the cache signing key {path} is not a plain file: remove it (a new key is made) or "
+                         "point PIPELINE_CACHE_KEY_FILE at a file of your own")
         key = path.read_bytes()
         if len(key) < KEY_MIN_BYTES:
             raise ShortKey(f"the cache signing key {path} holds {len(key)} bytes, fewer than {KEY_MIN_BYTES}: "
@@ -131,37 +141,63 @@ def _signature(*blobs: bytes) -> str:
     return mac.hexdigest()
 
 
+_SIGNED = ("result.pkl", "record.json", "signature")
+
+
+def _tree(entry: Path) -> bytes:
+    """Every other file of the entry (exported C, laws, datasets, figures: what a later stage, the
+    tracking store or ``pgnn-ff export`` trusts), as sorted ``<relative path> <sha256>`` lines.  A
+    link, or anything that is neither file nor folder, cannot be trusted (it may point anywhere)."""
+    lines = []
+    for p in sorted(entry.rglob("*")):
+        rel = p.relative_to(entry).as_posix()
+        if p.is_symlink() or not (p.is_file() or p.is_dir()):
+            raise UntrustedCache(f"{entry} holds {rel}, which is not a plain file or folder")
+        if p.is_file() and rel not in _SIGNED:
+            lines.append(f"{rel} {hashlib.sha256(p.read_bytes()).hexdigest()}")
+    return "\n".join(lines).encode()
+
+
+def _blobs(entry: Path, payload: bytes, rec: bytes | None) -> list[bytes]:
+    tree = _tree(entry)
+    return [payload] + ([rec] if rec is not None else []) + ([tree] if tree else [])
+
+
 def _write_signed(entry: Path, result, record: dict | None = None) -> None:
-    """``result.pkl`` (+ ``record.json``) and ``signature``: HMAC-SHA256 of both with the cache key."""
+    """``result.pkl`` (+ ``record.json``) and ``signature``: HMAC-SHA256 with the cache key of both
+    and of every other file the entry holds (written last, once the entry is complete)."""
     payload = pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL)
     (entry / "result.pkl").write_bytes(payload)
-    blobs = [payload]
+    rec = None
     if record is not None:
         rec = json.dumps(record, indent=1).encode()
         (entry / "record.json").write_bytes(rec)
-        blobs.append(rec)
-    (entry / "signature").write_text(_signature(*blobs))
+    (entry / "signature").write_text(_signature(*_blobs(entry, payload, rec)))
 
 
 def _read_signed(entry: Path) -> tuple[Any, dict | None]:
-    """The entry's result (and record), unpickled only after its signature checked out."""
+    """The entry's result (and record), unpickled only after its signature checked out: over the
+    pickle, the record and every other file of the entry (a file added, removed or altered fails)."""
     payload = (entry / "result.pkl").read_bytes()
-    blobs = [payload]
-    rec = entry / "record.json"
-    if rec.exists():
-        blobs.append(rec.read_bytes())
+    rec = (entry / "record.json").read_bytes() if (entry / "record.json").exists() else None
     sig = entry / "signature"
-    if not sig.exists() or not hmac.compare_digest(sig.read_text().strip(), _signature(*blobs)):
-        raise UntrustedCache(f"{entry} is not signed with this machine's cache key ({cache_key_file()})")
-    return pickle.loads(payload), (json.loads(blobs[1]) if len(blobs) > 1 else None)
+    if not sig.exists() or not hmac.compare_digest(sig.read_text().strip(), _signature(*_blobs(entry, payload, rec))):
+        raise UntrustedCache(f"{entry} is not signed with this machine's cache key ({cache_key_file()}), "
+                             "or a file in it was altered, added or removed")
+    return pickle.loads(payload), (json.loads(rec) if rec is not None else None)
 
 
 def _load_trusted(entry: Path) -> tuple[Any, dict | None] | None:
-    """The entry's (result, record); None after moving an untrusted entry out of the way (never
-    loaded), so that it is recomputed."""
+    """The entry's (result, record); None when there is no entry, or after moving an untrusted or
+    incomplete one (a file missing: a copy cut short, a hand edit) out of the way, never loaded, so
+    that it is recomputed."""
+    if not entry.exists() and not entry.is_symlink():
+        return None
     try:
+        if entry.is_symlink() or not entry.is_dir():
+            raise UntrustedCache(f"{entry} is not a folder")
         return _read_signed(entry)
-    except UntrustedCache as why:
+    except (UntrustedCache, FileNotFoundError, NotADirectoryError, IsADirectoryError) as why:
         aside = entry.with_name(f".untrusted-{entry.name}-{time.time_ns()}")
         os.rename(entry, aside)
         print(f"warning: {why}; not loaded (moved to {aside.name}), recomputing", file=sys.stderr, flush=True)

@@ -49,26 +49,34 @@ _EPS_T = 1e-9   # relative slack [-] when counting samples in a duration (roundi
 
 
 def _positive(name: str, x) -> float:
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {x!r}") from None
-    if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be positive and finite, got {x!r}; give a bound > 0")
+    v = _finite(name, x)
+    if not v > 0.0:
+        raise ValueError(f"{name} must be positive, got {x!r}; give a bound > 0")
     return v
 
 
 def _nonnegative(name: str, x) -> float:
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {x!r}") from None
-    if not (math.isfinite(v) and v >= 0.0):
-        raise ValueError(f"{name} must be >= 0 and finite, got {x!r}")
+    v = _finite(name, x)
+    if v < 0.0:
+        raise ValueError(f"{name} must be >= 0, got {x!r}")
     return v
 
 
+#: longest reference built (10^7 samples: 80 MB per signal, 2.8 h at 1 kHz); a longer one is a
+#: typo (a rest of 1e9 s) that would end in a memory error deep inside a stage
+MAX_SAMPLES = 10**7
+
+
+def _count(n: int, what: str, Ts: float) -> int:
+    if n > MAX_SAMPLES:
+        raise ValueError(f"{what} has {n:.3g} samples at Ts={Ts:g} s, more than {MAX_SAMPLES:.0e} "
+                         "(80 MB per signal): shorten it (durations, repeats, n_samples) or raise Ts")
+    return n
+
+
 def _finite(name: str, x) -> float:
+    if isinstance(x, bool):   # YAML's true is not a length of 1 m
+        raise ValueError(f"{name} must be a number, got {x!r}")
     try:
         v = float(x)
     except (TypeError, ValueError):
@@ -250,7 +258,7 @@ class Reference:
             raise ValueError("only a reference that ends at rest at its start position can be "
                              f"repeated seamlessly (r[0]={self.r[0]}, r[-1]={self.r[-1]}, "
                              f"v[-1]={self.v[-1]}); end the sequence with a move back")
-        N = len(self) * n
+        N = _count(len(self) * n, f"the reference repeated {n} times", self.Ts)
         return Reference(np.arange(N) * self.Ts, np.tile(self.r, n), np.tile(self.v, n),
                          np.tile(self.a, n), np.tile(self.j, n), self.Ts)
 
@@ -308,6 +316,7 @@ def sequence(steps: Sequence[Rest | MoveTo], Ts: float, start: float = 0.0,
         if n < n_min:
             raise ValueError(f"n_samples={n} cuts the last move, which ends at "
                              f"t={t_last_move_end:.6g} s; use n_samples >= {n_min}")
+    _count(n, "the reference", Ts)
     tk = np.arange(n) * Ts
     r, v, a, jk = np.full(n, pos), np.zeros(n), np.zeros(n), np.zeros(n)
     starts = np.array([p[0] for p in plan] + [np.inf])

@@ -62,9 +62,9 @@ def _places(cfg=None) -> list[tuple[str, Path, str]]:
     out.append(("cache key", runner.cache_key_file().parent,
                 "point PIPELINE_CACHE_KEY_FILE at a writable location"))
     uri = os.environ.get("MLFLOW_TRACKING_URI") or tracking.default_uri()
-    if uri.startswith("sqlite:///"):
-        out.append(("MLflow store", Path(uri[len("sqlite:///"):]).parent,
-                    "point MLFLOW_TRACKING_URI at a writable store"))
+    if uri.startswith("sqlite:///"):   # its folder, and the file itself (deeper: it wins over a neighbour)
+        for place in (Path(uri[len("sqlite:///"):]).parent, Path(uri[len("sqlite:///"):])):
+            out.append(("MLflow store", place, "point MLFLOW_TRACKING_URI at a writable store"))
     elif uri.startswith("file:") or "://" not in uri:
         out.append(("MLflow store", Path(re.sub(r"^file://", "", uri)),
                     "point MLFLOW_TRACKING_URI at a writable store"))
@@ -96,12 +96,21 @@ def _chain(exc: BaseException):
         exc = exc.__cause__ or exc.__context__
 
 
+#: errno -> (reason, what to do) where the path is a place a job writes (elsewhere: a program error)
+PLACE_ERRNOS = {
+    errno.ENOENT: ("a folder on its path is missing and cannot be made", ""),
+    errno.ENOTDIR: ("a part of its path is a file, not a folder", ""),
+    errno.EEXIST: ("a part of its path is a file, not a folder", ""),
+    errno.EISDIR: ("it is a folder, not a file", ""),
+}
+
+
 def _os_line(exc: OSError, cfg) -> str | None:
-    if exc.errno not in ERRNOS:
-        return None
     path = exc.filename2 or exc.filename   # rename / copy: the destination
     what, fix = _where(str(path) if path else None, cfg)
-    reason, first = ERRNOS[exc.errno]
+    if exc.errno not in ERRNOS and not (exc.errno in PLACE_ERRNOS and what != "file"):
+        return None
+    reason, first = ERRNOS.get(exc.errno) or PLACE_ERRNOS[exc.errno]
     fix = " ".join(x for x in (first, fix) if x).removesuffix(", or").removesuffix(" or") or \
         "choose a writable location"
     return f"error: {what} at {path or 'an unnamed file'}: {reason}; {fix}"
@@ -122,7 +131,7 @@ def describe(exc: BaseException, cfg=None) -> str | None:
         return None
     uri = os.environ.get("MLFLOW_TRACKING_URI") or tracking.default_uri()
     for e in _chain(exc):
-        if isinstance(e, OSError) and e.errno in ERRNOS:
+        if isinstance(e, OSError) and _os_line(e, cfg):
             return _os_line(e, cfg)
         if _is_connection_error(e):
             reason = re.search(r"\[Errno -?\d+\] ([^\"')]+)|(timed out|Read timed out)", str(e))

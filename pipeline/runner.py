@@ -38,8 +38,8 @@ from typing import Any, Iterable
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline import interrupts, tracking
-from pipeline.cache import (HOST, ShortKey, UntrustedCache, _load_trusted, _locked, _signing_key,  # noqa: F401
+from pipeline import interrupts, owned, tracking
+from pipeline.cache import (HOST, BadKey, ShortKey, UntrustedCache, _load_trusted, _locked, _signing_key,  # noqa: F401
                             _tmp_name, _write_signed, cache_dir, cache_key_file, pid_alive,
                             remove_stale_temporaries)
 from pipeline.errors import ORDER, SAFE_NAME, ConfigError  # noqa: F401  (re-exported)
@@ -145,7 +145,7 @@ class StageContext:
         key = hashlib.sha256(f"{self.subkey(tuple(exclude))}/{label}".encode()).hexdigest()[:20]
         final = cache_dir(self.cfg) / f"{self.name}.parts" / key
         with _locked(final):
-            loaded = _load_trusted(final) if (final / "result.pkl").exists() else None
+            loaded = _load_trusted(final)
             if loaded is not None:
                 return loaded[0]
             value = compute()
@@ -272,13 +272,12 @@ def validate(cfg: DictConfig) -> tuple[list[str], Any, dict]:
         if hasattr(modules[n], "validate"):
             modules[n].validate(cfg, system)
     cache = Path(os.path.abspath(cache_dir(cfg)))
-    source = [ROOT / d for d in ("pipeline", "stages", "conf", "tests", "hydra_plugins")]
-    if cache == Path(cache.anchor) or cache == Path.home() or any(cache == s or s in cache.parents for s in source):
+    if cache == Path(cache.anchor) or cache == Path.home() or owned.inside_source(cache):
         raise ConfigError(f"paths.cache={cache} is the file system's root, the home folder or inside the source "
                           "tree; give the cache a folder of its own, e.g. paths.cache=.cache (the default)")
     try:
         _signing_key()          # a short or empty cache signing key is bad input: named before any work
-    except ShortKey as exc:
+    except BadKey as exc:
         raise ConfigError(str(exc)) from None
     return names, system, modules
 
@@ -357,7 +356,7 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, 
                     lock.acquire()
                     WAITED += time.perf_counter() - t_wait
             try:
-                loaded = _load_trusted(final) if cacheable and (final / "record.json").exists() else None
+                loaded = _load_trusted(final) if cacheable else None
                 hit = loaded is not None
                 if hit:
                     results[name], record = loaded

@@ -9,6 +9,7 @@
 """
 from __future__ import annotations
 
+import errno
 import os
 import subprocess
 import time
@@ -37,7 +38,10 @@ def tracking_uri() -> str:
     """The tracking URI of this process: ``MLFLOW_TRACKING_URI`` or the embedded SQLite store."""
     uri = os.environ.get("MLFLOW_TRACKING_URI") or default_uri()
     if uri.startswith("sqlite:///"):
-        Path(uri[len("sqlite:///"):]).parent.mkdir(parents=True, exist_ok=True)
+        db = Path(uri[len("sqlite:///"):])
+        db.parent.mkdir(parents=True, exist_ok=True)
+        if db.exists() and not db.is_file():   # MLflow would retry opening it for 2 minutes, logging each try
+            raise IsADirectoryError(errno.EISDIR, "the database path is a folder, not a file", str(db))
     return uri
 
 
@@ -334,6 +338,7 @@ try:  # the Hydra callback lives here so that tracking stays in one module
 
         def on_multirun_end(self, config, **kwargs) -> None:
             for name, run_id in list(self.parents.items()):
+                mark_dead_runs_killed(client().get_run(run_id).info.experiment_id)
                 self._close_one(name, "FAILED" if self.failed or self._unfinished_children(run_id) else "FINISHED")
             os.environ.pop(PARENT_ENV, None)
 
@@ -355,6 +360,8 @@ try:  # the Hydra callback lives here so that tracking stays in one module
                 return
             interrupts.discard(("run", run_id))
             c = client()
+            if status != "FINISHED":   # a worker SIGKILLed (OOM) leaves its child RUNNING: not for long
+                mark_dead_runs_killed(c.get_run(run_id).info.experiment_id)
             if status != "FINISHED" and interrupts.received() is not None:   # Ctrl-C / kill
                 status = "KILLED"
                 children = c.search_runs([c.get_run(run_id).info.experiment_id],

@@ -79,6 +79,21 @@ PROBES = [
     pytest.param([*TWO_MASS, f"paths.cache={ROOT}/pipeline/c"], ["inside the source tree"], id="cache-in-source"),
     pytest.param([*TWO_MASS[:1], "data.references=[{name:'x/../y',kind:b2_R}]", "stages=[generate]"],
                  ["reference name(s) ['x/../y'] are not names"], id="reference-path"),
+    # issue 24 item 9: values that failed late or gave garbage
+    pytest.param(["experiment=emps_physics", "system.idim.order=20"],
+                 ["idim.order=20", "inaccurate in (b, a) form", "lower idim.order"], id="idim-order-20"),
+    pytest.param(["experiment=emps_physics", "system.idim.order=8", "system.idim.cutoff_hz=5"],
+                 ["idim.order=8 with idim.cutoff_hz=5"], id="idim-order-8-at-5Hz"),
+    pytest.param(["experiment=emps_physics", "system.idim.cutoff_hz=500"], ["idim.cutoff_hz=500", "Nyquist"],
+                 id="idim-cutoff-nyquist"),
+    pytest.param(["experiment=physics_arx", "data.n_samples=1000000000"], ["data.n_samples=1000000000", "10^7"],
+                 id="n_samples-1e9"),
+    pytest.param([*TWO_MASS[:1], "data.references=[{name:a,kind:move,distance:true,v_max:0.05,a_max:5,j_max:200}]",
+                  "stages=[generate]"], ["must be a number, got True"], id="distance-true"),
+    pytest.param([*TWO_MASS[:1], "data.references=[{name:a,kind:sequence,steps:[{rest:1e9}]}]", "stages=[generate]"],
+                 ["more than 1e+07", "shorten it"], id="reference-1e12-samples"),
+    pytest.param([*TWO_MASS[:1], "data.references=[{name:a,kind:b2_R,repeats:100000}]", "stages=[generate]"],
+                 ["repeated 100000 times", "more than 1e+07"], id="reference-repeats"),
 ]
 
 

@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from pipeline.export.law import (ExportError, Law, feedforward, from_k_filter, from_linear_motor_physics,
                                  from_pgnn, from_table)
@@ -260,3 +261,85 @@ def test_export_of_a_job_without_a_learned_law_fails_before_work(store, cfg_of):
     cfg = cfg_of(*SHORT_B1, "invert=newton", "model.hidden=[8,8]")
     with pytest.raises(runner.ConfigError, match=r"one tanh hidden layer; got model.hidden=\[8, 8\]"):
         runner.validate(cfg)
+
+
+@needs_cc
+def test_harness_refuses_what_it_cannot_read_as_one_sample_per_line(tmp_path):
+    """Issue 24 item 10: a line longer than the harness's buffer, a `t,r` CSV and text amid the data
+    are errors (before, the first was split into two samples and the second read t as r); a repeat
+    count out of [1, 10^6] is refused (before, 99999999999 wrapped into a 1.2e9-repeat loop)."""
+    from pipeline.systems.linear_motor import LinearMotorPhysics
+    pm = LinearMotorPhysics(Ts)
+    theta = np.array([0.2, 2.0, 0.4])
+    r = _reference(200)
+    _check(from_linear_motor_physics(pm, theta), "ff_physics", r, pm.feedforward(theta, r), tmp_path)
+    exe = compile_harness(tmp_path / "ff_physics", "ff_physics", "cc")
+    rs = [repr(float(v)) for v in r]
+
+    def harness(lines, *args):
+        f = tmp_path / "in.csv"
+        f.write_text("\n".join(lines) + "\n")
+        return subprocess.run([str(exe), str(f), *args], capture_output=True, text=True, timeout=60)
+
+    good = harness(["r"] + rs)
+    assert good.returncode == 0 and len(good.stdout.split()) == 1 + len(r)        # header + one u per sample
+    u = np.array(good.stdout.split()[1:], dtype=float)
+    np.testing.assert_allclose(u, pm.feedforward(theta, r), rtol=0, atol=TOL * np.max(np.abs(u)))
+    long_line = harness(["r", rs[0] + " " * 5000] + rs[1:])
+    assert long_line.returncode == 1 and "line 2 is longer than" in long_line.stderr and not long_line.stdout
+    t_r = harness(["t,r"] + [f"{k * Ts!r},{v}" for k, v in enumerate(rs)])
+    assert t_r.returncode == 1 and "line 2 holds more than one value" in t_r.stderr and not t_r.stdout
+    text = harness(["r", "0.0", "oops", "0.0"])
+    assert text.returncode == 1 and "line 3 is not a number" in text.stderr
+    for bad in ("99999999999", "0", "-3", "2x", "1e3"):
+        got = harness(["r", "0.0"], "--time", bad)
+        assert got.returncode == 2 and "--time needs a whole number of repeats" in got.stderr, bad
+    assert harness(["r", "0.0"], "--time", "3").returncode == 0
+    assert harness(["r", "0.0"], "--bogus").returncode == 2
+
+
+@needs_cc
+@fits_poorly
+def test_export_cli_trusts_nothing_stored_and_replaces_only_its_own_packages(store, cfg_of, tmp_path, capsys):
+    """Issue 24 items 4, 5, 11 and 2 on `pgnn-ff export`: the compiler stored with a run
+    (export.cc=./evilcc) is never run unless the user names it (--cc); C appended to a cached
+    package is not shipped (the cache entry's signature covers it: recomputed); --out inside the
+    source tree, a file as --out, and a package folder holding a file of the user's are refused
+    before any work, deleting nothing."""
+    from pipeline import runner, tracking
+    from pipeline.export.cli import main
+    evil = tmp_path / "evilcc"
+    marker = tmp_path / "pwned"
+    evil.write_text(f"#!/bin/sh\ntouch {marker}\nexec cc \"$@\"\n")
+    evil.chmod(0o755)
+    cfg = cfg_of("experiment=physics_linear_motor", SHORT_B1[1], SHORT_B1[4],
+                 "stages=[generate,baseline,train,invert,export]")
+    runner.run_job(cfg)
+    run_id = tracking.search_runs("physics_baseline").iloc[0]["run_id"]
+    # a colleague's run in a shared store, its stored config naming a compiler of theirs
+    tracking.client().log_text(run_id, OmegaConf.to_yaml(OmegaConf.merge(cfg, {"export": {"cc": str(evil)}})),
+                               f"{run_id}.yaml")
+    (entry,) = [d for d in (store / "cache" / "export").iterdir() if not d.name.startswith(".")]
+    with open(next(entry.rglob("ff_physics.c")), "a") as f:
+        f.write("\nint backdoor(void) { return 1; }\n")
+    out = tmp_path / "pkg"
+    assert main([run_id, "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert not marker.exists() and "a stored command is never run" in err
+    assert "was altered, added or removed; not loaded" in err          # the tampered entry: recomputed
+    pkg = out / "ff_physics"
+    assert "backdoor" not in (pkg / "ff_physics.c").read_text()
+    man = json.loads((pkg / "manifest.json").read_text())
+    assert man["compiled"] and man["c_max_rel_diff"] <= 1e-9 and man["compiler"].split()[0] == "cc"
+    # again, now with a file of the user's in the package folder: refused, nothing deleted
+    (pkg / "my_notes.txt").write_text("mine")
+    assert main([run_id, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "ff_physics/my_notes.txt" in err and "Traceback" not in err
+    assert (pkg / "my_notes.txt").read_text() == "mine" and (pkg / "ff_physics.c").is_file()
+    (pkg / "my_notes.txt").unlink()
+    assert main([run_id, "--out", str(out), "--cc", str(evil)]) == 0      # the user's explicit choice
+    assert marker.exists()
+    for bad, why in ((runner.ROOT / "stages" / "pkg", "inside the source tree"), (evil, "is a file")):
+        assert main([run_id, "--out", str(bad)]) == 2 and why in capsys.readouterr().err
+    assert not (runner.ROOT / "stages" / "pkg").exists()

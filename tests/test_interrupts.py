@@ -263,6 +263,25 @@ def test_an_unreachable_tracking_server_ends_with_one_line(cli, store, monkeypat
     assert "MLFLOW_TRACKING_URI" in line
 
 
+@pytest.mark.parametrize("where", ["under_a_file", "a_folder"])
+def test_a_store_path_that_cannot_be_a_database_ends_with_one_line(cli, store, monkeypatch, capfd, where):
+    """Issue 24, tracebacks: a SQLite store under a file, or at a folder (MLflow retried opening that
+    one for two minutes, logging each try, before the one line)."""
+    blocker = store / "blocker"
+    if where == "under_a_file":
+        blocker.write_text("a file")
+        db = blocker / "m.db"
+    else:
+        blocker.mkdir()
+        db = blocker
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{db}")
+    code, lines = cli(*SHORT_TWO_MASS, "stages=[generate]", capture=capfd)
+    line = _one_error_line(lines)
+    assert code == 1 and line.startswith("error: MLflow store at ") and "MLFLOW_TRACKING_URI" in line
+    assert ("not a folder" if where == "under_a_file" else "a folder, not a file") in line
+    assert not any("retried" in x for x in lines), lines
+
+
 def test_only_resource_errors_are_described(store):
     """A programming error, or an OSError that is not about space or permissions, keeps its traceback."""
     import mlflow

@@ -3,12 +3,13 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 
 import mlflow
 import numpy as np
 import pytest
 
-from pipeline import runner, tracking
+from pipeline import owned, runner, tracking
 from tests.conftest import SHORT_TWO_MASS
 
 
@@ -191,6 +192,7 @@ def test_report_stage_writes_report_summary_and_only_current_figures(store, cfg_
     results = store / "results"
     (results / "figures").mkdir(parents=True)
     (results / "figures" / "stale.png").write_bytes(b"old")  # from an earlier report
+    owned.record(results, ["figures"])
     runner.run_job(cfg_of("stages=[report]", "experiment_name=report", f"paths.results={results}",
                           "report.experiments=[physics_baseline,never_run]"))
     import pandas as pd
@@ -202,13 +204,42 @@ def test_report_stage_writes_report_summary_and_only_current_figures(store, cfg_
     assert "## physics_baseline" in md and "## never_run\n\nNo finished runs" in md
     figs = {p.name for p in (results / "figures").iterdir()}
     assert "stale.png" not in figs and any(f.endswith("tracking_error.png") for f in figs)
-    assert [p.name for p in results.iterdir() if p.name.startswith(".")] == []  # no temp leftovers
+    assert [p.name for p in results.iterdir() if p.name.startswith(".")] == [owned.MANIFEST]  # no temp leftovers
+
+
+def test_report_never_replaces_a_users_file(store, cfg_of):
+    """Issue 24 item 2: the report replaces REPORT.md, summary.csv, figures/ and export/ under
+    paths.results only where it wrote them (pipeline/owned.py): a file of the user's there, or one
+    edited since, stops the job before any work, named, and nothing is deleted or overwritten."""
+    runner.run_job(cfg_of(*SHORT_TWO_MASS))
+    results = store / "results"
+    report = cfg_of("stages=[report]", "experiment_name=report", f"paths.results={results}",
+                    "report.experiments=[physics_baseline]")
+    (results / "figures").mkdir(parents=True)
+    (results / "notes.txt").write_text("mine")                        # beside the outputs: never touched
+    runner.run_job(report)
+    assert (results / "notes.txt").read_text() == "mine"
+    md = (results / "REPORT.md").read_text()
+    (results / "figures" / "my_plot.png").write_bytes(b"user")
+    with pytest.raises(runner.ConfigError, match=r"paths.results=.* holds file\(s\) .*figures/my_plot.png"):
+        runner.run_job(report)
+    assert (results / "figures" / "my_plot.png").read_bytes() == b"user"
+    (results / "figures" / "my_plot.png").unlink()
+    (results / "REPORT.md").write_text(md + "\nmy own notes\n")         # edited since the report wrote it
+    with pytest.raises(runner.ConfigError, match="REPORT.md"):
+        runner.run_job(report)
+    assert (results / "REPORT.md").read_text().endswith("my own notes\n")
+    (results / "REPORT.md").write_text(md)
+    runner.run_job(report)                                            # as written: replaced again
+    with pytest.raises(runner.ConfigError, match="inside the source tree"):
+        runner.validate(cfg_of("stages=[report]", f"paths.results={runner.ROOT / 'pipeline' / 'out'}"))
 
 
 def test_report_stage_failure_leaves_the_old_results(store, cfg_of, monkeypatch):
     results = store / "results"
     (results / "figures").mkdir(parents=True)
     (results / "figures" / "kept.png").write_bytes(b"old")
+    owned.record(results, ["figures"])
     runner.run_job(cfg_of(*SHORT_TWO_MASS))
 
     def broken(*args):
@@ -217,7 +248,7 @@ def test_report_stage_failure_leaves_the_old_results(store, cfg_of, monkeypatch)
     with pytest.raises(RuntimeError, match="provider failed"):
         runner.run_job(cfg_of("stages=[report]", "experiment_name=report", f"paths.results={results}",
                               "report.experiments=[physics_baseline]"))
-    assert sorted(p.name for p in results.iterdir()) == ["figures"]   # no temp dirs, no partial files
+    assert sorted(p.name for p in results.iterdir()) == [owned.MANIFEST, "figures"]   # no temp dirs, no partial files
     assert [p.name for p in (results / "figures").iterdir()] == ["kept.png"]
 
 
@@ -236,6 +267,7 @@ def test_report_update_rebuilds_only_the_named_sections(store, cfg_of):
                    "paper_value": "", "claim_holds": "true"},
                   {"experiment": "physics_baseline", "claim": "", "variant": "old", "metric": "m", "value": 1.0,
                    "paper_value": "", "claim_holds": ""}]).to_csv(results / "summary.csv", index=False)
+    owned.record(results, ["REPORT.md", "summary.csv", "figures"])     # as an earlier report left them
     runner.run_job(cfg_of("stages=[report]", "experiment_name=report", f"paths.results={results}",
                           "report.experiments=[physics_baseline]", "report.update=true"))
     md = (results / "REPORT.md").read_text()
@@ -401,6 +433,55 @@ def test_a_short_or_empty_cache_key_is_refused_and_a_new_key_is_whole(tmp_path, 
     with pytest.raises(OSError, match="No space"):
         cache._signing_key()
     assert not failing.exists() and list(failing.parent.iterdir()) == []
+
+
+def test_every_file_of_a_cache_entry_is_signed(store, cfg_of, capsys):
+    """Issue 24 item 4: the signature covers every file an entry holds (here the generate stage's
+    Parquet dataset, which later stages and the tracking store trust), not only its pickle: a byte
+    appended, a file added or a link planted sets the entry aside, recomputed bit-identically."""
+    cfg = cfg_of(*SHORT_TWO_MASS, "stages=[generate]")
+    good = runner.run_job(cfg)["generate"]["dataset"].frame
+    gen = store / "cache" / "generate"
+
+    def entry():
+        (e,) = [d for d in gen.iterdir() if not d.name.startswith(".")]
+        return e
+    data = next(entry().glob("data/*.parquet"))
+    assert runner.run_job(cfg)["generate"]["dataset"].frame.equals(good)          # untouched: loaded
+    assert "not loaded" not in capsys.readouterr().err
+    for tamper in (lambda e: open(next(e.glob("data/*.parquet")), "ab").write(b"#"),
+                   lambda e: (e / "data" / "extra.c").write_text("int evil;"),
+                   lambda e: (e / "data" / "link").symlink_to(data)):
+        tamper(entry())
+        assert runner.run_job(cfg)["generate"]["dataset"].frame.equals(good)
+        err = capsys.readouterr().err
+        assert "not loaded (moved to .untrusted-" in err, err
+        assert not any(p.name in ("extra.c", "link") for p in entry().rglob("*"))   # a clean recomputation
+
+
+def test_a_broken_cache_entry_lock_or_key_is_one_line_or_recomputed(store, cfg_of, capsys, monkeypatch):
+    """Issue 24, tracebacks: an entry missing a file (record.json) is recomputed, not a traceback on
+    every rerun; a lock file planted as a link is replaced, its target never truncated; a key path
+    that is a folder is bad input, named before any work."""
+    cfg = cfg_of(*SHORT_TWO_MASS, "stages=[generate]")
+    good = runner.run_job(cfg)["generate"]["dataset"].frame
+    (e,) = [d for d in (store / "cache" / "generate").iterdir() if not d.name.startswith(".")]
+    (e / "record.json").unlink()
+    assert runner.run_job(cfg)["generate"]["dataset"].frame.equals(good)
+    assert "recomputing" in capsys.readouterr().err and (e / "record.json").is_file()
+    (lock,) = (store / "cache" / ".locks").glob("generate-*.lock")
+    victim = store / "victim.txt"
+    victim.write_text("precious")
+    lock.unlink()
+    lock.symlink_to(victim)
+    shutil.rmtree(e)
+    assert runner.run_job(cfg)["generate"]["dataset"].frame.equals(good)
+    assert victim.read_text() == "precious" and not lock.is_symlink()
+    folder = store / "key-is-a-folder"
+    folder.mkdir()
+    monkeypatch.setenv("PIPELINE_CACHE_KEY_FILE", str(folder))
+    with pytest.raises(runner.ConfigError, match="is not a plain file"):
+        runner.validate(cfg)
 
 
 @pytest.mark.slow

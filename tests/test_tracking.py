@@ -276,3 +276,27 @@ def test_queue_callback_one_parent_per_experiment_file_even_when_files_share_an_
     c = mlflow.MlflowClient()
     assert [c.get_run(i).info.status for i in ids] == ["FINISHED", "FINISHED"] and cb.parents == {}
     assert PARENT_ENV not in os.environ
+
+
+def test_a_sigkilled_workers_child_run_is_not_left_running(store):
+    """Issue 24, tracebacks: a joblib worker SIGKILLed (the OOM killer) cannot end its run; when the
+    sweep ends (failed, or its atexit hook), the child whose process is gone is marked KILLED at
+    once, not when some later job of the same experiment happens to start."""
+    from omegaconf import OmegaConf
+
+    from pipeline import tracking
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    cb = tracking.MultirunCallback()
+    cb.on_multirun_start(OmegaConf.create({"experiment_name": "killed_worker", "paths": {"cache": str(store)}}))
+    parent = cb.parent_run_id
+    c = tracking.client()
+    exp = c.get_run(parent).info.experiment_id
+    child = c.create_run(exp, tags={"mlflow.parentRunId": parent, "host": tracking.HOST, "pid": str(dead.pid),
+                                    "sweep": "child"}).info.run_id
+    alive = c.create_run(exp, tags={"mlflow.parentRunId": parent, "host": tracking.HOST,
+                                    "pid": str(os.getpid()), "sweep": "child"}).info.run_id
+    cb._close("FAILED")
+    assert c.get_run(parent).info.status == "FAILED"
+    assert c.get_run(child).info.status == "KILLED"
+    assert c.get_run(alive).info.status == "RUNNING"          # a live process's run is its own to end

@@ -5,6 +5,12 @@ The run's resolved config (its ``<run id>.yaml`` artifact) is rerun with the sta
 ``invert`` plus ``export``: the upstream stages load from the cache (or are recomputed, bit-identical
 for the config), the packages and MLflow models are logged to that run, and the packages are
 copied to ``DIR/<package>/`` (default ``export/``), each appearing whole or not at all.
+
+Never trusted from the stored run: the C compiler.  It is ``--cc`` when given, else the default of
+``conf/config.yaml`` (``cc``): a shared store must not be a way to run a command on a colleague's
+machine.  ``DIR`` must not be inside the source tree, and a package folder there is replaced only
+if this command wrote it (:mod:`pipeline.owned`): a file of the user's in it stops the export
+before any work.
 """
 from __future__ import annotations
 
@@ -16,6 +22,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from pipeline import owned
 from pipeline.export.law import LAWS, ExportError
 from pipeline.export.package import replace_dir
 from pipeline.runner import ORDER, ConfigError
@@ -23,11 +30,28 @@ from pipeline.runner import ORDER, ConfigError
 __all__ = ["main", "export_run"]
 
 
-def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool = True) -> dict:
-    """Export the feedforward of run ``run_id`` to ``out``; returns {package: manifest}."""
+def _writable(out: Path) -> None:
+    """``out`` is (or can be made) a folder this user writes to, outside the source tree."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} is a file, not a folder; give a folder")
+    if owned.inside_source(out):
+        raise ConfigError(f"--out {out} is inside the source tree; export to a folder of its own (default ./export)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=out).close()
+    except OSError as exc:
+        raise ConfigError(f"cannot write to --out {out} ({exc.strerror}); give a folder you can write to") from None
+
+
+def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool = True,
+               cc: str | None = None) -> dict:
+    """Export the feedforward of run ``run_id`` to ``out``; returns {package: manifest}.  ``cc``:
+    the C compiler (None: the default of conf/config.yaml, never the one stored with the run)."""
     import mlflow
 
     from pipeline import runner, tracking
+    out = Path(out)
+    _writable(out)
     client = tracking.client()
     try:
         run = client.get_run(run_id)
@@ -52,15 +76,23 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
     if kind not in LAWS:
         raise ConfigError(f"run {run_id} has invert.kind={kind!r}, which has no feedforward law to ship; "
                           f"export covers {list(LAWS)}")
+    default = OmegaConf.load(runner.ROOT / "conf" / "config.yaml").export
     if "export" not in cfg:   # a run made before the export stage existed
-        cfg.export = OmegaConf.load(runner.ROOT / "conf" / "config.yaml").export
+        cfg.export = default
+    stored, cfg.export.cc = str(cfg.export.get("cc")), str(cc or default.cc)
+    if compile and stored != cfg.export.cc:
+        print(f"note: run {run_id} was exported with export.cc={stored!r}; compiling with {cfg.export.cc!r} "
+              "(a stored command is never run: pass --cc to choose the compiler)", file=sys.stderr)
+    # the packages this run can write (stages/export.py names them ff_<kind>[_<reference>]): none of
+    # them may hold a file of the user's
+    prefix = "ff_" if kind == "rational_filter" else f"ff_{kind}"
+    owned.refuse_foreign(out, [d.name for d in out.iterdir() if d.name.startswith(prefix)], "--out")
     cfg.export.register = bool(register)
     cfg.export.compile = bool(compile)
     cfg.stages = [s for s in ORDER if s in ("generate", "baseline", "train", "invert", "export")]
     results = runner.run_job(cfg, run=tracking.JobRun.resume(run_id))
     packages = results["export"]["packages"]
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    owned.refuse_foreign(out, list(packages), "--out")
     for name in packages:
         tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{name}-", dir=out))
         try:
@@ -70,6 +102,7 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
             replace_dir(got, final)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
+        owned.record(out, [name])
         man = packages[name]
         c = f"C max|Δu|/max|u| = {man['c_max_rel_diff']:.2g}, {man['c_ns_per_sample']:.0f} ns/sample" \
             if man["compiled"] else "C not compiled (no compiler)"
@@ -84,9 +117,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="export", help="folder of the packages (default: ./export)")
     p.add_argument("--register", action="store_true", help="also register the model in the MLflow Model Registry")
     p.add_argument("--no-compile", action="store_true", help="write the C source without compiling or verifying it")
+    p.add_argument("--cc", default=None, help="the C compiler to run (default: cc; the one stored with the run "
+                   "is never used)")
     args = p.parse_args(argv)
     try:
-        export_run(args.run_id, Path(args.out), register=args.register, compile=not args.no_compile)
+        export_run(args.run_id, Path(args.out), register=args.register, compile=not args.no_compile, cc=args.cc)
     except (ConfigError, ExportError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

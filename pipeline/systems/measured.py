@@ -124,6 +124,26 @@ class RigidBodyPhysics(LinearMotorPhysics):
         """Shortest record :meth:`fit_filtered` accepts: the trimmed ends plus 20 decimated rows."""
         return 2 * int(trim) + 20 * max(int(decimation), 1)
 
+    def butterworth(self, cutoff_hz: float = 50.0, order: int = 4) -> tuple[np.ndarray, np.ndarray]:
+        """The IDIM-LS prefilter: Butterworth low-pass in transfer-function form (b, a), as the EMPS
+        benchmark filters.  Refused where that form is inaccurate (high order, or a cutoff far below
+        Nyquist: the coefficients of a cancel to rounding): its response must match the
+        second-order-sections design to 1e-6 and its poles lie inside the unit circle."""
+        from scipy import signal
+        nyq = 0.5 / self.Ts
+        if not 0.0 < cutoff_hz < nyq:
+            raise ValueError(f"idim.cutoff_hz={cutoff_hz} must lie in (0, {nyq:g}) Hz (Nyquist at Ts={self.Ts} s)")
+        b, a = signal.butter(int(order), cutoff_hz / nyq)
+        w = np.linspace(0.0, np.pi, 512)
+        h_ba = signal.freqz(b, a, w)[1]
+        h_sos = signal.sosfreqz(signal.butter(int(order), cutoff_hz / nyq, output="sos"), w)[1]
+        if not (np.max(np.abs(np.roots(a))) < 1.0 and np.max(np.abs(h_ba - h_sos)) <= 1e-6):
+            raise ValueError(f"idim.order={order} with idim.cutoff_hz={cutoff_hz} Hz at Ts={self.Ts} s gives a "
+                             f"Butterworth filter that is inaccurate in (b, a) form (response off by "
+                             f"{np.max(np.abs(h_ba - h_sos)):.2g}): lower idim.order (4 is the EMPS benchmark's) "
+                             "or raise idim.cutoff_hz")
+        return b, a
+
     def filtered_regression(self, y, u, cutoff_hz: float = 50.0, order: int = 4, decimation: int = 10,
                             trim: int = 50):
         """The rows of the filtered inverse-model least squares (IDIM-LS, the EMPS benchmark's
@@ -134,13 +154,10 @@ class RigidBodyPhysics(LinearMotorPhysics):
         from scipy import signal   # on first use: 0.6 s of every job's start-up
         y = check_signal("y", y)
         u = check_signal("u", u, y.shape[0])
-        nyq = 0.5 / self.Ts
-        if not 0.0 < cutoff_hz < nyq:
-            raise ValueError(f"cutoff_hz={cutoff_hz} must lie in (0, {nyq}) Hz (Nyquist at Ts={self.Ts} s)")
         if y.shape[0] < self.min_samples(decimation, trim):
             raise ValueError(f"{y.shape[0]} samples are too few for the filtered least squares "
                              f"(trim={trim}, decimation={decimation}); give a longer record")
-        b, a = signal.butter(int(order), cutoff_hz / nyq)
+        b, a = self.butterworth(cutoff_hz, order)
         qf = signal.filtfilt(b, a, y)
         v = np.gradient(qf, self.Ts)
         acc = np.gradient(v, self.Ts)
@@ -282,6 +299,7 @@ class Recording(System):
         ft = dict(force_terms or {})
         terms = ForceTerms(tuple(ft.pop("terms", ForceTerms.names)), **ft)
         self._physics = RigidBodyPhysics(self.Ts, averaged_input=physics_input == "averaged", terms=terms)
+        self._physics.butterworth(**{k: self.idim[k] for k in ("cutoff_hz", "order") if k in self.idim})
 
     @property
     def physics(self) -> RigidBodyPhysics:

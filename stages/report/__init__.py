@@ -27,7 +27,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from pipeline import tracking
+from pipeline import owned, tracking
 from stages.report._rows import row, run_metrics
 from pipeline.runner import ROOT
 
@@ -36,6 +36,17 @@ DEPENDS = ()
 CACHE = False
 COLUMNS = ["experiment", "claim", "variant", "metric", "value", "paper_value", "claim_holds"]
 KEY = ["experiment", "claim", "variant", "metric"]     # unique in summary.csv
+#: what the report replaces under paths.results (pipeline.owned: only if it wrote them)
+OUTPUTS = ("REPORT.md", "summary.csv", "figures", "export")
+
+
+def _results(cfg) -> Path:
+    return Path(cfg.paths.results) if cfg.paths.get("results") else ROOT / "results"
+
+
+def validate(cfg, system) -> None:
+    """Refuse (before any work) a results folder where the report would replace a user's file."""
+    owned.refuse_foreign(_results(cfg), OUTPUTS, "paths.results")
 
 
 def providers() -> dict[str, object]:
@@ -70,7 +81,7 @@ def _fmt_holds(v) -> str:
 
 def run(ctx) -> dict:
     cfg = ctx.cfg
-    results = Path(cfg.paths.results) if cfg.paths.get("results") else ROOT / "results"
+    results = _results(cfg)
     results.mkdir(parents=True, exist_ok=True)
     figdir = Path(tempfile.mkdtemp(prefix=".figures-tmp-", dir=results))  # swapped in when complete
     try:
@@ -88,6 +99,7 @@ def run(ctx) -> dict:
         _write(results / "REPORT.md", lambda p: p.write_text(text))
         if not update or SHIPPED[0] in built:
             _ship(results / "export", SHIPPED)
+        owned.record(results, OUTPUTS)
     finally:
         shutil.rmtree(figdir, ignore_errors=True)
     ctx.metric("n_rows", len(table))

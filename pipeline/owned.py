@@ -1,0 +1,89 @@
+"""Outputs the pipeline replaces whole, and only when it wrote them: the report's ``REPORT.md``,
+``summary.csv``, ``figures/`` and ``export/`` under ``paths.results``; ``pgnn-ff export``'s
+packages under ``--out`` (issue 24, item 2: nothing of the user's is lost).
+
+``.pgnn-owned.json`` in the output folder lists every file the pipeline wrote there with its
+SHA-256.  Before any work, a file under a target that is not listed, or that changed since it was
+written, is the user's: the job is refused, naming it, and nothing is deleted.  Everything else in
+the folder is never touched.  Imports nothing from the rest of the pipeline but its errors.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Iterable
+
+from pipeline.errors import ConfigError
+
+MANIFEST = ".pgnn-owned.json"
+ROOT = Path(__file__).resolve().parent.parent
+#: the source tree: outputs never go inside it (a stale file there would be imported or committed)
+SOURCE = tuple(ROOT / d for d in ("pipeline", "stages", "conf", "tests", "hydra_plugins", "benchmarks"))
+
+
+def inside_source(path: Path) -> bool:
+    """True if ``path`` is a folder of the source tree or inside one."""
+    p = Path(os.path.abspath(path))
+    return any(p == s or s in p.parents for s in SOURCE)
+
+
+def _sha(p: Path) -> str:
+    return hashlib.sha256(p.read_bytes()).hexdigest()
+
+
+def _listed(root: Path) -> dict[str, str]:
+    try:
+        listed = json.loads((root / MANIFEST).read_text())
+    except (FileNotFoundError, NotADirectoryError, json.JSONDecodeError):
+        return {}
+    return listed if isinstance(listed, dict) else {}
+
+
+def _files(root: Path, targets: Iterable[str]) -> list[Path]:
+    out = []
+    for t in targets:
+        p = root / t
+        if p.is_dir() and not p.is_symlink():
+            out += sorted(f for f in p.rglob("*") if not f.is_dir() or f.is_symlink())
+        elif p.exists() or p.is_symlink():
+            out.append(p)
+    return out
+
+
+def foreign(root: Path, targets: Iterable[str]) -> list[str]:
+    """Files under ``root/<target>`` (a file or a folder) the pipeline did not write, or that were
+    changed since (paths relative to ``root``)."""
+    listed = _listed(root)
+    return [f.relative_to(root).as_posix() for f in _files(root, targets)
+            if f.is_symlink() or not f.is_file() or listed.get(f.relative_to(root).as_posix()) != _sha(f)]
+
+
+def refuse_foreign(root: Path, targets: Iterable[str], option: str) -> None:
+    """Raise :class:`ConfigError` (before any work) if replacing ``targets`` under ``root`` would
+    delete or overwrite a file that is not the pipeline's; ``option`` names the setting to change."""
+    root = Path(root)
+    if inside_source(root):
+        raise ConfigError(f"{option}={root} is inside the source tree; write outputs to a folder of their own")
+    if root.exists() and not root.is_dir():
+        raise ConfigError(f"{option}={root} is a file, not a folder; give a folder")
+    bad = foreign(root, targets)
+    if bad:
+        more = f" and {len(bad) - 5} more" if len(bad) > 5 else ""
+        raise ConfigError(f"{option}={root} holds file(s) this pipeline did not write or that were edited since "
+                          f"({', '.join(bad[:5])}{more}); they would be replaced. Move them elsewhere, or set "
+                          f"{option} to a folder of its own")
+
+
+def record(root: Path, targets: Iterable[str]) -> None:
+    """After writing ``targets`` under ``root``: list each of their files with its hash (entries of
+    other targets kept, those of removed files dropped); the list is replaced atomically."""
+    root = Path(root)
+    targets = list(targets)
+    listed = {k: v for k, v in _listed(root).items()
+              if not any(k == t or k.startswith(f"{t}/") for t in targets)}
+    listed |= {f.relative_to(root).as_posix(): _sha(f) for f in _files(root, targets) if f.is_file()}
+    tmp = root / f".{MANIFEST}.{os.getpid()}.tmp"
+    tmp.write_text(json.dumps(dict(sorted(listed.items())), indent=0))
+    os.replace(tmp, root / MANIFEST)

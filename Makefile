@@ -7,7 +7,7 @@ ROOT := $(abspath .)
 MLFLOW_DB ?= sqlite:///$(ROOT)/mlruns/mlflow.db
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help install test test-full lint reproduce reproduce-check ui bench clean
+.PHONY: help install test test-full lint reproduce reproduce-check ui server pg-uri-missing bench clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-10s %s\n", $$1, $$2}'
@@ -78,6 +78,27 @@ ui: install  ## MLflow UI on http://127.0.0.1:5000 over the same store as the ru
 	@$(PY) -c "from pipeline.tracking import experiment_links; print('\n'.join(experiment_links()) or '  none yet: run make reproduce')"
 	$(VENV)/bin/mlflow server --backend-store-uri "$${MLFLOW_TRACKING_URI:-$(MLFLOW_DB)}" \
 	  --artifacts-destination "$(ROOT)/mlruns/artifacts" --host 127.0.0.1 --port 5000 --workers 1
+
+# the team tracking server (README, "Parallel sweeps"): MLflow on PostgreSQL, artifacts proxied into
+# ARTIFACTS. psycopg is the optional extra [postgres], installed here if missing. Jobs and `make ui`
+# elsewhere use MLFLOW_TRACKING_URI=http://<host>:$(PORT). Nodes that reach the server by a name (not
+# localhost or a private IP) need ALLOWED_HOSTS=<name>:$(PORT) (MLflow's DNS-rebinding guard).
+# ARTIFACTS, HOST, PORT, ALLOWED_HOSTS: on the command line (the environment's HOST is not taken);
+# PG_URI from the command line or the environment (its password: ~/.pgpass or PGPASSWORD, not the URI).
+PG_URI ?=
+ARTIFACTS = $(ROOT)/mlruns/server-artifacts
+HOST = 127.0.0.1
+PORT = 5000
+ALLOWED_HOSTS =
+comma := ,
+server: $(if $(PG_URI),install,pg-uri-missing)  ## team MLflow server on PostgreSQL (PG_URI=postgresql+psycopg://... required)
+	@$(PY) -c 'import psycopg' 2>/dev/null || $(PY) -m pip install --quiet -c constraints.txt -e '.[postgres]'
+	@echo "MLflow server on PostgreSQL: http://$(HOST):$(PORT), artifacts in $(ARTIFACTS)"
+	@$(VENV)/bin/mlflow server --backend-store-uri "$(PG_URI)" --artifacts-destination "$(ARTIFACTS)" \
+	  --host $(HOST) --port $(PORT) $(if $(ALLOWED_HOSTS),--allowed-hosts "$(ALLOWED_HOSTS)$(comma)localhost:*$(comma)127.0.0.1:*")
+
+pg-uri-missing:
+	$(error PG_URI is missing: make server PG_URI=postgresql+psycopg://USER@DBHOST:5432/mlflow ARTIFACTS=/srv/mlflow-artifacts HOST=0.0.0.0)
 
 bench: install  ## print wall times (stages per plant, ILC trials, solvers)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done

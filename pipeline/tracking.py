@@ -185,8 +185,9 @@ class JobRun:
                 return
             except mlflow.exceptions.MlflowException as exc:
                 # two parallel jobs logging one dataset race on MLflow's get-or-create (SQL UNIQUE
-                # constraint); the retry finds the row the other job created
-                if "UNIQUE constraint" not in str(exc) and "IntegrityError" not in str(exc) or attempt == 4:
+                # constraint: SQLite's "UNIQUE constraint failed", PostgreSQL's "duplicate key value
+                # violates unique constraint"); the retry finds the row the other job created
+                if "unique constraint" not in str(exc).lower() and "IntegrityError" not in str(exc) or attempt == 4:
                     raise
                 time.sleep(0.2 * (attempt + 1))
 

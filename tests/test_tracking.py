@@ -300,3 +300,26 @@ def test_a_sigkilled_workers_child_run_is_not_left_running(store):
     assert c.get_run(parent).info.status == "FAILED"
     assert c.get_run(child).info.status == "KILLED"
     assert c.get_run(alive).info.status == "RUNNING"          # a live process's run is its own to end
+
+
+def test_a_postgresql_unique_violation_on_log_inputs_is_retried(store, monkeypatch):
+    """Two jobs logging one dataset race on MLflow's get-or-create; PostgreSQL words the loser's error
+    differently from SQLite ("duplicate key value violates unique constraint"): retried all the same."""
+    import mlflow
+    import pandas as pd
+
+    from pipeline.tracking import JobRun
+    run = JobRun("race", "r", {}, {})
+    real, calls = run.client.log_inputs, []
+
+    def log_inputs(run_id, datasets):
+        calls.append(run_id)
+        if len(calls) == 1:
+            raise mlflow.exceptions.MlflowException(   # what an MLflow server on PostgreSQL answered
+                '(psycopg.errors.UniqueViolation) duplicate key value violates unique constraint "dataset_pk"')
+        return real(run_id, datasets=datasets)
+
+    monkeypatch.setattr(run.client, "log_inputs", log_inputs)
+    run.log_dataset(pd.DataFrame({"u": [0.0, 1.0]}), "train", "/data/train.parquet")
+    assert len(calls) == 2 and len(run.client.get_run(run.run_id).inputs.dataset_inputs) == 1
+    run.end()

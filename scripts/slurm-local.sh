@@ -2,12 +2,12 @@
 # A single-node SLURM on this Debian machine, for tests/test_slurm.py and for trying
 # `hydra/launcher=slurm` without a cluster:
 #
-#   sudo scripts/slurm-local.sh          # (make slurm-local) install if missing, configure, start, wait idle
-#   sudo scripts/slurm-local.sh stop     # (make slurm-local SLURM_LOCAL=stop) stop every daemon it started
-#   scripts/slurm-local.sh status        # which daemons run, and sinfo
+#   scripts/slurm-local.sh          # (make slurm-local) install if missing, configure, start, wait idle
+#   scripts/slurm-local.sh stop     # (make slurm-local SLURM_LOCAL=stop) stop the daemons it starts
+#   scripts/slurm-local.sh status   # which daemons run, and sinfo
 #
-# Rerunning is fine: a daemon already running is left alone; a changed slurm.conf restarts slurmctld
-# and slurmd. Needs root and Debian's packages (apt-get).
+# As root. Rerunning is fine: a daemon already running is left alone; a changed slurm.conf restarts
+# slurmctld and slurmd. Logs: /var/log/slurm/.
 #
 # What it takes to run in a container (no systemd, no cgroup delegation):
 # - The daemons are started directly, each in the background, not through systemctl or invoke-rc.d
@@ -19,8 +19,8 @@
 #   leaves the launcher waiting forever. So slurmdbd runs too, on a MariaDB that listens on its Unix
 #   socket only (--skip-networking).
 # - NodeAddr/SlurmctldHost are 127.0.0.1: nothing has to resolve the host name, no traffic leaves
-#   the machine. CPUs is `nproc` (each CPU a core: SelectTypeParameters=CR_Core then runs one 1-CPU
-#   job per CPU at once), RealMemory 90 % of MemTotal (or of the cgroup limit), and
+#   the machine. CPUs is what `nproc` counts, each CPU a core (SelectTypeParameters=CR_Core then
+#   runs one 1-CPU job per CPU at once); RealMemory is 90 % of MemTotal (or of the cgroup limit);
 #   SlurmdParameters=config_overrides keeps the node up when the container's view of the hardware
 #   differs from the host's.
 # - KillWait=5: `scancel` sends SIGTERM, and SIGKILL 5 s later (submitit ignores SIGTERM).
@@ -39,6 +39,8 @@ WAIT_S=${SLURM_LOCAL_WAIT:-180}    # generous: a loaded machine starts MariaDB s
 
 say() { echo "slurm-local: $*"; }
 die() { echo "slurm-local: error: $*" >&2; exit 1; }
+# the CPUs this machine lets us use (GNU nproc would answer OMP_NUM_THREADS, which make exports as 1)
+cpus() { env -u OMP_NUM_THREADS -u OMP_THREAD_LIMIT nproc; }
 
 # pid of a running daemon from its pid file, if its process still has that name
 running() {  # running PIDFILE NAME
@@ -174,7 +176,7 @@ EOF
 
 slurm_conf() {
   local cpus mem_mb limit_mb
-  cpus=$(nproc)
+  cpus=$(cpus)
   mem_mb=$(awk '/^MemTotal:/ {print int($2 / 1024)}' /proc/meminfo)
   for f in /sys/fs/cgroup/memory.max /sys/fs/cgroup/memory/memory.limit_in_bytes; do
     if [[ -r $f ]] && [[ $(<"$f") =~ ^[0-9]+$ ]]; then
@@ -249,7 +251,7 @@ start() {
     down*|drain*|drng*|fail*) scontrol update NodeName="$NODE" State=RESUME || true ;;
   esac
   wait_for "node $NODE idle in sinfo (see $LOG_DIR/slurmd.log)" node_idle
-  say "up: partition $PARTITION, node $NODE, $(nproc) CPUs"
+  say "up: partition $PARTITION, node $NODE, $(cpus) CPUs"
   sinfo
 }
 

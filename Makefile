@@ -7,7 +7,7 @@ ROOT := $(abspath .)
 MLFLOW_DB ?= sqlite:///$(ROOT)/mlruns/mlflow.db
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help install test test-full lint reproduce reproduce-check ui server pg-uri-missing bench clean
+.PHONY: help install test test-full lint reproduce reproduce-check ui server pg-uri-missing bench slurm-local clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-10s %s\n", $$1, $$2}'
@@ -102,6 +102,13 @@ pg-uri-missing:
 
 bench: install  ## print wall times (stages per plant, ILC trials, solvers)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+# a one-node SLURM on this machine for hydra/launcher=slurm and tests/test_slurm.py (Debian, root, no
+# systemd needed): installs slurm-wlm, munge, slurmdbd and MariaDB if missing, starts them, waits until
+# the node is idle; rerunning is fine. SLURM_LOCAL=stop stops every daemon, SLURM_LOCAL=status lists them
+SLURM_LOCAL ?= start
+slurm-local:  ## one-node SLURM on this machine, partition debug (as root; SLURM_LOCAL=stop stops it)
+	bash scripts/slurm-local.sh $(SLURM_LOCAL)
 
 clean:  ## remove caches and stores (keeps results/)
 	rm -rf .cache .perturbed outputs multirun mlruns .pytest_cache

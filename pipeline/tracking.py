@@ -28,6 +28,9 @@ ROOT = Path(__file__).resolve().parent.parent
 PARENT_ENV = "PIPELINE_PARENT_RUN_ID"
 #: MLflow 3 opens experiments on the GenAI page unless they carry this tag (DESIGN).
 EXPERIMENT_KIND = {"mlflow.experimentKind": "custom_model_development"}
+#: a job run by SLURM (hydra/launcher=slurm) names its SLURM job in these run tags
+SLURM_TAGS = {"SLURM_JOB_ID": "slurm.job_id", "SLURM_ARRAY_JOB_ID": "slurm.array_job_id",
+              "SLURM_ARRAY_TASK_ID": "slurm.array_task_id"}
 
 
 def default_uri() -> str:
@@ -119,7 +122,7 @@ class JobRun:
         exp_id = experiment_id(experiment)
         mark_dead_runs_killed(exp_id)
         all_tags = {"git_sha": git_sha(), "host": _host(), "pid": str(os.getpid()),
-                    **{k: str(v) for k, v in tags.items()}}
+                    **slurm_tags(), **{k: str(v) for k, v in tags.items()}}
         parent = os.environ.get(PARENT_ENV)
         all_tags["sweep"] = "child" if parent else "single"
         if parent:
@@ -229,6 +232,11 @@ class JobRun:
     def end(self, status: str = "FINISHED") -> None:
         self.client.set_terminated(self.run_id, status)
         interrupts.discard(("run", self.run_id))
+
+
+def slurm_tags() -> dict[str, str]:
+    """The SLURM job this process runs in (``sacct -j``, ``scontrol show job``), empty outside SLURM."""
+    return {tag: os.environ[var] for var, tag in SLURM_TAGS.items() if os.environ.get(var)}
 
 
 def _host() -> str:

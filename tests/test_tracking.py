@@ -323,3 +323,21 @@ def test_a_postgresql_unique_violation_on_log_inputs_is_retried(store, monkeypat
     run.log_dataset(pd.DataFrame({"u": [0.0, 1.0]}), "train", "/data/train.parquet")
     assert len(calls) == 2 and len(run.client.get_run(run.run_id).inputs.dataset_inputs) == 1
     run.end()
+
+
+def test_a_job_run_by_slurm_names_its_slurm_job_in_tags(store, monkeypatch):
+    """Issue 24 item 3: a run made inside a SLURM job (an array task of hydra/launcher=slurm) carries
+    slurm.job_id, slurm.array_job_id and slurm.array_task_id; outside SLURM it has no slurm tag."""
+    from pipeline.tracking import JobRun
+    for var in ("SLURM_JOB_ID", "SLURM_ARRAY_JOB_ID", "SLURM_ARRAY_TASK_ID"):
+        monkeypatch.delenv(var, raising=False)
+    plain = JobRun("slurm_tags", "plain", {}, {})
+    monkeypatch.setenv("SLURM_JOB_ID", "4243")
+    monkeypatch.setenv("SLURM_ARRAY_JOB_ID", "4242")
+    monkeypatch.setenv("SLURM_ARRAY_TASK_ID", "1")
+    job = JobRun("slurm_tags", "in_slurm", {}, {})
+    for run in (plain, job):
+        run.end()
+    tags = job.client.get_run(job.run_id).data.tags
+    assert (tags["slurm.job_id"], tags["slurm.array_job_id"], tags["slurm.array_task_id"]) == ("4243", "4242", "1")
+    assert not [k for k in plain.client.get_run(plain.run_id).data.tags if k.startswith("slurm.")]

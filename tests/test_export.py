@@ -178,6 +178,29 @@ def test_law_round_trips_through_json_and_npz(tmp_path):
     assert json.loads((tmp_path / "law" / "law.json").read_text())["floats"]["u_max"] == 3.0
 
 
+def _strict(text: str):
+    """json.loads as a strict (RFC 8259) parser reads: Infinity / NaN are errors."""
+    def refuse(name):
+        raise ValueError(f"non-standard JSON constant {name}")
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_law_and_manifest_are_strict_json_and_the_state_counters_fixed_width(tmp_path):
+    """Issue 22 item 3 (part): an unbounded Newton law (u_min = -inf) is stored as strict JSON, the
+    string "-inf" read back as -inf; the manifest too; the C state's counters are uint64_t."""
+    m = _pgnn("forward", RigidBodyForward(Ts, 2))
+    law = from_pgnn(m, "newton", Ts, k=4, u_bounds=(-math.inf, math.inf))
+    r = _reference(300)
+    man = write_package(law, "ff_newton", tmp_path, {"ref": (r, feedforward(law, r))}, source={"run_id": "t"},
+                        cc=None, timing_repeats=0)
+    meta = _strict((tmp_path / "ff_newton" / "law" / "law.json").read_text())
+    assert (meta["floats"]["u_min"], meta["floats"]["u_max"]) == ("-inf", "inf")
+    assert Law.load(tmp_path / "ff_newton" / "law").floats["u_min"] == -math.inf
+    assert _strict((tmp_path / "ff_newton" / "manifest.json").read_text())["law"] == man["law"]
+    h = (tmp_path / "ff_newton" / "ff_newton.h").read_text()
+    assert "#include <stdint.h>" in h and "uint64_t k;" in h and "uint64_t n_flagged;" in h and "long" not in h
+
+
 # --------------------------------------------------------------------------------------------
 # the stage, the MLflow model and the CLI on a short linear-motor job
 # --------------------------------------------------------------------------------------------
@@ -343,3 +366,22 @@ def test_export_cli_trusts_nothing_stored_and_replaces_only_its_own_packages(sto
     for bad, why in ((runner.ROOT / "stages" / "pkg", "inside the source tree"), (evil, "is a file")):
         assert main([run_id, "--out", str(bad)]) == 2 and why in capsys.readouterr().err
     assert not (runner.ROOT / "stages" / "pkg").exists()
+
+
+@needs_cc
+@fits_poorly
+def test_shipped_packages_list_exactly_the_files_they_hold(store, cfg_of, tmp_path):
+    """Issue 22 item 3 (part): results/export ships one reference per package; its manifest lists
+    exactly the files in the folder and that reference (every reference verified at export is kept
+    in ``verified_on``). Before, the manifests listed 4 references where one was shipped."""
+    from pipeline import runner
+    from stages.report import _ship
+    refs = "evaluate.references=[{name:v0.15,kind:b1_evaluation,v_max:0.15},{name:v0.2,kind:b1_evaluation,v_max:0.2}]"
+    runner.run_job(cfg_of(*SHORT_B1[:4], refs, "invert=physics",
+                          "stages=[generate,baseline,train,invert,evaluate,export]"))
+    _ship(tmp_path / "export", ("b1_linear_motor", "-equation-", "v0_15"))
+    pkg = tmp_path / "export" / "ff_physics"
+    man = _strict((pkg / "manifest.json").read_text())
+    assert man["files"] == sorted(p.name for p in pkg.iterdir() if p.name != "manifest.json")
+    assert list(man["references"]) == ["v0.15"] and man["verified_on"] == ["v0.15", "v0.2"]
+    assert not list(pkg.glob("*v0_2*"))

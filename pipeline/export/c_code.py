@@ -85,12 +85,16 @@ ${source_lines}
  * Start        ${name}_init(s, r0): the reference at rest at r0 before t = 0. To reproduce the
  *              study pass r0 = ${rest_doc} (${NAME}_REST_AT_ZERO = ${rest_zero}).
  * Cost         fixed per sample: ${cost_doc};
- *              no allocation, no I/O, only <math.h>.
+ *              no allocation, no I/O, only <math.h> and <stdint.h>.
+ * Counters     s->k (samples since init) and s->n_flagged are uint64_t and saturate at UINT64_MAX
+ *              (no wrap-around: a table law past its end stays past its end).
  * status       bit flags of the last sample (s->status; s->n_flagged counts flagged samples):
 ${status_lines}
  */
 #ifndef ${NAME}_H
 #define ${NAME}_H
+
+#include <stdint.h>
 
 #define ${NAME}_TS ${Ts}
 #define ${NAME}_PREVIEW ${preview}
@@ -102,8 +106,8 @@ typedef struct {
     double w_prev;         /* averaged model input: w(t) of the last step */
     int primed;            /* averaged model input: w(0) computed */
     int status;            /* flags of the last sample (0: clean) */
-    long n_flagged;        /* samples with a flag since init */
-    long k;                /* samples since init */
+    uint64_t n_flagged;    /* samples with a flag since init (saturates) */
+    uint64_t k;            /* samples since init (saturates) */
 } ${name}_state;
 
 void ${name}_init(${name}_state *s, double r0);
@@ -365,8 +369,8 @@ double ${name}_step(${name}_state *s, const double *r_preview)
 {
     double u;
     s->status = 0;
-${averaged_step}    if (s->status) s->n_flagged++;
-    s->k++;
+${averaged_step}    if (s->status && s->n_flagged < UINT64_MAX) s->n_flagged++;
+    if (s->k < UINT64_MAX) s->k++;
     return u;
 }
 """)
@@ -449,8 +453,8 @@ double ${name}_step(${name}_state *s, const double *r_preview)
     }
 #endif
     s->status = isfinite(f) ? 0 : ${NAME}_SINGULAR;
-    if (s->status) s->n_flagged++;
-    s->k++;
+    if (s->status && s->n_flagged < UINT64_MAX) s->n_flagged++;
+    if (s->k < UINT64_MAX) s->k++;
     return f;
 }
 """)
@@ -518,8 +522,8 @@ ${averaged_step}#if HAS_CTRL   /* minus the controller's force on y = r: gtau (C
     u = u - GTAU * df2t(s->x + XZ, r_preview[0]);
 #endif
     s->status = isfinite(u) ? 0 : ${NAME}_SINGULAR;
-    if (s->status) s->n_flagged++;
-    s->k++;
+    if (s->status && s->n_flagged < UINT64_MAX) s->n_flagged++;
+    if (s->k < UINT64_MAX) s->k++;
     return u;
 }
 """)
@@ -531,7 +535,7 @@ _TABLE = Template(r"""/* ${name}.c: ${doc}.
 #include <math.h>
 #include "${name}.h"
 
-#define N_TABLE ${n}
+#define N_TABLE ${n}u
 static const double R_TOL = ${r_tol};
 ${arrays}
 void ${name}_init(${name}_state *s, double r0)
@@ -550,8 +554,8 @@ double ${name}_step(${name}_state *s, const double *r_preview)
         s->status |= ${NAME}_PAST_END;
         u = U_TABLE[N_TABLE - 1];
     }
-    if (s->status) s->n_flagged++;
-    s->k++;
+    if (s->status && s->n_flagged < UINT64_MAX) s->n_flagged++;
+    if (s->k < UINT64_MAX) s->k++;
     return u;
 }
 """)
@@ -632,7 +636,7 @@ static double run(const double *r, long n, double *u)
         if (u) u[t] = v;
         sum += v;
     }
-    if (u) fprintf(stderr, "samples flagged: %ld of %ld\n", s.n_flagged, n);
+    if (u) fprintf(stderr, "samples flagged: %llu of %ld\n", (unsigned long long)s.n_flagged, n);
     return sum;
 }
 

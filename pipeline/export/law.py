@@ -85,7 +85,7 @@ class Law:
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         meta = {k: v for k, v in asdict(self).items() if k != "arrays"}
-        (folder / "law.json").write_text(json.dumps(meta, indent=1, default=_json_float))
+        (folder / "law.json").write_text(strict_json(meta))
         np.savez(folder / "law.npz", **self.arrays)
 
     @classmethod
@@ -151,6 +151,20 @@ def _json_float(x):
     if isinstance(x, (np.floating, np.integer)):
         return x.item()
     raise TypeError(f"cannot store {type(x).__name__} in law.json")
+
+
+def strict_json(obj) -> str:
+    """JSON that strict parsers read (RFC 8259 has no Infinity/NaN): a non-finite number is written
+    as the string "inf", "-inf" or "nan" (``float()`` reads each back)."""
+    def clean(x):
+        if isinstance(x, dict):
+            return {k: clean(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        if isinstance(x, (float, np.floating)) and not math.isfinite(x):
+            return "nan" if math.isnan(x) else ("inf" if x > 0 else "-inf")
+        return x
+    return json.dumps(clean(obj), indent=1, default=_json_float, allow_nan=False)
 
 
 # --------------------------------------------------------------------------------------------

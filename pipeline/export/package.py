@@ -10,7 +10,6 @@ compiler the source is still written and the manifest says it was not compiled.
 """
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import subprocess
@@ -21,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.export.c_code import CFLAGS, c_name, write_c
-from pipeline.export.law import ExportError, Law, feedforward
+from pipeline.export.law import ExportError, Law, feedforward, strict_json
 
 __all__ = ["find_compiler", "compile_harness", "run_harness", "time_harness", "write_package",
            "replace_dir", "rel_diff"]
@@ -122,7 +121,7 @@ def write_package(law: Law, name: str, out: Path, references: dict, *, source: d
     tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{name}-", dir=out))
     try:
         manifest = _build(law, name, tmp, references, source, cc, rtol, timing_repeats, keep_exe)
-        (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1))
+        (tmp / "manifest.json").write_text(strict_json(manifest))
         replace_dir(tmp, out / name)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

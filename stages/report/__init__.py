@@ -19,6 +19,7 @@ EXPERIMENTS=...`` uses it); the header says which sections were rebuilt.
 from __future__ import annotations
 
 import importlib
+import json
 import os
 import re
 import shutil
@@ -28,6 +29,7 @@ from pathlib import Path
 import pandas as pd
 
 from pipeline import owned, tracking
+from pipeline.export.law import strict_json
 from stages.report._rows import row, run_metrics
 from pipeline.runner import ROOT
 
@@ -241,6 +243,12 @@ def _ship(dest: Path, which: tuple[str, str, str]) -> None:
         for f in got.glob("*/*.csv"):
             if not f.stem.endswith(f"_{which[2]}"):
                 f.unlink()
+        for path in got.glob("*/manifest.json"):   # the manifest lists exactly what is shipped
+            man, pkg = json.loads(path.read_text()), path.parent
+            man["verified_on"] = sorted(man["references"])
+            man["references"] = {k: v for k, v in man["references"].items() if (pkg / v["file"]).exists()}
+            man["files"] = sorted(p.name for p in pkg.iterdir() if p.name != "manifest.json")
+            path.write_text(strict_json(man))
         old = Path(tempfile.mkdtemp(prefix=".export-old-", dir=dest.parent))
         if dest.exists():
             os.replace(dest, old / "export")

@@ -33,7 +33,7 @@ import typing
 from dataclasses import MISSING, dataclass, field
 from typing import Any, Callable, Literal, Optional, Union
 
-from omegaconf import OmegaConf
+from omegaconf import OmegaConf, open_dict
 
 from pipeline.errors import ORDER, SAFE_NAME, ConfigError
 
@@ -660,13 +660,34 @@ GROUPS: dict[str, tuple[dict[str, type], str, str]] = {
 }
 
 
-def check(cfg) -> None:
-    """Validate the composed config against the schema; ConfigError (one line) on the first problem."""
+def check(cfg) -> list[str]:
+    """Validate the composed config against the schema; ConfigError (one line) on the first problem.
+    Then every key left out is set to its schema default in ``cfg`` (the one place a default is
+    stated: stages read every key without a default of their own); returns the keys set."""
     try:  # every interpolation resolves (a typo in ${...} fails here, not after hours of work)
         raw = OmegaConf.to_container(cfg, resolve=True)
     except Exception as exc:  # noqa: BLE001 — OmegaConf raises several error types
         raise ConfigError(f"config does not resolve: {str(exc).splitlines()[0]}") from exc
     raw.pop("hydra", None)
+    _DEFAULTED.clear()
+    _check_nodes(raw)
+    filled = list(_DEFAULTED)
+    with open_dict(cfg):
+        for key, value in filled:
+            OmegaConf.update(cfg, key, value, force_add=True)
+    return [k for k, _ in filled]
+
+
+#: (dotted key, default) of the keys the last check found left out
+_DEFAULTED: list[tuple[str, Any]] = []
+
+
+def _default(f: dataclasses.Field) -> Any:
+    v = f.default if f.default is not MISSING else f.default_factory()
+    return dataclasses.asdict(v) if dataclasses.is_dataclass(v) else v
+
+
+def _check_nodes(raw: dict) -> None:
     _check_node(Config, raw, "", "the config")
     for group, (options, by, stage) in GROUPS.items():
         node = raw.get(group)
@@ -704,7 +725,9 @@ def _check_node(cls: type, node: Any, prefix: str, label: str) -> None:
         key = _join(prefix, name)
         value = node.get(name, MISSING)
         if value is MISSING and (f.default is not MISSING or f.default_factory is not MISSING):
-            continue   # left out: the stage's default
+            if _default(f) is not None:   # left out: its default, set by check() (None: read with .get)
+                _DEFAULTED.append((key, _default(f)))
+            continue
         if value is MISSING or value == "???":
             raise ConfigError(f"{key} is not set: {_rule(hints[name], f)} (e.g. {key}={_example(f)})")
         _check_value(hints[name], value, f, key, label)

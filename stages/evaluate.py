@@ -70,7 +70,7 @@ def validate(cfg, system) -> None:
             raise ConfigError(f"system '{system.name}' is a recording: it has no plant to run reference(s) {bad}; "
                               "give evaluate references of kind 'measured' naming a recorded file "
                               "(e.g. evaluate=emps)")
-    elif measured_data and not cfg.evaluate.get("allow_simulator", False):
+    elif measured_data and not cfg.evaluate.allow_simulator:
         raise ConfigError(f"the model is identified on measured data ({cfg.data.get('path')}) but system "
                           f"'{system.name}' is a simulator: scoring it there says nothing about the machine the "
                           "data came from. Use the measured system (e.g. system=emps evaluate=emps), or set "
@@ -121,8 +121,8 @@ def _run_measured(ctx) -> dict:
     from stages.generate.measured import reference
     inv, system, cfg = ctx.inputs["invert"], ctx.system, ctx.cfg
     loop, ctrl = inv["loop"], system.ctrl
-    tail = float(cfg.evaluate.get("validation_tail", 0.2))
-    main = str(cfg.evaluate.get("convention", "data"))   # of the figures and the feedforward tracking
+    tail = float(cfg.evaluate.validation_tail)
+    main = str(cfg.evaluate.convention)   # of the figures and the feedforward tracking
     published = {}
     if system.published_theta() is not None:
         # data timing: the one integrator of every model (exact-ZOH step on ū); published timing: the

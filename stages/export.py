@@ -49,7 +49,7 @@ def validate(cfg, system) -> None:
     m = cfg.model
     if kind in ("direct", "analytic", "newton"):
         hidden = list(m.get("hidden") or [])
-        if len(hidden) > 1 or (hidden and str(m.get("activation", "tanh")) != "tanh"):
+        if len(hidden) > 1 or (hidden and str(m.get("activation")) != "tanh"):
             raise ConfigError(f"export: invert.kind={kind} is exported for a PGNN with no NN or one tanh hidden "
                               f"layer; got model.hidden={hidden}, model.activation={m.get('activation')}: use "
                               "e.g. model.hidden=[16] model.activation=tanh, or drop 'export' from stages")

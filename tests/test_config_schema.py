@@ -210,3 +210,21 @@ def test_schema_covers_every_implementation_and_the_libraries_choices():
     assert choices(schema.Pgnn, "structure") == _STRUCTURES
     assert set(choices(schema.Pgnn, "activation")) == set(_ACTIVATIONS)
     assert choices(schema.SimError, "theta_star") == THETA_STAR
+
+
+def test_the_schema_sets_every_key_left_out_to_its_default(cfg_of):
+    """Issue 21 item 1 (part): schema.check fills the keys a config leaves out with the schema's
+    defaults (what stages then read), and leaves set keys alone."""
+    from omegaconf import open_dict
+
+    from pipeline import schema
+    cfg = cfg_of(*TWO_MASS)
+    with open_dict(cfg):
+        cfg.evaluate.pop("validation_tail", None)
+        cfg.evaluate.convention = "published"
+        cfg.report.pop("update", None)
+    filled = schema.check(cfg)
+    assert "evaluate.validation_tail" in filled and "report.update" in filled
+    assert "evaluate.convention" not in filled
+    assert cfg.evaluate.validation_tail == 0.2 and cfg.report["update"] is False and cfg.evaluate.convention == "published"
+    assert schema.check(cfg) == []                      # nothing left out the second time

@@ -16,6 +16,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from omegaconf import OmegaConf
 
 from pipeline import data
 from pipeline.runner import ROOT, ConfigError
@@ -67,7 +68,7 @@ def content_key(cfg) -> dict[str, str]:
 def load_file(cfg, file: str | None = None) -> data.Dataset:
     """Load ``file`` (default ``data.file``) from ``data.path`` in ``data.format``; ValueError /
     FileNotFoundError with the file named on any problem."""
-    fmt = str(cfg.data.get("format", "table"))
+    fmt = str(cfg.data.format)
     if fmt not in FORMATS:
         raise ConfigError(f"data.format={fmt!r}; choose one of {FORMATS}")
     folder, name = _folder_and_file(cfg, file if file is not None else cfg.data.get("file"))
@@ -176,7 +177,7 @@ def uses_controller(cfg) -> bool:
     closed-loop simulation-error training, invert, evaluate, export (the physics LS does not)."""
     stages = set(cfg.get("stages") or [])
     return bool(stages & {"invert", "evaluate", "export"}) or \
-        ("train" in stages and str(cfg.get("identify", {}).get("kind")) == "sim_error")
+        ("train" in stages and str(OmegaConf.select(cfg, "identify.kind")) == "sim_error")
 
 
 def training_files(cfg) -> list:

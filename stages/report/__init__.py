@@ -87,7 +87,7 @@ def run(ctx) -> dict:
     results.mkdir(parents=True, exist_ok=True)
     figdir = Path(tempfile.mkdtemp(prefix=".figures-tmp-", dir=results))  # swapped in when complete
     try:
-        update = bool(cfg.report.get("update", False))
+        update = bool(cfg.report["update"])   # ["update"]: .update is the mapping method
         table, text, built = _build(cfg, figdir, skip_empty=update)
         if update:
             table, text = _merge(results, table, text, built, figdir)

@@ -24,6 +24,16 @@ def run(ctx) -> dict:
     return implementation("train", str(ctx.cfg.identify.kind)).fit(ctx)
 
 
+def l2_lam(cfg):
+    """Λ of the physics-L2 regulariser ([B1] (12), [B2] (16)): ``regularizer.lam``, a number or a
+    list (diag Λ); regularizer=none has no λ: 0, no regularisation."""
+    from omegaconf import OmegaConf
+    lam = cfg.regularizer.get("lam")
+    if lam is None:
+        return 0.0
+    return OmegaConf.to_container(lam, resolve=True) if OmegaConf.is_list(lam) else float(lam)
+
+
 def lm_progress(ctx, desc: str = "LM restarts") -> dict:
     """``progress`` and ``on_iteration`` for :func:`pipeline.identify.narx.best_of_restarts`: one bar
     over the restarts whose postfix shows the running restart's LM step and cost."""

@@ -25,7 +25,7 @@ from pipeline.identify.narx import identify_pgnn
 from pipeline.models.pgnn import PGNN, physics_features_for
 from pipeline.errors import ConfigError
 from pipeline.systems.measured import Recording
-from stages.train import lm_progress, log_restarts, restart_memo
+from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
 
 VERSION = 2   # 2: the statistical window spans a continued restart's screening steps (issue 19)
 
@@ -43,7 +43,7 @@ def check(cfg, system) -> None:
     m = _model_cfg(cfg)
     if "structure" not in m:
         raise ConfigError(f"identify.kind=narx trains a PGNN; model={m.get('name')!r} is not one (use model=pgnn)")
-    if system is not None and m.get("use_physics", True):
+    if system is not None and m["use_physics"]:
         try:
             build_model(cfg, system)
         except ValueError as exc:
@@ -59,10 +59,10 @@ def build_model(cfg, system) -> PGNN:
     m = _model_cfg(cfg)
     structure = m.pop("structure")
     phys = None
-    if m.get("use_physics", True):
-        phys = physics_features_for(system.physics, structure, m["n_a"], m["n_b"], m.get("n_k", 0),
+    if m["use_physics"]:
+        phys = physics_features_for(system.physics, structure, m["n_a"], m["n_b"], m["n_k"],
                                     input_is_model_input=uses_model_input(system))
-    m["hidden"] = tuple(m.get("hidden") or ())
+    m["hidden"] = tuple(m["hidden"])
     return PGNN(structure=structure, physics=phys, seed=int(cfg.seed), **m)
 
 
@@ -78,8 +78,7 @@ def fit(ctx) -> dict:
         ys.append(y)
         us.append(u)
     ident = cfg.identify
-    lam = OmegaConf.to_container(cfg.regularizer.lam, resolve=True) \
-        if OmegaConf.is_list(cfg.regularizer.get("lam")) else float(cfg.regularizer.get("lam", 0.0))
+    lam = l2_lam(cfg)
     fit_ = identify_pgnn(model, ys, us, lam=lam, n_restarts=int(ident.n_restarts),
                          seed=int(cfg.seed), val_fraction=float(ident.val_fraction),
                          max_iter=int(ident.max_iter), ftol=float(ident.ftol),

@@ -21,12 +21,11 @@ baseline θ*_phy.
 from __future__ import annotations
 
 import numpy as np
-from omegaconf import OmegaConf
 
 from pipeline.identify.sim_error import DiscreteController, closed_loop_exogenous, identify_sim_error
 from pipeline.models.pgnn import PGNN, LinearFeatures
 from pipeline.errors import ConfigError
-from stages.train import lm_progress, log_restarts, restart_memo
+from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
 from pipeline.systems.arx_bias import ARXPhysics
 from pipeline.systems.measured import Recording
 
@@ -43,11 +42,10 @@ def check(cfg, system) -> None:
     if m.get("structure") != "forward":
         raise ConfigError(f"identify.kind=sim_error simulates a forward PGNN; model.structure="
                           f"{m.get('structure')!r} (set invert.model_structure: forward)")
-    if len(m.get("hidden") or []) > 1 or m.get("activation", "tanh") != "tanh":
+    if len(m.hidden) > 1 or m.activation != "tanh":
         raise ConfigError(f"identify.kind=sim_error needs the [B2] PGNN (30): one tanh hidden layer "
-                          f"(model.hidden=[n1] or []), got hidden={list(m.get('hidden') or [])}, "
-                          f"activation={m.get('activation')!r}")
-    if not m.get("use_physics", True):
+                          f"(model.hidden=[n1] or []), got hidden={list(m.hidden)}, activation={m.activation!r}")
+    if not m.use_physics:
         raise ConfigError("identify.kind=sim_error needs the ARX physics part (model.use_physics=true)")
     ts = cfg.identify.get("theta_star")   # its choices, and the ranges of identify.*: pipeline.schema
     if system is not None:
@@ -68,13 +66,12 @@ def check(cfg, system) -> None:
 def build_model(cfg, system) -> PGNN:
     """The PGNN (30) of the config: ARX physics + ``model.hidden`` tanh neurons."""
     m = cfg.model
-    hidden = tuple(int(h) for h in (m.get("hidden") or ()))
+    hidden = tuple(int(h) for h in m.hidden)
     return PGNN(int(m.n_a), int(m.n_b), int(m.n_k), structure="forward",
                 physics=LinearFeatures(int(m.n_a) + int(m.n_b), system.physics.param_names),
-                hidden=hidden, activation="tanh", use_nn=bool(hidden) and bool(m.get("use_nn", True)),
-                input_transform=str(m.get("input_transform", "raw")),
-                out_init_scale=float(m.get("out_init_scale", 1.0)), out_init=str(m.get("out_init", "mirrored")),
-                nn_inputs=str(m.get("nn_inputs", "all")), seed=int(cfg.seed))
+                hidden=hidden, activation="tanh", use_nn=bool(hidden) and bool(m.use_nn),
+                input_transform=str(m.input_transform), out_init_scale=float(m.out_init_scale),
+                out_init=str(m.out_init), nn_inputs=str(m.nn_inputs), seed=int(cfg.seed))
 
 
 def fit(ctx) -> dict:
@@ -92,8 +89,7 @@ def fit(ctx) -> dict:
     ctrl = DiscreteController.from_tf(system.controller())
     model = build_model(cfg, system)
     ident = cfg.identify
-    lam = OmegaConf.to_container(cfg.regularizer.lam, resolve=True) \
-        if OmegaConf.is_list(cfg.regularizer.get("lam")) else float(cfg.regularizer.get("lam", 0.0))
+    lam = l2_lam(cfg)
     theta_star = system.linear_theta() if ident.theta_star == "oracle" else str(ident.theta_star)
     fit_ = identify_sim_error(model, ctrl, r, u_ex, y, u, lam=lam, theta_star=theta_star,
                               n_restarts=int(ident.n_restarts), seed=int(cfg.seed),
@@ -102,7 +98,7 @@ def fit(ctx) -> dict:
                               patience=int(ident.patience), linear_max_iter=int(ident.linear_max_iter),
                               geodesic=bool(ident.geodesic), stat_window=int(ident.stat_window),
                               stat_tol=float(ident.stat_tol), stat_frac=float(ident.stat_frac),
-                              memo=restart_memo(ctx), screen_iter=int(ident.get("screen_iter", 0)),
+                              memo=restart_memo(ctx), screen_iter=int(ident.screen_iter),
                               **lm_progress(ctx))
     log_restarts(ctx, fit_.restarts, fit_.best)
     best = fit_.restarts[fit_.best]
@@ -163,15 +159,15 @@ def _check_measured(cfg, system) -> None:
     if m.get("structure") not in ("forward", "invertible"):
         raise ConfigError(f"identify.kind=sim_error on a measured system simulates a forward PGNN; "
                           f"model.structure={m.get('structure')!r}: use forward or invertible")
-    hidden = list(m.get("hidden") or [])
-    if len(hidden) > 1 or m.get("activation", "tanh") != "tanh":
+    hidden = list(m.hidden)
+    if len(hidden) > 1 or m.activation != "tanh":
         raise ConfigError(f"identify.kind=sim_error needs at most one tanh hidden layer, got hidden={hidden}, "
-                          f"activation={m.get('activation')!r}")
-    if not m.get("use_physics", True):
+                          f"activation={m.activation!r}")
+    if not m.use_physics:
         raise ConfigError("identify.kind=sim_error needs the physics part (model.use_physics=true)")
-    if m.n_a < 2 or m.n_b < 1 or m.get("n_k", 0) != 0:
+    if m.n_a < 2 or m.n_b < 1 or m.n_k != 0:
         raise ConfigError(f"the rigid-body loop model needs n_a >= 2, n_b >= 1, n_k = 0; got n_a={m.n_a}, "
-                          f"n_b={m.n_b}, n_k={m.get('n_k')}")
+                          f"n_b={m.n_b}, n_k={m.n_k}")
 
 
 def _fit_measured(ctx) -> dict:
@@ -199,7 +195,7 @@ def _fit_measured(ctx) -> dict:
             for g in segs]                          # each from its recorded state (issue 20)
     ident = cfg.identify
     n_trains = [int(round((1.0 - float(ident.val_fraction)) * len(g))) for g in segs]   # each record's head
-    lam = float(cfg.regularizer.get("lam", 0.0))
+    lam = float(l2_lam(cfg))
     fit_ = identify_loop_sim_error(model, bool(system.physics.averaged_input), system.ctrl, sigs,
                                    [col(g, "u") for g in segs], lam=lam, n_train=n_trains,
                                    n_restarts=int(ident.n_restarts), seed=int(cfg.seed),

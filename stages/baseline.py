@@ -18,7 +18,6 @@ import numpy as np
 
 from pipeline.identify.least_squares import fit_physics
 from pipeline.errors import ConfigError
-from pipeline.systems.measured import Recording
 
 UPSTREAM = ("generate",)
 DEPENDS = ("system",)
@@ -37,7 +36,7 @@ def run(ctx) -> dict:
     system = ctx.system
     physics = system.physics
     try:
-        if isinstance(system, Recording):   # each recording filtered on its own (data.files)
+        if system.measured:   # each recording filtered on its own (data.files)
             ys, us = zip(*[(g["y"].to_numpy(np.float64), g["u"].to_numpy(np.float64)) for g in ds.segments()])
             theta = system.fit_physics(list(ys), list(us))
         else:
@@ -54,7 +53,7 @@ def run(ctx) -> dict:
                "(must be positive); check the system choice, signs and units")
         ctx.tag("physics_warning", msg)
         warnings.warn(msg, stacklevel=1)
-    if isinstance(system, Recording):      # a term the config lacks that the residual still holds
+    if system.measured:      # a term the config lacks that the residual still holds
         diag, found = system.missing_terms(list(ys), list(us))
         for k, v in diag.items():
             ctx.metric(f"residual/{k}", v)

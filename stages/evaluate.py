@@ -44,7 +44,6 @@ import numpy as np
 from pipeline import plots
 from pipeline.metrics import phase_ff_errors, phase_peaks, tracking_metrics
 from pipeline.errors import ConfigError
-from pipeline.systems.measured import Recording
 
 UPSTREAM = ("invert",)
 DEPENDS = ("system", "evaluate", "seed")
@@ -64,7 +63,7 @@ def optimal_input(system, r):
 def validate(cfg, system) -> None:
     from stages._common import reference_specs
     measured_data = str(cfg.data.get("kind")) == "measured"
-    if isinstance(system, Recording):   # evaluate.convention's choices: pipeline.schema
+    if system is not None and system.measured:   # evaluate.convention's choices: pipeline.schema
         bad = [s["name"] for s in reference_specs(cfg.evaluate.references) if s.get("kind") != "measured"]
         if bad:
             raise ConfigError(f"system '{system.name}' is a recording: it has no plant to run reference(s) {bad}; "
@@ -80,7 +79,7 @@ def validate(cfg, system) -> None:
 def run(ctx) -> dict:
     inv = ctx.inputs["invert"]
     system = ctx.system
-    if isinstance(system, Recording):
+    if system.measured:
         return _run_measured(ctx)
     if str(ctx.cfg.data.get("kind")) == "measured":
         ctx.tag("evaluated_on", f"simulator '{system.name}', not the plant the data came from")

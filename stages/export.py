@@ -25,7 +25,6 @@ from pipeline import tracking
 from pipeline.export import law as laws
 from pipeline.export.package import find_compiler, write_package
 from pipeline.errors import ConfigError
-from pipeline.systems.measured import Recording
 
 UPSTREAM = ("generate", "baseline", "train", "invert")
 DEPENDS = ("invert", "export.compile", "export.cc", "export.rtol", "export.timing_repeats",
@@ -38,12 +37,12 @@ def validate(cfg, system) -> None:
     if kind not in laws.LAWS:
         raise ConfigError(f"export: invert.kind={kind} has no feedforward law to ship; export covers "
                           f"invert.kind in {list(laws.LAWS)} (drop 'export' from stages)")
-    if isinstance(system, Recording):
+    if system is not None and system.measured:
         if kind != "physics":
             raise ConfigError(f"export: on a measured system the exporter ships invert.kind=physics (the inverse "
                               f"rigid-body force minus the controller's force on the reference); invert.kind={kind} "
                               "is not exported for a measured system: use invert=physics or drop 'export' from stages")
-    elif kind == "physics" and type(getattr(system, "physics", None)).__name__ != "LinearMotorPhysics":
+    elif kind == "physics" and getattr(getattr(system, "physics", None), "physics_law", None) != "linear_motor":
         raise ConfigError(f"export: the physics feedforward (8) is exported for the linear motor only, not "
                           f"for system '{system.name}'; drop 'export' from stages")
     m = cfg.model
@@ -68,7 +67,7 @@ def build_laws(ctx) -> dict[str, tuple["laws.Law", list[str]]]:
     cfg, train = ctx.cfg, ctx.inputs["train"]
     every = list(ctx.inputs["invert"]["r"])
     kind, Ts = str(cfg.invert.kind), float(ctx.system.Ts)
-    if kind == "physics" and isinstance(ctx.system, Recording):   # minus the controller's force on y = r
+    if kind == "physics" and ctx.system.measured:   # minus the controller's force on y = r
         try:
             law = laws.from_measured_physics(ctx.system.physics, ctx.inputs["baseline"]["theta"], ctx.system.ctrl)
         except laws.ExportError as exc:

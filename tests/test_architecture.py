@@ -114,3 +114,18 @@ def test_no_stage_reads_a_config_key_with_a_default_of_its_own():
     files = [f for f in sorted((ROOT / "stages").rglob("*.py")) if "report" not in f.parts]  # report: run metrics
     found = {str(f.relative_to(ROOT)): hits for f in files if (hits := _inline_defaults(ast.parse(f.read_text())))}
     assert found == {}
+
+
+def test_stages_ask_the_objects_not_their_class_names():
+    """Issue 21 item 3 (part): stages and the export law builders dispatch on what a system or a
+    physics model says (``System.measured``, ``PhysicsModel.physics_law``), not on
+    ``isinstance(…, Recording)`` or ``type(…).__name__``."""
+    hits = []
+    files = sorted((ROOT / "stages").rglob("*.py")) + sorted((ROOT / "pipeline" / "export").rglob("*.py"))
+    for f in files:
+        for node in ast.walk(ast.parse(f.read_text())):
+            text = ast.unparse(node) if isinstance(node, (ast.Call, ast.Compare)) else ""
+            if (isinstance(node, ast.Call) and text.startswith("isinstance(") and "Recording" in text) or \
+                    (isinstance(node, ast.Compare) and "__name__" in text and "type(" in text):
+                hits.append(f"{f.relative_to(ROOT)}: {text}")
+    assert hits == []

@@ -84,6 +84,9 @@ class PhysicsModel(ABC):
 
     #: names of θ, in order
     param_names: tuple[str, ...] = ()
+    #: the physics feedforward law the exporter ships for this model (pipeline.export.law:
+    #: "linear_motor" [B1] (8), "rigid_body" a measured rigid body); None: not exported
+    physics_law: str | None = None
     #: NARX orders of the model (SPEC §3 item 3)
     n_a: int = 0
     n_b: int = 0
@@ -109,6 +112,8 @@ class System(ABC):
 
     name: str = ""
     Ts: float = 1.0
+    #: a recording of a real machine (no true plant to simulate: evaluated in the recorded loop)
+    measured: bool = False
 
     @abstractmethod
     def simulate(self, r: np.ndarray, u_ff: np.ndarray | None = None,

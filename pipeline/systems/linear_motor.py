@@ -208,6 +208,8 @@ class LinearMotorPhysics(PhysicsModel):
     then :meth:`applied_input` (bounded, no Nyquist oscillation).
     """
 
+    physics_law = "linear_motor"   # exported by pipeline.export.law.from_linear_motor_physics
+
     param_names = ("inv_m", "fv_over_m", "fc_over_m")
     #: index in θ of the input gain ψ = 1/m ([B1] (26), omitted from the (29) regulariser)
     input_gain_index = 0

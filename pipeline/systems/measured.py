@@ -44,6 +44,8 @@ class RigidBodyPhysics(LinearMotorPhysics):
     exact ZOH sampling of a mass, whose zero sits at z = -1, SPEC §2.2 pitfall).
     """
 
+    physics_law = "rigid_body"     # exported by pipeline.export.law.from_measured_physics
+
     input_gain_index = 0
 
     def __init__(self, Ts: float = 1e-3, averaged_input: bool = True, terms: ForceTerms | None = None):
@@ -277,6 +279,8 @@ class Recording(System):
         Settings of the filtered inverse-model least squares (:meth:`RigidBodyPhysics.fit_filtered`:
         cutoff_hz, order, decimation, trim).
     """
+
+    measured = True
 
     def __init__(self, name: str = "measured", Ts: float = 1e-3, controller: dict | None = None,
                  physics_input: str = "averaged", force_terms: dict | None = None, disturbance: str | None = None,

@@ -20,7 +20,6 @@ from omegaconf import OmegaConf
 
 from pipeline import data
 from pipeline.runner import ROOT, ConfigError
-from pipeline.systems.measured import Recording
 
 FORMATS = ("table", "emps")
 #: relative rms of (recorded force - controller law on the recorded position) above which the
@@ -105,7 +104,7 @@ def check_record(ds: data.Dataset, system, source: str, min_len: int = 0,
         raise ValueError(f"{source}: the data are sampled at Ts = {Ts:.6g} s but system "
                          f"'{getattr(system, 'name', '?')}' has Ts = {sys_Ts:g} s; set system.Ts={Ts:.6g} "
                          "(a wrong Ts scales an identified mass by its square)")
-    if not isinstance(system, Recording):
+    if system is None or not system.measured:
         return
     ctrl, params = system.ctrl, dict(system.ctrl.params)
     for k in data.EMPS_CONSTANTS:
@@ -194,7 +193,7 @@ def training_files(cfg) -> list:
 
 def check(cfg, system) -> None:
     try:
-        need = system.min_samples() if isinstance(system, Recording) else 0   # filtered LS trims, decimates
+        need = system.min_samples() if system is not None and system.measured else 0   # filtered LS trims, decimates
         for f in training_files(cfg):
             ds = load_file(cfg, f)
             check_record(ds, system, ds.meta.get("source", str(cfg.data.path)), min_len=need,
@@ -220,7 +219,7 @@ def load_training(cfg) -> data.Dataset:
 
 def make(cfg, system, ctx) -> data.Dataset:
     ds = load_training(cfg)
-    if isinstance(system, Recording):   # the checks' numbers on the run (check() warned or refused already)
+    if system is not None and system.measured:   # the checks' numbers on the run (check() warned or refused already)
         segs = list(ds.segments())
         rel = max(system.ctrl.check(g["r"].to_numpy(), g["y"].to_numpy(), g["u"].to_numpy(),
                                     g["d"].to_numpy() if "d" in g else 0.0 * g["y"].to_numpy()) for g in segs)

@@ -13,7 +13,6 @@ import time
 import numpy as np
 
 from pipeline.runner import ConfigError, implementation
-from pipeline.systems.measured import Recording
 from stages._common import check_references, reference_specs
 
 UPSTREAM = ("generate", "baseline", "train")
@@ -44,11 +43,11 @@ def run(ctx) -> dict:
             raise ValueError(f"invert.kind={ctx.cfg.invert.kind} returned a feedforward of shape "
                              f"{f.shape} with {int((~np.isfinite(f)).sum())} non-finite values for "
                              f"reference '{name}' (expected {r.shape}, all finite)")
-        if isinstance(ctx.system, Recording):   # a 2-DOF controller: cancel its output on y = r
+        if ctx.system.measured:   # a 2-DOF controller: cancel its output on y = r
             f = f - ctx.system.ctrl.reference_force(r)
         u_ff[name] = f
     out = {"u_ff": u_ff, "r": refs}
-    if isinstance(ctx.system, Recording):   # evaluate replays the identified model in the recorded loop
+    if ctx.system.measured:   # evaluate replays the identified model in the recorded loop
         out["loop"] = loop_model(ctx)
     return out
 

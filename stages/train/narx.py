@@ -24,7 +24,6 @@ from omegaconf import OmegaConf
 from pipeline.identify.narx import identify_pgnn
 from pipeline.models.pgnn import PGNN, physics_features_for
 from pipeline.errors import ConfigError
-from pipeline.systems.measured import Recording
 from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
 
 VERSION = 2   # 2: the statistical window spans a continued restart's screening steps (issue 19)
@@ -87,7 +86,7 @@ def fit(ctx) -> dict:
                          stat_window=int(ident.stat_window), stat_tol=float(ident.stat_tol),
                          stat_frac=float(ident.stat_frac), screen_iter=int(ident.screen_iter),
                          **lm_progress(ctx),
-                         theta_star=ctx.inputs["baseline"]["theta"] if isinstance(system, Recording) else None,
+                         theta_star=ctx.inputs["baseline"]["theta"] if system.measured else None,
                          memo=restart_memo(ctx))
     log_restarts(ctx, fit_.restarts, fit_.best)
     best = fit_.restarts[fit_.best]

@@ -27,7 +27,6 @@ from pipeline.models.pgnn import PGNN, LinearFeatures
 from pipeline.errors import ConfigError
 from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
 from pipeline.systems.arx_bias import ARXPhysics
-from pipeline.systems.measured import Recording
 
 THETA_STAR = ("arx", "sim_error", "oracle")   # oracle: the plant's true linear part (an oracle, simulation only)
 VERSION = 4   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zeros logged;
@@ -36,7 +35,7 @@ VERSION = 4   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zero
 
 
 def check(cfg, system) -> None:
-    if isinstance(system, Recording):
+    if system is not None and system.measured:
         return _check_measured(cfg, system)
     m = cfg.model
     if m.get("structure") != "forward":
@@ -76,7 +75,7 @@ def build_model(cfg, system) -> PGNN:
 
 def fit(ctx) -> dict:
     cfg, system = ctx.cfg, ctx.system
-    if isinstance(system, Recording):
+    if system.measured:
         return _fit_measured(ctx)
     ds = ctx.inputs["generate"]["dataset"]
     segs = list(ds.segments())

@@ -110,8 +110,8 @@ def _signing_key() -> bytes:
         path.parent.mkdir(parents=True, exist_ok=True)
         if not path.exists():
             tmp = path.with_name(f".{path.name}.{HOST}-{os.getpid()}-{time.time_ns()}")
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
             try:
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
                 with os.fdopen(fd, "wb") as f:
                     f.write(os.urandom(KEY_MIN_BYTES))
                     f.flush()
@@ -120,6 +120,9 @@ def _signing_key() -> bytes:
                     os.link(tmp, path)          # atomic and exclusive: another process's key wins
                 except FileExistsError:
                     pass
+            except OSError as exc:               # a full disk: name the key, not "an unnamed file"
+                exc.filename = exc.filename or str(path)
+                raise
             finally:
                 tmp.unlink(missing_ok=True)
         if not path.is_file():
@@ -158,32 +161,38 @@ def _tree(entry: Path) -> bytes:
     return "\n".join(lines).encode()
 
 
-def _blobs(entry: Path, payload: bytes, rec: bytes | None) -> list[bytes]:
+def _blobs(entry: Path, final: Path, payload: bytes, rec: bytes | None) -> list[bytes]:
+    """What the signature covers: where the entry belongs (``<stage>/<key>``: a signed entry copied
+    under another config's key fails), its pickle, its record and every other file it holds."""
     tree = _tree(entry)
-    return [payload] + ([rec] if rec is not None else []) + ([tree] if tree else [])
+    return [f"{final.parent.name}/{final.name}".encode(), payload] + ([rec] if rec is not None else []) + \
+        ([tree] if tree else [])
 
 
-def _write_signed(entry: Path, result, record: dict | None = None) -> None:
-    """``result.pkl`` (+ ``record.json``) and ``signature``: HMAC-SHA256 with the cache key of both
-    and of every other file the entry holds (written last, once the entry is complete)."""
+def _write_signed(entry: Path, result, record: dict | None = None, final: Path | None = None) -> None:
+    """``result.pkl`` (+ ``record.json``) and ``signature``: HMAC-SHA256 with the cache key of the
+    place ``final`` the entry is renamed to (default: ``entry``), both files and every other file the
+    entry holds (written last, once the entry is complete)."""
     payload = pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL)
     (entry / "result.pkl").write_bytes(payload)
     rec = None
     if record is not None:
         rec = json.dumps(record, indent=1).encode()
         (entry / "record.json").write_bytes(rec)
-    (entry / "signature").write_text(_signature(*_blobs(entry, payload, rec)))
+    (entry / "signature").write_text(_signature(*_blobs(entry, final or entry, payload, rec)))
 
 
 def _read_signed(entry: Path) -> tuple[Any, dict | None]:
-    """The entry's result (and record), unpickled only after its signature checked out: over the
-    pickle, the record and every other file of the entry (a file added, removed or altered fails)."""
+    """The entry's result (and record), unpickled only after its signature checked out: over its
+    place, the pickle, the record and every other file of the entry (a file added, removed or
+    altered, or the entry moved under another key, fails)."""
     payload = (entry / "result.pkl").read_bytes()
     rec = (entry / "record.json").read_bytes() if (entry / "record.json").exists() else None
     sig = entry / "signature"
-    if not sig.exists() or not hmac.compare_digest(sig.read_text().strip(), _signature(*_blobs(entry, payload, rec))):
+    if not sig.exists() or not hmac.compare_digest(sig.read_text().strip(),
+                                                   _signature(*_blobs(entry, entry, payload, rec))):
         raise UntrustedCache(f"{entry} is not signed with this machine's cache key ({cache_key_file()}), "
-                             "or a file in it was altered, added or removed")
+                             "or a file in it was altered, added or removed, or it was moved from another key")
     return pickle.loads(payload), (json.loads(rec) if rec is not None else None)
 
 

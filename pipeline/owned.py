@@ -24,9 +24,23 @@ SOURCE = tuple(ROOT / d for d in ("pipeline", "stages", "conf", "tests", "hydra_
 
 
 def inside_source(path: Path) -> bool:
-    """True if ``path`` is a folder of the source tree or inside one."""
-    p = Path(os.path.abspath(path))
-    return any(p == s or s in p.parents for s in SOURCE)
+    """True if ``path`` (links resolved) is the repository's top folder, a folder of the source tree
+    or inside one."""
+    p = Path(path).resolve()
+    return p == ROOT or any(p == s or s in p.parents for s in SOURCE + (ROOT / ".git",))
+
+
+def unsafe_place(path: Path) -> str | None:
+    """Why ``path`` (links resolved) must not receive outputs: the file system's root, the home
+    folder, or the source tree; None if it may."""
+    p = Path(path).resolve()
+    if p == Path(p.anchor):
+        return "the file system's root"
+    if p == Path.home().resolve():
+        return "the home folder"
+    if inside_source(p):
+        return "inside the source tree"
+    return None
 
 
 def _sha(p: Path) -> str:
@@ -64,8 +78,9 @@ def refuse_foreign(root: Path, targets: Iterable[str], option: str) -> None:
     """Raise :class:`ConfigError` (before any work) if replacing ``targets`` under ``root`` would
     delete or overwrite a file that is not the pipeline's; ``option`` names the setting to change."""
     root = Path(root)
-    if inside_source(root):
-        raise ConfigError(f"{option}={root} is inside the source tree; write outputs to a folder of their own")
+    why = unsafe_place(root)
+    if why:
+        raise ConfigError(f"{option}={root} is {why}; write outputs to a folder of their own")
     if root.exists() and not root.is_dir():
         raise ConfigError(f"{option}={root} is a file, not a folder; give a folder")
     bad = foreign(root, targets)

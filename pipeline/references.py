@@ -378,6 +378,8 @@ def oscillating(amplitude: float, v_max: float, a_max: float, j_max: float, Ts: 
     n_strokes = int(n_strokes)
     if n_strokes < 0:
         raise ValueError(f"n_strokes must be >= 0, got {n_strokes}")
+    total = rest + half + dwell + half + (dwell + full) * n_strokes + (rest if duration is None else 0.0)
+    _count(int(total / _positive("Ts", Ts)), "the oscillating reference", Ts)   # before a step per stroke
     steps: list[Rest | MoveTo] = [Rest(rest), MoveTo(A, v_max, a_max, j_max)]
     for i in range(n_strokes):
         steps += [Rest(dwell), MoveTo(-A if i % 2 == 0 else A, v_max, a_max, j_max)]

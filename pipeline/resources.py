@@ -46,6 +46,7 @@ SQLITE = {
     "database or disk is full": ("no space left on the device", "free space there, or"),
     "unable to open database file": ("cannot open the database (missing, read-only or forbidden folder)",
                                      "make the folder writable for this user, or"),
+    "file is not a database": ("the file there is not an SQLite database", "move it away, or"),
 }
 
 
@@ -126,7 +127,7 @@ def describe(exc: BaseException, cfg=None) -> str | None:
         mlflow_error = isinstance(exc, mlflow.exceptions.MlflowException)
     except ImportError:  # pragma: no cover
         mlflow_error = False
-    sql_error = type(exc).__name__ == "OperationalError"   # sqlite3 / SQLAlchemy
+    sql_error = type(exc).__name__ in ("OperationalError", "DatabaseError")   # sqlite3 / SQLAlchemy
     if not (mlflow_error or sql_error):
         return None
     uri = os.environ.get("MLFLOW_TRACKING_URI") or tracking.default_uri()

@@ -152,7 +152,7 @@ class StageContext:
             tmp = final.with_name(_tmp_name(key))
             try:
                 tmp.mkdir(parents=True)
-                _write_signed(tmp, value)
+                _write_signed(tmp, value, final=final)
                 os.rename(tmp, final)
             except BaseException:   # a full disk, Ctrl-C: nothing half-written stays
                 shutil.rmtree(tmp, ignore_errors=True)
@@ -272,9 +272,11 @@ def validate(cfg: DictConfig) -> tuple[list[str], Any, dict]:
         if hasattr(modules[n], "validate"):
             modules[n].validate(cfg, system)
     cache = Path(os.path.abspath(cache_dir(cfg)))
-    if cache == Path(cache.anchor) or cache == Path.home() or owned.inside_source(cache):
-        raise ConfigError(f"paths.cache={cache} is the file system's root, the home folder or inside the source "
-                          "tree; give the cache a folder of its own, e.g. paths.cache=.cache (the default)")
+    why = owned.unsafe_place(cache)
+    if why:
+        raise ConfigError(f"paths.cache={cache} is {why} (the file system's root, the home folder and the "
+                          "source tree are refused); give the cache a folder of its own, e.g. paths.cache=.cache "
+                          "(the default)")
     try:
         _signing_key()          # a short or empty cache signing key is bad input: named before any work
     except BadKey as exc:
@@ -288,7 +290,7 @@ def _record(ctx: StageContext, seconds: float) -> dict:
 
 
 def _store(tmp: Path, final: Path, result: dict, ctx: StageContext, seconds: float) -> None:
-    _write_signed(tmp, result, _record(ctx, seconds))
+    _write_signed(tmp, result, _record(ctx, seconds), final)
     try:
         os.rename(tmp, final)  # atomic: the directory appears complete or not at all
     except OSError:  # another process finished the same key first: keep theirs

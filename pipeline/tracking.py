@@ -22,6 +22,7 @@ from mlflow.entities import Metric, Param, RunTag
 from mlflow.tracking import MlflowClient
 
 from pipeline import interrupts
+from pipeline.errors import ConfigError
 from pipeline.cache import HOST, cache_dir, pid_alive, remove_stale_temporaries
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -33,6 +34,10 @@ SLURM_TAGS = {"SLURM_JOB_ID": "slurm.job_id", "SLURM_ARRAY_JOB_ID": "slurm.array
               "SLURM_ARRAY_TASK_ID": "slurm.array_task_id"}
 
 
+#: tracking-store URI schemes MLflow opens (a bare path is a file store)
+STORE_SCHEMES = ("sqlite", "http", "https", "file", "postgresql", "mysql", "mssql", "databricks")
+
+
 def default_uri() -> str:
     return f"sqlite:///{ROOT / 'mlruns' / 'mlflow.db'}"
 
@@ -40,6 +45,11 @@ def default_uri() -> str:
 def tracking_uri() -> str:
     """The tracking URI of this process: ``MLFLOW_TRACKING_URI`` or the embedded SQLite store."""
     uri = os.environ.get("MLFLOW_TRACKING_URI") or default_uri()
+    scheme = urlparse(uri).scheme.split("+")[0]
+    if "://" in uri and scheme not in STORE_SCHEMES:
+        raise ConfigError(f"MLFLOW_TRACKING_URI={uri}: MLflow has no store of scheme {scheme!r}; use "
+                          "sqlite:///<path>/mlflow.db (one machine), http(s)://<host>:<port> (a server) or "
+                          "postgresql+psycopg://… (README, Parallel sweeps)")
     if uri.startswith("sqlite:///"):
         db = Path(uri[len("sqlite:///"):])
         db.parent.mkdir(parents=True, exist_ok=True)

@@ -23,7 +23,7 @@ import sys
 
 from pipeline import tracking
 from pipeline.export import law as laws
-from pipeline.export.package import find_compiler, write_package
+from pipeline.export.package import find_compiler, reference_file_clash, write_package
 from pipeline.errors import ConfigError
 
 UPSTREAM = ("generate", "baseline", "train", "invert")
@@ -55,6 +55,10 @@ def validate(cfg, system) -> None:
     if kind == "rational_filter" and str(m.get("kind")) == "pgnn_shared_ar" and str(m.get("approximator")) != "mlp":
         raise ConfigError(f"export: the [K] PGNN is exported with the MLP approximator (model.approximator=mlp), "
                           f"got {m.get('approximator')!r}")
+    from stages._common import reference_specs
+    clash = reference_file_clash(s["name"] for s in reference_specs(cfg.evaluate.references))
+    if clash:
+        raise ConfigError(f"export: evaluate.{clash}")
     e = cfg.get("export")
     if e is None:
         raise ConfigError("export: the config has no 'export' node (conf/config.yaml defines it)")

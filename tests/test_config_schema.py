@@ -94,6 +94,13 @@ PROBES = [
                  ["more than 1e+07", "shorten it"], id="reference-1e12-samples"),
     pytest.param([*TWO_MASS[:1], "data.references=[{name:a,kind:b2_R,repeats:100000}]", "stages=[generate]"],
                  ["repeated 100000 times", "more than 1e+07"], id="reference-repeats"),
+    pytest.param(["experiment=physics_linear_motor", "data.references=[{name:tr,kind:b1_training,duration:1e9}]",
+                  "stages=[generate]"], ["oscillating reference has 1e+12 samples"], id="training-duration-1e9"),
+    pytest.param(["experiment=b1_linear_motor", "hydra.mode=RUN", "stages=[generate,baseline,train,invert,export]",
+                  "evaluate.references=[{name:v0.15,kind:b1_evaluation,v_max:0.15},"
+                  "{name:v0_15,kind:b1_evaluation,v_max:0.1}]"],
+                 ["references 'v0.15' and 'v0_15' give the same file name r_v0_15.csv"], id="export-file-clash"),
+    pytest.param([*TWO_MASS, f"paths.cache={ROOT}"], ["inside the source tree"], id="cache-at-repo-top"),
 ]
 
 

@@ -263,7 +263,7 @@ def test_an_unreachable_tracking_server_ends_with_one_line(cli, store, monkeypat
     assert "MLFLOW_TRACKING_URI" in line
 
 
-@pytest.mark.parametrize("where", ["under_a_file", "a_folder"])
+@pytest.mark.parametrize("where", ["under_a_file", "a_folder", "not_sqlite"])
 def test_a_store_path_that_cannot_be_a_database_ends_with_one_line(cli, store, monkeypatch, capfd, where):
     """Issue 24, tracebacks: a SQLite store under a file, or at a folder (MLflow retried opening that
     one for two minutes, logging each try, before the one line)."""
@@ -271,6 +271,9 @@ def test_a_store_path_that_cannot_be_a_database_ends_with_one_line(cli, store, m
     if where == "under_a_file":
         blocker.write_text("a file")
         db = blocker / "m.db"
+    elif where == "not_sqlite":
+        blocker.write_bytes(bytes(range(256)) * 20)                # not a database (a file of the user's)
+        db = blocker
     else:
         blocker.mkdir()
         db = blocker
@@ -278,8 +281,16 @@ def test_a_store_path_that_cannot_be_a_database_ends_with_one_line(cli, store, m
     code, lines = cli(*SHORT_TWO_MASS, "stages=[generate]", capture=capfd)
     line = _one_error_line(lines)
     assert code == 1 and line.startswith("error: MLflow store at ") and "MLFLOW_TRACKING_URI" in line
-    assert ("not a folder" if where == "under_a_file" else "a folder, not a file") in line
+    assert {"under_a_file": "not a folder", "a_folder": "a folder, not a file",
+            "not_sqlite": "not an SQLite database"}[where] in line
     assert not any("retried" in x for x in lines), lines
+
+
+def test_an_unknown_store_scheme_is_one_line_before_any_work(cli, store, monkeypatch, capfd):
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "bogus://x")
+    code, lines = cli(*SHORT_TWO_MASS, "stages=[generate]", capture=capfd)
+    line = _one_error_line(lines)
+    assert code == 2 and "MLFLOW_TRACKING_URI=bogus://x: MLflow has no store of scheme 'bogus'" in line
 
 
 def test_only_resource_errors_are_described(store):

@@ -420,3 +420,29 @@ def test_a_reference_file_is_read_beside_a_data_path_that_is_a_file(tmp_path):
         emps = OmegaConf.create({"data": {"path": str(EMPS / "DATA_EMPS.mat"), "format": "emps", "file": None}})
         trained_on = measured.load_file(emps).frame
         assert not measured.load_file(emps, "DATA_EMPS_PULSES").frame.equals(trained_on)
+
+
+def test_the_cache_key_hashes_every_file_read_wherever_it_is(store, cfg_of, tmp_path):
+    """Probe re-run of issue 24 item 6: with the training file as data.path, a reference read beside
+    it, in a sub-folder or by an absolute path is in the key too (before, only data.path's file was
+    hashed: a replaced test file was served from the cache). A data.file naming another file than
+    a data.path that is a file is refused (before, the file named in data.path was ignored)."""
+    train = _csv(tmp_path, "train", n=2000)
+    (tmp_path / "sub").mkdir()
+    beside, below = _csv(tmp_path, "test", n=1500), _csv(tmp_path / "sub", "deep", n=1500)
+    elsewhere = _csv(tmp_path / "sub", "abs", n=1500)
+    refs = (f"evaluate.references=[{{name:a,kind:measured,file:{beside.name}}},{{name:b,kind:measured,file:sub/"
+            f"{below.name}}},{{name:c,kind:measured,file:{elsewhere}}}]")
+    cfg = cfg_of(*_measured_overrides(train), f"data.path={train}", "data.file=null", refs)
+
+    def generate_key():
+        names, _, modules = runner.validate(cfg)
+        return runner.plan(cfg, names, modules)["generate"]
+    first = generate_key()
+    for f in (beside, below, elsewhere):
+        _csv(f.parent, f.stem, n=1600)                        # another valid record under the same name
+        again = generate_key()
+        assert again != first, f
+        first = again
+    with pytest.raises(runner.ConfigError, match=r"data.path=.*train.csv is a file and data.file\(s\)=\['other'\]"):
+        runner.validate(cfg_of(*_measured_overrides(train), f"data.path={train}", "data.file=other"))

@@ -233,6 +233,10 @@ def test_report_never_replaces_a_users_file(store, cfg_of):
     runner.run_job(report)                                            # as written: replaced again
     with pytest.raises(runner.ConfigError, match="inside the source tree"):
         runner.validate(cfg_of("stages=[report]", f"paths.results={runner.ROOT / 'pipeline' / 'out'}"))
+    link = store / "looks_harmless"
+    link.symlink_to(runner.ROOT / "conf")                             # a link into the source tree
+    with pytest.raises(runner.ConfigError, match="inside the source tree"):
+        runner.validate(cfg_of("stages=[report]", f"paths.results={link}"))
 
 
 def test_report_stage_failure_leaves_the_old_results(store, cfg_of, monkeypatch):
@@ -430,8 +434,9 @@ def test_a_short_or_empty_cache_key_is_refused_and_a_new_key_is_whole(tmp_path, 
     failing = tmp_path / "full" / "k.key"
     monkeypatch.setenv("PIPELINE_CACHE_KEY_FILE", str(failing))
     monkeypatch.setattr(os, "fsync", full_disk)
-    with pytest.raises(OSError, match="No space"):
+    with pytest.raises(OSError, match="No space") as full:
         cache._signing_key()
+    assert full.value.filename == str(failing)                           # the key is named, not "a file"
     assert not failing.exists() and list(failing.parent.iterdir()) == []
 
 
@@ -457,6 +462,17 @@ def test_every_file_of_a_cache_entry_is_signed(store, cfg_of, capsys):
         err = capsys.readouterr().err
         assert "not loaded (moved to .untrusted-" in err, err
         assert not any(p.name in ("extra.c", "link") for p in entry().rglob("*"))   # a clean recomputation
+    # a signed entry of another config (a longer move) copied under this config's key
+    longer = SHORT_TWO_MASS[1].replace("distance:0.02", "distance:0.03")
+    other = runner.run_job(cfg_of(SHORT_TWO_MASS[0], longer, *SHORT_TWO_MASS[2:], "stages=[generate]"))
+    assert not other["generate"]["dataset"].frame.equals(good)
+    entries = {d.name: d for d in gen.iterdir() if not d.name.startswith(".")}
+    key0 = runner.plan(cfg, ["generate"], {"generate": __import__("stages.generate", fromlist=["x"])})["generate"][:20]
+    (seed1,) = [d for n, d in entries.items() if n != key0]
+    shutil.rmtree(entries[key0])
+    shutil.copytree(seed1, gen / key0)
+    assert runner.run_job(cfg)["generate"]["dataset"].frame.equals(good)       # not seed 1's data
+    assert "moved from another key" in capsys.readouterr().err
 
 
 def test_a_broken_cache_entry_lock_or_key_is_one_line_or_recomputed(store, cfg_of, capsys, monkeypatch):

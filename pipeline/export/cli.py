@@ -20,7 +20,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from pipeline import owned
 from pipeline.export.law import LAWS, ExportError
@@ -34,8 +34,9 @@ def _writable(out: Path) -> None:
     """``out`` is (or can be made) a folder this user writes to, outside the source tree."""
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} is a file, not a folder; give a folder")
-    if owned.inside_source(out):
-        raise ConfigError(f"--out {out} is inside the source tree; export to a folder of its own (default ./export)")
+    why = owned.unsafe_place(out)
+    if why:
+        raise ConfigError(f"--out {out} is {why}; export to a folder of its own (default ./export)")
     try:
         out.mkdir(parents=True, exist_ok=True)
         tempfile.TemporaryFile(dir=out).close()
@@ -71,7 +72,14 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
         except (mlflow.exceptions.MlflowException, OSError) as exc:
             raise ConfigError(f"run {run_id} has no resolved config artifact ({run_id}.yaml): it was not made by "
                               "this pipeline") from exc
-        cfg = OmegaConf.load(path)
+        try:
+            cfg = OmegaConf.load(path)
+        except Exception as exc:  # noqa: BLE001 — YAML and OmegaConf raise several types
+            raise ConfigError(f"run {run_id}'s config artifact {run_id}.yaml is not a config ({type(exc).__name__}): "
+                              "the run was altered or not made by this pipeline") from None
+    if not isinstance(cfg, DictConfig):
+        raise ConfigError(f"run {run_id}'s config artifact {run_id}.yaml is not a mapping: the run was altered or "
+                          "not made by this pipeline")
     kind = str(OmegaConf.select(cfg, "invert.kind", default=""))
     if kind not in LAWS:
         raise ConfigError(f"run {run_id} has invert.kind={kind!r}, which has no feedforward law to ship; "

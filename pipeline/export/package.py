@@ -117,6 +117,9 @@ def write_package(law: Law, name: str, out: Path, references: dict, *, source: d
     out = Path(out)
     if not references:
         raise ExportError(f"no reference to verify {name} on: give at least one (evaluate.references)")
+    clash = reference_file_clash(references)
+    if clash:
+        raise ExportError(clash)
     out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{name}-", dir=out))
     try:
@@ -127,6 +130,18 @@ def write_package(law: Law, name: str, out: Path, references: dict, *, source: d
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return manifest
+
+
+def reference_file_clash(names) -> str | None:
+    """Two reference names that give one file name (``r_<c_name>.csv``: v0.15 and v0_15) would
+    overwrite each other's files: say which, or None."""
+    seen: dict[str, str] = {}
+    for ref in names:
+        other = seen.setdefault(c_name(ref), ref)
+        if other != ref:
+            return (f"references {other!r} and {ref!r} give the same file name r_{c_name(ref)}.csv in the "
+                    "export package: rename one (letters, digits and '_' are kept, other characters become '_')")
+    return None
 
 
 def _build(law, name, folder, references, source, cc, rtol, repeats, keep_exe) -> dict:

@@ -51,17 +51,43 @@ def _sha256(path: Path) -> str:
 
 
 def content_key(cfg) -> dict[str, str]:
-    """SHA-256 of every file the measured data may be read from (``data.path`` itself, or every
-    file in that folder: the training files and the evaluation references' files): part of the
-    stage's cache key (runner.stage_key), so a recording replaced under the same name is reread,
-    never served from the cache of the old one (issue 24). A missing path adds nothing here:
-    :func:`check` names it before any work."""
-    folder, _ = _folder_and_file(cfg, None)
-    if folder.is_file():
-        return {folder.name: _sha256(folder)}
-    if not folder.is_dir():
-        return {}
-    return {p.name: _sha256(p) for p in sorted(folder.iterdir()) if p.is_file() and not p.name.startswith(".")}
+    """SHA-256 of every file this job reads measured data from: the training file(s) and every
+    evaluation reference's recording, wherever they are (beside data.path, in a sub-folder, or by
+    an absolute path): part of the stage's cache key (runner.stage_key), so a recording replaced under
+    the same name is reread, never served from the cache of the old one (issue 24). A missing file
+    adds nothing here: :func:`check` names it before any work."""
+    from stages._common import reference_specs
+    files = list(training_files(cfg))
+    specs = reference_specs(cfg.evaluate.references) if cfg.get("evaluate") is not None else []
+    files += [s["file"] for s in specs if s.get("kind") == "measured" and s.get("file")]
+    out = {}
+    for f in files:
+        try:
+            target = _target(cfg, f)
+        except ConfigError:
+            continue
+        if target.is_file():
+            out[str(f) if f is not None else "data.path"] = _sha256(target)
+    return out
+
+
+def _target(cfg, file: str | None) -> Path:
+    """The file :func:`load_file` reads for ``file`` (default ``data.file``)."""
+    fmt = str(cfg.data.format)
+    folder, name = _folder_and_file(cfg, file if file is not None else cfg.data.get("file"))
+    if folder.is_file() and name is not None and name not in (folder.name, folder.stem):
+        folder = folder.parent       # data.path is the training file: another file is read beside it
+    elif folder.is_file() and fmt == "emps":
+        folder, name = folder.parent, folder.stem
+    if fmt == "emps":
+        return folder / f"{name or 'DATA_EMPS'}.mat"
+    target = folder
+    if name is not None and folder.is_dir():
+        target = folder / name
+        if target.suffix not in (".parquet", ".csv"):
+            target = next((target.with_suffix(s) for s in (".parquet", ".csv")
+                           if target.with_suffix(s).exists()), target.with_suffix(".parquet"))
+    return target
 
 
 def load_file(cfg, file: str | None = None) -> data.Dataset:
@@ -70,19 +96,9 @@ def load_file(cfg, file: str | None = None) -> data.Dataset:
     fmt = str(cfg.data.format)
     if fmt not in FORMATS:
         raise ConfigError(f"data.format={fmt!r}; choose one of {FORMATS}")
-    folder, name = _folder_and_file(cfg, file if file is not None else cfg.data.get("file"))
-    if folder.is_file() and name is not None and name not in (folder.name, folder.stem):
-        folder = folder.parent       # data.path is the training file: another file is read beside it
-    elif folder.is_file() and fmt == "emps":
-        folder, name = folder.parent, folder.stem
+    target = _target(cfg, file)
     if fmt == "emps":
-        return data.load_emps(folder, name or "DATA_EMPS")
-    target = folder
-    if name is not None and folder.is_dir():
-        target = folder / name
-        if target.suffix not in (".parquet", ".csv"):
-            target = next((target.with_suffix(s) for s in (".parquet", ".csv")
-                           if target.with_suffix(s).exists()), target.with_suffix(".parquet"))
+        return data.load_emps(target.parent, target.stem)
     ds = data.load(target)
     dist = cfg.system.get("disturbance") if "system" in cfg else None
     if dist and dist in ds.frame and "d" not in ds.frame:   # the system's disturbance column is d
@@ -183,6 +199,11 @@ def training_files(cfg) -> list:
     """The training records: ``data.files`` (several, each its own segment) or ``data.file`` (one;
     None = ``data.path`` itself is the file)."""
     files, file = cfg.data.get("files"), cfg.data.get("file")
+    path = _folder_and_file(cfg, None)[0]
+    named = [str(f) for f in (files or [])] + ([str(file)] if file not in (None, "") else [])
+    if path.is_file() and any(n not in (path.name, path.stem) for n in named):
+        raise ConfigError(f"data.path={cfg.data.path} is a file and data.file(s)={named} name another: give the "
+                          "folder as data.path with data.file, or the training file as data.path alone")
     if files:
         if file not in (None, ""):
             raise ConfigError(f"data.file={file!r} and data.files={list(files)} are both set; give one training "

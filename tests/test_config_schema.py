@@ -101,6 +101,9 @@ PROBES = [
                   "{name:v0_15,kind:b1_evaluation,v_max:0.1}]"],
                  ["references 'v0.15' and 'v0_15' give the same file name r_v0_15.csv"], id="export-file-clash"),
     pytest.param([*TWO_MASS, f"paths.cache={ROOT}"], ["inside the source tree"], id="cache-at-repo-top"),
+    pytest.param(["experiment=emps_physics", "system.idim.decimation=10000"],
+                 ["fewer than the 200100 the filtered least squares needs", "lower system.idim.trim or "
+                  "system.idim.decimation"], id="idim-decimation-too-large"),
 ]
 
 

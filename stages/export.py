@@ -21,10 +21,13 @@ from __future__ import annotations
 import math
 import sys
 
+from omegaconf import OmegaConf
+
 from pipeline import tracking
 from pipeline.export import law as laws
 from pipeline.export.package import find_compiler, reference_file_clash, write_package
 from pipeline.errors import ConfigError
+from stages._common import reference_specs
 
 UPSTREAM = ("generate", "baseline", "train", "invert")
 DEPENDS = ("invert", "export.compile", "export.cc", "export.rtol", "export.timing_repeats",
@@ -55,8 +58,7 @@ def validate(cfg, system) -> None:
     if kind == "rational_filter" and str(m.get("kind")) == "pgnn_shared_ar" and str(m.get("approximator")) != "mlp":
         raise ConfigError(f"export: the [K] PGNN is exported with the MLP approximator (model.approximator=mlp), "
                           f"got {m.get('approximator')!r}")
-    from stages._common import reference_specs
-    clash = reference_file_clash(s["name"] for s in reference_specs(cfg.evaluate.references))
+    clash = reference_file_clash(s["name"] for s in reference_specs(OmegaConf.select(cfg, "evaluate.references")))
     if clash:
         raise ConfigError(f"export: evaluate.{clash}")
     e = cfg.get("export")

@@ -65,11 +65,10 @@ def test_other_laws_on_a_measured_system_are_refused_naming_physics():
     from pipeline.errors import ConfigError
     from stages.export import validate
 
-    class Cfg(dict):
-        __getattr__ = dict.__getitem__
-
+    from omegaconf import OmegaConf
     sys_ = _system(PID, COGGING, True)
-    cfg = Cfg(invert=Cfg(kind="direct"), model=Cfg(hidden=[16], activation="tanh"), export=Cfg())
+    cfg = OmegaConf.create({"invert": {"kind": "direct"}, "model": {"hidden": [16], "activation": "tanh"},
+                            "export": {}})
     with pytest.raises(ConfigError, match=r"ships invert.kind=physics .* invert.kind=direct is not exported"):
         validate(cfg, sys_)
-    validate(Cfg(invert=Cfg(kind="physics"), model=Cfg(), export=Cfg()), sys_)     # accepted
+    validate(OmegaConf.create({"invert": {"kind": "physics"}, "model": {}, "export": {}}), sys_)     # accepted

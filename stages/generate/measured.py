@@ -56,10 +56,11 @@ def content_key(cfg) -> dict[str, str]:
     an absolute path): part of the stage's cache key (runner.stage_key), so a recording replaced under
     the same name is reread, never served from the cache of the old one (issue 24). A missing file
     adds nothing here: :func:`check` names it before any work."""
-    from stages._common import reference_specs
     files = list(training_files(cfg))
-    specs = reference_specs(cfg.evaluate.references) if cfg.get("evaluate") is not None else []
-    files += [s["file"] for s in specs if s.get("kind") == "measured" and s.get("file")]
+    refs = OmegaConf.to_container(cfg.evaluate.references, resolve=True) \
+        if cfg.get("evaluate") is not None and cfg.evaluate.get("references") is not None else []
+    specs = list(refs.values()) if isinstance(refs, dict) else refs   # a list, or a mapping by name
+    files += [s["file"] for s in specs if isinstance(s, dict) and s.get("kind") == "measured" and s.get("file")]
     out = {}
     for f in files:
         try:

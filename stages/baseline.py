@@ -31,6 +31,11 @@ def nonphysical(physical: dict) -> list[str]:
     return [f"{k}={v:.4g}" for k, v in physical.items() if k in POSITIVE and not v > 0]
 
 
+#: share of the recorded force a measured system's physics fit may leave unexplained before it is
+#: flagged as no model of the machine (EMPS: 4 %)
+UNUSABLE_RESIDUAL = 0.5
+
+
 def run(ctx) -> dict:
     ds = ctx.inputs["generate"]["dataset"]
     system = ctx.system
@@ -61,6 +66,13 @@ def run(ctx) -> dict:
             msg = (f"the physics of '{system.name}' leaves {100 * diag['residual_rel']:.1f} % of the force "
                    "unexplained and it is structured: " + "; ".join(found))
             ctx.tag("physics_missing_term", msg)
+            warnings.warn(msg, stacklevel=1)
+        if diag["residual_rel"] > UNUSABLE_RESIDUAL:   # e.g. a prefilter cutoff below the motion's bandwidth
+            msg = (f"the physics fit of '{system.name}' leaves {100 * diag['residual_rel']:.0f} % of the force "
+                   f"unexplained (M = {physical.get('M', float('nan')):.4g}): it is not a model of this machine. "
+                   f"Check system.idim (cutoff_hz={system.idim.get('cutoff_hz')} Hz must pass the motion), "
+                   "the force terms, and the signs and units of u and y")
+            ctx.tag("physics_warning", msg)
             warnings.warn(msg, stacklevel=1)
     truth = getattr(system, "true_physical", None)
     if callable(truth):  # where the simulator knows its parameters, report the estimation error

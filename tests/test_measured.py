@@ -446,3 +446,19 @@ def test_the_cache_key_hashes_every_file_read_wherever_it_is(store, cfg_of, tmp_
         first = again
     with pytest.raises(runner.ConfigError, match=r"data.path=.*train.csv is a file and data.file\(s\)=\['other'\]"):
         runner.validate(cfg_of(*_measured_overrides(train), f"data.path={train}", "data.file=other"))
+
+
+@pytest.mark.skipif(not (EMPS / "DATA_EMPS.mat").exists(), reason="EMPS data not found beside the repo")
+def test_a_physics_fit_that_explains_almost_nothing_is_flagged(store, cfg_of):
+    """Probe re-run of issue 24 item 9: an IDIM prefilter cutoff far below the motion's bandwidth
+    (0.001 Hz) filtered the motion away and finished with M = 3e6 kg, unflagged; a physics fit that
+    leaves over half of the recorded force unexplained is now flagged (warning and run tag). The
+    EMPS benchmark's own settings leave 4 % and are not."""
+    import warnings as w
+    with pytest.warns(UserWarning, match=r"leaves 9\d % of the force unexplained .*cutoff_hz=0.001 Hz"):
+        runner.run_job(cfg_of("experiment=emps_physics", "system.idim.order=1", "system.idim.cutoff_hz=0.001",
+                              "stages=[generate,baseline]"))
+    with w.catch_warnings(record=True) as caught:
+        w.simplefilter("always")
+        runner.run_job(cfg_of("experiment=emps_physics", "stages=[generate,baseline]"))
+    assert not [c for c in caught if "unexplained" in str(c.message)]

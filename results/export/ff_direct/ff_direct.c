@@ -266,7 +266,7 @@ double ff_direct_step(ff_direct_state *s, const double *r_preview)
 #else
     u = law_w(s, r_preview);
 #endif
-    if (s->status) s->n_flagged++;
-    s->k++;
+    if (s->status && s->n_flagged < UINT64_MAX) s->n_flagged++;
+    if (s->k < UINT64_MAX) s->k++;
     return u;
 }

@@ -267,7 +267,7 @@ double ff_newton_step(ff_newton_state *s, const double *r_preview)
 #else
     u = law_w(s, r_preview);
 #endif
-    if (s->status) s->n_flagged++;
-    s->k++;
+    if (s->status && s->n_flagged < UINT64_MAX) s->n_flagged++;
+    if (s->k < UINT64_MAX) s->k++;
     return u;
 }

@@ -1,4 +1,5 @@
-"""Resource errors: a full disk, a read-only or forbidden directory, an unreachable tracking server.
+"""Resource errors: a full disk, a read-only or forbidden directory, an unreachable tracking server,
+memory exhausted.
 
 :func:`describe` turns such an error into one line ``error: <what> at <path>: <reason>; <fix>`` for
 the entry point (``python -m pipeline``), instead of a traceback.  Only these errors: an ``OSError``
@@ -120,6 +121,10 @@ def _os_line(exc: OSError, cfg) -> str | None:
 def describe(exc: BaseException, cfg=None) -> str | None:
     """One line for a resource error, or None for any other error."""
     from pipeline import tracking
+    if isinstance(exc, MemoryError):   # numpy's "Unable to allocate", torch's "Allocation failed"
+        detail = str(exc).splitlines()[0][:160] if str(exc) else "an allocation failed"
+        return (f"error: out of memory ({detail}): the model or the data is too large for this machine; make "
+                "model.hidden, identify.n_restarts or the record smaller, or run it on a machine with more memory")
     if isinstance(exc, OSError):
         return _os_line(exc, cfg)
     try:

@@ -370,6 +370,7 @@ def test_export_cli_trusts_nothing_stored_and_replaces_only_its_own_packages(sto
     for bad, why in ((runner.ROOT / "stages" / "pkg", "inside the source tree"), (evil, "is a file")):
         assert main([run_id, "--out", str(bad)]) == 2 and why in capsys.readouterr().err
     assert not (runner.ROOT / "stages" / "pkg").exists()
+    assert main([run_id, "--out", ""]) == 2 and "--out is empty" in capsys.readouterr().err
 
 
 @needs_cc

@@ -293,6 +293,18 @@ def test_an_unknown_store_scheme_is_one_line_before_any_work(cli, store, monkeyp
     assert code == 2 and "MLFLOW_TRACKING_URI=bogus://x: MLflow has no store of scheme 'bogus'" in line
 
 
+def test_memory_exhausted_in_a_stage_ends_with_one_line_and_a_failed_run(cli, store, monkeypatch, capfd):
+    """Probe re-run of issue 24: a network too large for memory (model.hidden=[100000] on EMPS) ended in
+    a MemoryError traceback; injected here in the baseline stage."""
+    def too_big(ctx):
+        raise MemoryError("Unable to allocate 60.0 GiB for an array with shape (24841, 324000)")
+    monkeypatch.setattr("stages.baseline.run", too_big)
+    code, lines = cli(*SHORT_TWO_MASS, "stages=[generate,baseline]", capture=capfd)
+    line = _one_error_line(lines)
+    assert code == 1 and line.startswith("error: out of memory (Unable to allocate 60.0 GiB") and "model.hidden" in line
+    assert _only_run_status() == "FAILED"
+
+
 def test_only_resource_errors_are_described(store):
     """A programming error, or an OSError that is not about space or permissions, keeps its traceback."""
     import mlflow

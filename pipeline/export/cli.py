@@ -138,6 +138,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cc", default=None, help="the C compiler to run (default: cc; the one stored with the run "
                    "is never used)")
     args = p.parse_args(argv)
+    if not args.out.strip():
+        print("error: --out is empty; give the folder of the packages (default ./export)", file=sys.stderr)
+        return 2
     try:
         export_run(args.run_id, Path(args.out), register=args.register, compile=not args.no_compile, cc=args.cc)
     except (ConfigError, ExportError) as exc:

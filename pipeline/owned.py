@@ -71,7 +71,12 @@ def foreign(root: Path, targets: Iterable[str]) -> list[str]:
     changed since (paths relative to ``root``)."""
     listed = _listed(root)
     return [f.relative_to(root).as_posix() for f in _files(root, targets)
-            if f.is_symlink() or not f.is_file() or listed.get(f.relative_to(root).as_posix()) != _sha(f)]
+            if f.is_symlink() or not f.is_file() or not _accepted(listed.get(f.relative_to(root).as_posix()), f)]
+
+
+def _accepted(entry, f: Path) -> bool:
+    """``entry``: the hash written, or (between :func:`allow` and :func:`record`) a list of hashes."""
+    return entry is not None and _sha(f) in ([entry] if isinstance(entry, str) else entry)
 
 
 def refuse_foreign(root: Path, targets: Iterable[str], option: str) -> None:
@@ -99,6 +104,24 @@ def record(root: Path, targets: Iterable[str]) -> None:
     listed = {k: v for k, v in _listed(root).items()
               if not any(k == t or k.startswith(f"{t}/") for t in targets)}
     listed |= {f.relative_to(root).as_posix(): _sha(f) for f in _files(root, targets) if f.is_file()}
+    _save(root, listed)
+
+
+def allow(root: Path, rel: str, source: Path) -> None:
+    """Before ``source`` (a file, or a folder) is swapped in as ``root/rel``: list its files' hashes
+    beside the current ones, so a job stopped between the swap and :func:`record` leaves outputs
+    the next job still knows as the pipeline's (not as a user's edit)."""
+    root, source = Path(root), Path(source)
+    listed = _listed(root)
+    files = [source] if source.is_file() else sorted(f for f in source.rglob("*") if f.is_file())
+    for f in files:
+        key = rel if source.is_file() else f"{rel}/{f.relative_to(source).as_posix()}"
+        old = listed.get(key) or []
+        listed[key] = sorted(set([old] if isinstance(old, str) else old) | {_sha(f)})
+    _save(root, listed)
+
+
+def _save(root: Path, listed: dict) -> None:
     tmp = root / f".{MANIFEST}.{os.getpid()}.tmp"
     tmp.write_text(json.dumps(dict(sorted(listed.items())), indent=0))
     os.replace(tmp, root / MANIFEST)

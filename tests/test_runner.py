@@ -239,6 +239,30 @@ def test_report_never_replaces_a_users_file(store, cfg_of):
         runner.validate(cfg_of("stages=[report]", f"paths.results={link}"))
 
 
+def test_a_report_stopped_after_its_swaps_is_still_known_as_ours(store, cfg_of, monkeypatch):
+    """A report stopped between swapping in its outputs and recording them (Ctrl-C at that instant):
+    the new files' hashes were listed before each swap (owned.allow), so the next report replaces
+    them instead of refusing them as a user's edits."""
+    runner.run_job(cfg_of(*SHORT_TWO_MASS))
+    results = store / "results"
+    report = cfg_of("stages=[report]", "experiment_name=report", f"paths.results={results}",
+                    "report.experiments=[physics_baseline]")
+    runner.run_job(report)
+    first = (results / "REPORT.md").read_text()
+    two = cfg_of("stages=[report]", "experiment_name=report", f"paths.results={results}",
+                 "report.experiments=[physics_baseline,never_run]")        # another report: other contents
+
+    def stopped(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(owned, "record", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        runner.run_job(two)
+    monkeypatch.undo()
+    assert (results / "REPORT.md").read_text() != first                        # swapped in, not recorded
+    assert owned.foreign(results, ("REPORT.md", "summary.csv", "figures")) == []
+    runner.run_job(report)
+
+
 def test_report_stage_failure_leaves_the_old_results(store, cfg_of, monkeypatch):
     results = store / "results"
     (results / "figures").mkdir(parents=True)

@@ -117,6 +117,7 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
             got = tmp / name
             shutil.copytree(entry / "artifacts" / name, got)
             final = out / name
+            owned.allow(out, name, got)     # known as ours even if stopped right after the swap
             replace_dir(got, final)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)

@@ -96,6 +96,7 @@ def run(ctx) -> dict:
         old = Path(tempfile.mkdtemp(prefix=".figures-old-", dir=results))
         if (results / "figures").exists():
             os.replace(results / "figures", old / "figures")
+        owned.allow(results, "figures", figdir)
         os.replace(figdir, results / "figures")  # the figures first, then the report that links them
         shutil.rmtree(old, ignore_errors=True)
         _write(results / "REPORT.md", lambda p: p.write_text(text))
@@ -252,6 +253,7 @@ def _ship(dest: Path, which: tuple[str, str, str]) -> None:
         old = Path(tempfile.mkdtemp(prefix=".export-old-", dir=dest.parent))
         if dest.exists():
             os.replace(dest, old / "export")
+        owned.allow(dest.parent, dest.name, got)
         os.replace(got, dest)
         shutil.rmtree(old, ignore_errors=True)
     finally:
@@ -296,6 +298,7 @@ def _claim_table(table: pd.DataFrame) -> list[str]:
 def _write(path: Path, write) -> None:
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     write(tmp)
+    owned.allow(path.parent, path.name, tmp)   # known as ours even if the job stops right after the swap
     os.replace(tmp, path)
 
 

@@ -5,7 +5,8 @@ packages under ``--out`` (issue 24, item 2: nothing of the user's is lost).
 ``.pgnn-owned.json`` in the output folder lists every file the pipeline wrote there with its
 SHA-256.  Before any work, a file under a target that is not listed, or that changed since it was
 written, is the user's: the job is refused, naming it, and nothing is deleted.  Everything else in
-the folder is never touched.  Imports nothing from the rest of the pipeline but its errors.
+the folder is never touched.  Imports nothing from the rest of the pipeline but its errors and
+the cache's ROOT.
 """
 from __future__ import annotations
 
@@ -15,10 +16,10 @@ import os
 from pathlib import Path
 from typing import Iterable
 
+from pipeline.cache import ROOT
 from pipeline.errors import ConfigError
 
 MANIFEST = ".pgnn-owned.json"
-ROOT = Path(__file__).resolve().parent.parent
 #: the source tree: outputs never go inside it (a stale file there would be imported or committed)
 SOURCE = tuple(ROOT / d for d in ("pipeline", "stages", "conf", "tests", "hydra_plugins", "benchmarks"))
 

@@ -137,8 +137,8 @@ def describe(exc: BaseException, cfg=None) -> str | None:
         return None
     uri = os.environ.get("MLFLOW_TRACKING_URI") or tracking.default_uri()
     for e in _chain(exc):
-        if isinstance(e, OSError) and _os_line(e, cfg):
-            return _os_line(e, cfg)
+        if isinstance(e, OSError) and (line := _os_line(e, cfg)):
+            return line
         if _is_connection_error(e):
             reason = re.search(r"\[Errno -?\d+\] ([^\"')]+)|(timed out|Read timed out)", str(e))
             why = (reason.group(1) or reason.group(2)).strip() if reason else type(e).__name__

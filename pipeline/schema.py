@@ -725,8 +725,9 @@ def _check_node(cls: type, node: Any, prefix: str, label: str) -> None:
         key = _join(prefix, name)
         value = node.get(name, MISSING)
         if value is MISSING and (f.default is not MISSING or f.default_factory is not MISSING):
-            if _default(f) is not None:   # left out: its default, set by check() (None: read with .get)
-                _DEFAULTED.append((key, _default(f)))
+            default = _default(f)
+            if default is not None:   # left out: its default, set by check() (None: read with .get)
+                _DEFAULTED.append((key, default))
             continue
         if value is MISSING or value == "???":
             raise ConfigError(f"{key} is not set: {_rule(hints[name], f)} (e.g. {key}={_example(f)})")

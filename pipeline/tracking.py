@@ -357,7 +357,6 @@ try:  # the Hydra callback lives here so that tracking stays in one module
 
         def on_multirun_end(self, config, **kwargs) -> None:
             for name, run_id in list(self.parents.items()):
-                mark_dead_runs_killed(client().get_run(run_id).info.experiment_id)
                 self._close_one(name, "FAILED" if self.failed or self._unfinished_children(run_id) else "FINISHED")
             os.environ.pop(PARENT_ENV, None)
 

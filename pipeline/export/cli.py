@@ -33,11 +33,7 @@ __all__ = ["main", "export_run"]
 
 def _writable(out: Path) -> None:
     """``out`` is (or can be made) a folder this user writes to, outside the source tree."""
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out {out} is a file, not a folder; give a folder")
-    why = owned.unsafe_place(out)
-    if why:
-        raise ConfigError(f"--out {out} is {why}; export to a folder of its own (default ./export)")
+    owned.refuse_foreign(out, [], "--out")     # not /, home or the source tree; not a file
     try:
         out.mkdir(parents=True, exist_ok=True)
         tempfile.TemporaryFile(dir=out).close()

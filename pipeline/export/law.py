@@ -212,7 +212,7 @@ def from_linear_motor_physics(physics, theta) -> Law:
     f_c sign δr(k) with r(-1) = 0 (``LinearMotorPhysics.feedforward``), as the physics part of
     an inverse PGNN (the same numba kernel)."""
     from pipeline.models.pgnn import PGNN, RigidBodyInverse
-    if getattr(physics, "physics_law", None) != "linear_motor":
+    if physics.physics_law != "linear_motor":
         raise ExportError(f"the exporter ships the physics feedforward (8) of the linear motor "
                           f"(LinearMotorPhysics); this system's physics is {type(physics).__name__}")
     model = PGNN(2, 1, 0, structure="inverse", physics=RigidBodyInverse(physics.Ts), use_nn=False)
@@ -225,7 +225,7 @@ def from_measured_physics(physics, theta, ctrl) -> Law:
     :class:`~pipeline.systems.measured.Recording`): u_ff = ``physics.feedforward(theta, r)`` -
     ``ctrl.reference_force(r)``, i.e. w(k) = θ'ᵀ [δ²r(k+1), T_1(r(k), δr(k)), …] with r(-1) = 0, the
     applied input of w (identity or averaged), minus gtau · lfilter(B_r - B_y, A, r) from rest."""
-    if getattr(physics, "physics_law", None) != "rigid_body":
+    if physics.physics_law != "rigid_body":
         raise ExportError(f"the measured-system physics feedforward is exported for RigidBodyPhysics; "
                           f"this system's physics is {type(physics).__name__}")
     theta = physics._check_theta(theta)

@@ -26,8 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from pipeline.identify.sim_error import (DiscreteController, closed_loop_exogenous,  # noqa: E402
-                                         identify_sim_error)
+from pipeline.identify.sim_error import closed_loop_exogenous, identify_sim_error  # noqa: E402
+from pipeline.models.closed_loop import DiscreteController  # noqa: E402
 from pipeline.invert.fhofc import fhofc  # noqa: E402
 from pipeline.models.pgnn import PGNN, LinearFeatures  # noqa: E402
 from pipeline.references import b2_reference, b2_training_reference  # noqa: E402

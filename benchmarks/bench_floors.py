@@ -21,8 +21,9 @@ interleaved in every repeat, so a drift of the machine's speed shows in all of t
   (syrk + criterion jacobian + simulation) / floor, the iteration without LM's own small p×p and
   Jᵀr work (the target of the kernel: ≤ 1.3).
 
-``--impl PATH`` times another copy of ``pipeline/identify/sim_error.py`` (e.g. the committed one:
-``git show HEAD:pipeline/identify/sim_error.py > /tmp/sim_error_head.py``); the data, the model
+``--impl PATH`` times another single-file copy of the closed-loop simulation and criterion (e.g. before
+they were split into ``pipeline/models/closed_loop.py`` and ``pipeline/identify/sim_error.py``:
+``git show ec882d3:pipeline/identify/sim_error.py > /tmp/sim_error_head.py``); the data, the model
 and the warm-up fit always use the installed one.
 
 Usage: ``OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_floors.py [--n1 32] [--repeats 21]
@@ -50,7 +51,14 @@ import torch  # noqa: E402
 from scipy.linalg.blas import dsyrk  # noqa: E402
 
 from bench_b2 import training_data  # noqa: E402
-from pipeline.identify import sim_error  # noqa: E402
+from types import SimpleNamespace  # noqa: E402
+
+from pipeline.identify import sim_error as _criterion  # noqa: E402
+from pipeline.models import closed_loop  # noqa: E402
+
+# the installed code as one namespace: the closed-loop simulation (pipeline/models/closed_loop.py) and the
+# criterion and fit (pipeline/identify/sim_error.py), as a single-file copy given by --impl has them
+sim_error = SimpleNamespace(**{**vars(closed_loop), **vars(_criterion)})
 from pipeline.identify.lm import _gram  # noqa: E402
 from pipeline.models.pgnn import PGNN, LinearFeatures  # noqa: E402
 

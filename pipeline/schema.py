@@ -414,6 +414,7 @@ class Pgnn:
     input_transform: Literal["raw", "delta"] = "raw"
     out_init: Literal["mirrored", "scaled"] = "mirrored"
     out_init_scale: float = spec(1.0, ge=0, le=1e6)
+    mirror_jitter: float = spec(0.0, ge=0, le=10)
     nn_inputs: Literal["all", "outputs"] = "all"
 
 

@@ -7,7 +7,7 @@ import pytest
 import scipy.linalg as sla
 import scipy.optimize as so
 
-from pipeline.identify.sim_error import ArxPGNN, DiscreteController, arx_from_tf, simulate_closed_loop
+from pipeline.models.closed_loop import ArxPGNN, DiscreteController, arx_from_tf, simulate_closed_loop
 from pipeline.invert.fhofc import (difference_matrix, fhofc, fhofc_receding, il_fhofc, linear_ilc)
 from pipeline.invert.ilc import lifted_matrix, process_sensitivity
 from pipeline.metrics_bound import (bound_holds, bound_terms, epsilon, identification_error,
@@ -157,7 +157,7 @@ def test_fhofc_pgnn_speed_and_optimality(nmp):
     res = fhofc(m, ctrl, r, gamma=1e-6)
     assert res.converged and res.time_s < 2.0, (res.message, res.time_s)
     # first-order optimality of the smooth problem: Jᵀ res ≈ 0 relative to its initial size
-    from pipeline.identify.sim_error import jacobian_uff
+    from pipeline.models.closed_loop import jacobian_uff
     y, _, J, _ = jacobian_uff(m, ctrl, r, res.u_ff)
     D = difference_matrix(r.size)
     g = -J.T @ (r - y) + 1e-12 * D.T @ (D @ res.u_ff)

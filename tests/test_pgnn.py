@@ -1,5 +1,7 @@
 """Tests of the PGNN models (pipeline/models/pgnn.py) and the NARX / direct-inverse
 identification (pipeline/identify/narx.py), [B1] (7), (10)-(14), (26), (29)."""
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -362,3 +364,37 @@ def test_mirrored_init_is_exactly_physics_with_live_hidden_units():
     assert torch.linalg.matrix_rank(J[:, 3:]) >= 6  # pairs are separable by LM
     with pytest.raises(ValueError, match="out_init"):
         PGNN(2, 1, physics=RigidBodyForward(TS), out_init="zero")
+
+
+def test_mirror_jitter_moves_twins_off_the_overlap_singularity():
+    """Exact twins (mirror_jitter 0) make each pair's Jacobian columns dependent: the input-weight
+    and bias columns of j and j + h are opposite, the output columns equal, so JᵀJ loses
+    h·(n_in + 2) ranks (Amari's overlap singularity).  A jitter restores full rank, keeps the
+    other draws, and the initial NN output is O(jitter) (it vanishes with the jitter)."""
+    g = torch.Generator().manual_seed(0)
+    phi = torch.randn(200, 3, generator=g, dtype=torch.float64)
+
+    def made(jitter):
+        m = PGNN(2, 1, physics=RigidBodyForward(TS), hidden=(6,), out_init="mirrored", out_init_scale=1.0,
+                 seed=4, mirror_jitter=jitter)
+        m.fit_normalisation(phi)
+        m.set_physics_estimate([0.05, 2.5, 0.5])
+        return m
+
+    exact, small, jit = made(0.0), made(1e-3), made(0.1)
+    # the draws before the jitter are unchanged: first units and the output layer equal
+    assert torch.equal(exact.layers[0].weight[:3], jit.layers[0].weight[:3])
+    assert torch.equal(exact.layers[1].weight, jit.layers[1].weight)
+    d = (jit.layers[0].weight[3:] - jit.layers[0].weight[:3]).detach().abs()
+    assert 0 < float(d.max()) <= 0.1 * math.sqrt(6.0 / 9) + 1e-15      # jitter × Glorot bound
+    n_nn = exact.n_params - 3
+    ranks = [int(torch.linalg.matrix_rank(m.jacobian(m.parameter_vector(), m.prepare(phi))[:, 3:]))
+             for m in (exact, jit)]
+    assert ranks[0] == n_nn - 3 * (3 + 2)      # 3 pairs × (3 inputs + bias + output weight)
+    assert ranks[1] == n_nn
+    with torch.no_grad():                      # the initial NN output scales with the jitter
+        o_small, o_jit = (float(m.nn_part(phi).abs().max()) for m in (small, jit))
+    assert 0 < o_small < o_jit and 50 < o_jit / o_small < 200
+    for bad in (-0.1, float("nan")):
+        with pytest.raises(ValueError, match="mirror_jitter"):
+            made(bad)

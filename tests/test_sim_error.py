@@ -6,10 +6,9 @@ import control
 import pytest
 import torch
 
-from pipeline.identify.sim_error import (ArxPGNN, DiscreteController, LoopState, arx_from_tf,
-                                         closed_loop_exogenous, identify_sim_error, jacobian_theta,
-                                         jacobian_uff, sim_error_criterion, simulate_closed_loop,
-                                         simulate_closed_loop_torch)
+from pipeline.identify.sim_error import closed_loop_exogenous, identify_sim_error, sim_error_criterion
+from pipeline.models.closed_loop import (ArxPGNN, DiscreteController, LoopState, arx_from_tf, jacobian_theta,
+                                         jacobian_uff, simulate_closed_loop, simulate_closed_loop_torch)
 from pipeline.models.pgnn import PGNN, LinearFeatures
 from pipeline.systems.rot_trans_nmp import RotTransNMP
 

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field, replace
 import numba
 import numpy as np
 
-from pipeline.identify.sim_error import nn_export, nn_split
+from pipeline.models.closed_loop import nn_export, nn_split
 from pipeline.systems.controller import LTIController
 from pipeline.systems.force_terms import ForceTerms, term
 

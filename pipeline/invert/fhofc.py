@@ -5,7 +5,7 @@ FHOFC ([B2] (17), squared norms per SPEC §0):
     U_ff = argmin ‖R* - Φ̂(θ̂, x0, R, U_ff)‖² + ‖γ Δ U_ff‖²,   Δ = 1 on the diagonal, -1 below,
     subject to U_ff ∈ [lo, hi] and Û ∈ [lo_u, hi_u] (optional),
 
-where Φ̂ is the closed-loop model simulation (:mod:`pipeline.identify.sim_error`) driven by
+where Φ̂ is the closed-loop model simulation (:mod:`pipeline.models.closed_loop`) driven by
 the reference R, and R* is the target (R itself, or R^(i+1) in IL-FHOFC).  Unconstrained
 problems are solved by Gauss–Newton with Levenberg damping on the exact N_k × N_k Jacobian
 (forward sensitivities, lower triangular); the step is a rank-revealing QR least-squares
@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 import scipy.linalg as sla
 
-from pipeline.identify.sim_error import (ArxPGNN, DiscreteController, LoopState, as_arx, jacobian_uff,
+from pipeline.models.closed_loop import (ArxPGNN, DiscreteController, LoopState, as_arx, jacobian_uff,
                                          simulate_closed_loop)
 
 __all__ = ["FHOFCResult", "ILResult", "difference_matrix", "fhofc", "fhofc_receding", "il_fhofc",

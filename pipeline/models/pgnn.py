@@ -509,6 +509,13 @@ class PGNN(nn.Module):
         is the physics model) while every hidden unit has a full-size gradient; a tiny scaled
         output layer instead leaves the hidden layer's Jacobian columns ~``out_init_scale``
         small, which slows LM markedly.
+    mirror_jitter : float
+        ``'mirrored'`` only: the twin of each pair gets its input weights and bias plus this
+        fraction of a fresh Glorot draw (0: exact twins).  Exact twins start the fit on the
+        overlapping-units singularity (Amari's plateau: JᵀJ singular, the pair's columns
+        opposite); they separate only through rounding, so on a slow fit a last-bit difference
+        (another BLAS) decides whether a pair leaves the plateau.  A jitter separates them by
+        construction; the initial NN output is then O(jitter) instead of 0.
     nn_inputs : {'all', 'outputs'}
         ``'outputs'``: the NN sees the output window only (a position-dependent nonlinearity
         such as cogging; it cannot add an input-to-output response of its own, e.g. one that
@@ -520,7 +527,8 @@ class PGNN(nn.Module):
     def __init__(self, n_a: int, n_b: int, n_k: int = 0, *, structure: str = "forward",
                  physics: PhysicsFeatures | None = None, hidden=(16,), activation: str = "tanh",
                  use_physics: bool = True, use_nn: bool = True, input_transform: str = "delta",
-                 out_init_scale: float = 1e-3, out_init: str = "scaled", nn_inputs: str = "all", seed: int = 0):
+                 out_init_scale: float = 1e-3, out_init: str = "scaled", nn_inputs: str = "all", seed: int = 0,
+                 mirror_jitter: float = 0.0):
         super().__init__()
         if nn_inputs not in ("all", "outputs"):
             raise ValueError(f"nn_inputs must be 'all' or 'outputs', got {nn_inputs!r}")
@@ -549,6 +557,9 @@ class PGNN(nn.Module):
         self.input_transform = input_transform
         self.out_init_scale = float(out_init_scale)
         self.out_init = out_init
+        if not (math.isfinite(mirror_jitter) and mirror_jitter >= 0):
+            raise ValueError(f"mirror_jitter must be finite and >= 0, got {mirror_jitter}")
+        self.mirror_jitter = float(mirror_jitter)
         self.physics = physics if use_physics else None
         n_phi = self.n_phi
 
@@ -644,6 +655,12 @@ class PGNN(nn.Module):
                 last.bias[h:2 * h] = last.bias[:h]
                 out.weight[0, h:2 * h] = -out.weight[0, :h]
                 out.weight[0, 2 * h:] = 0.0  # an odd unit out: no output at initialisation
+                if self.mirror_jitter > 0:      # twins apart by construction, not by rounding
+                    fan_out, fan_in = last.weight.shape
+                    a = math.sqrt(6.0 / (fan_in + fan_out))
+                    dw = (2.0 * torch.rand((h, fan_in + 1), generator=g, dtype=torch.float64) - 1.0) * a
+                    last.weight[h:2 * h] += self.mirror_jitter * dw[:, :fan_in]
+                    last.bias[h:2 * h] += self.mirror_jitter * dw[:, fan_in]
             if self.use_physics and bool(torch.all(torch.isfinite(self.theta_phy_star))):
                 self.theta_phy.copy_(self.theta_phy_star)
 

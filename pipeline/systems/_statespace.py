@@ -2,7 +2,7 @@
 
 Shared by the plant simulators' feedback controllers (:mod:`pipeline.systems.linear_motor`,
 :mod:`pipeline.systems.rot_trans_nmp`), the closed-loop PGNN simulation and its forward
-sensitivities (:mod:`pipeline.identify.sim_error`) and the ILC filters
+sensitivities (:mod:`pipeline.models.closed_loop`) and the ILC filters
 (:mod:`pipeline.invert.ilc`).
 
 Both functions are inlined into their callers (``inline="always"``): a plain njit call costs

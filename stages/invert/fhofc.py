@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.identify.sim_error import DiscreteController
+from pipeline.models.closed_loop import DiscreteController
 from pipeline.invert.fhofc import fhofc, fhofc_receding
 from pipeline.metrics_bound import bound_terms
 from pipeline.errors import ConfigError

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.identify.sim_error import DiscreteController
+from pipeline.models.closed_loop import DiscreteController
 from pipeline.invert.fhofc import il_fhofc
 from pipeline.errors import ConfigError
 from stages.invert.fhofc import check as check_fhofc

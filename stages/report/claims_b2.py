@@ -67,7 +67,7 @@ def lemma_checks() -> dict[str, float]:
     minimum-phase loop (the ARX of SPEC §2.4 with a lead controller)."""
     import control
 
-    from pipeline.identify.sim_error import ArxPGNN, DiscreteController, arx_from_tf, simulate_closed_loop
+    from pipeline.models.closed_loop import ArxPGNN, DiscreteController, arx_from_tf, simulate_closed_loop
     from pipeline.invert.fhofc import lemma_5_1_gap, lemma_5_2_gap
     from pipeline.systems.rot_trans_nmp import RotTransNMP
 

@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.identify.sim_error import DiscreteController, closed_loop_exogenous, identify_sim_error
+from pipeline.models.closed_loop import DiscreteController
+from pipeline.identify.sim_error import closed_loop_exogenous, identify_sim_error
 from pipeline.models.pgnn import PGNN, LinearFeatures
 from pipeline.errors import ConfigError
 from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
@@ -70,7 +71,8 @@ def build_model(cfg, system) -> PGNN:
                 physics=LinearFeatures(int(m.n_a) + int(m.n_b), system.physics.param_names),
                 hidden=hidden, activation="tanh", use_nn=bool(hidden) and bool(m.use_nn),
                 input_transform=str(m.input_transform), out_init_scale=float(m.out_init_scale),
-                out_init=str(m.out_init), nn_inputs=str(m.nn_inputs), seed=int(cfg.seed))
+                out_init=str(m.out_init), nn_inputs=str(m.nn_inputs), seed=int(cfg.seed),
+                mirror_jitter=float(m.mirror_jitter))
 
 
 def fit(ctx) -> dict:

@@ -26,7 +26,9 @@ from pipeline.identify.narx import identify_pgnn
 from pipeline.invert.analytic import analytic_feedforward, analytic_step
 from pipeline.invert.direct import direct_feedforward, direct_step, per_sample_seconds
 from pipeline.invert.newton import newton_feedforward, newton_step
-from pipeline.models.pgnn import PGNN, RigidBodyForward, RigidBodyInverse, fast_pgnn
+from pipeline.models.fast_pgnn import fast_pgnn
+from pipeline.models.pgnn import PGNN
+from pipeline.models.physics_maps import RigidBodyForward, RigidBodyInverse
 from pipeline.references import b1_evaluation_reference, b1_training_reference
 from pipeline.systems.linear_motor import LinearMotor
 

@@ -29,7 +29,8 @@ import torch  # noqa: E402
 from pipeline.identify.sim_error import closed_loop_exogenous, identify_sim_error  # noqa: E402
 from pipeline.models.closed_loop import DiscreteController  # noqa: E402
 from pipeline.invert.fhofc import fhofc  # noqa: E402
-from pipeline.models.pgnn import PGNN, LinearFeatures  # noqa: E402
+from pipeline.models.pgnn import PGNN  # noqa: E402
+from pipeline.models.physics_maps import LinearFeatures  # noqa: E402
 from pipeline.references import b2_reference, b2_training_reference  # noqa: E402
 from pipeline.systems.rot_trans_nmp import RotTransNMP  # noqa: E402
 

@@ -26,7 +26,9 @@ from pipeline.invert.analytic import analytic_feedforward, analytic_step
 from pipeline.invert.direct import direct_feedforward, direct_step, per_sample_seconds
 from pipeline.invert.newton import newton_feedforward, newton_step
 from pipeline.invert.rational_filter import rational_feedforward
-from pipeline.models.pgnn import PGNN, RigidBodyForward, RigidBodyInverse, fast_pgnn
+from pipeline.models.fast_pgnn import fast_pgnn
+from pipeline.models.pgnn import PGNN
+from pipeline.models.physics_maps import RigidBodyForward, RigidBodyInverse
 from pipeline.models.rational import RationalFeedforward
 from pipeline.models.shared_ar import ReferenceWindow, SharedARPGNN, make_approximator
 from pipeline.references import b1_evaluation_reference

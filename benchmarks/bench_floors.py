@@ -60,7 +60,8 @@ from pipeline.models import closed_loop  # noqa: E402
 # criterion and fit (pipeline/identify/sim_error.py), as a single-file copy given by --impl has them
 sim_error = SimpleNamespace(**{**vars(closed_loop), **vars(_criterion)})
 from pipeline.identify.lm import _gram  # noqa: E402
-from pipeline.models.pgnn import PGNN, LinearFeatures  # noqa: E402
+from pipeline.models.pgnn import PGNN  # noqa: E402
+from pipeline.models.physics_maps import LinearFeatures  # noqa: E402
 
 
 def cpu_ms(fn) -> float:

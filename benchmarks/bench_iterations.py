@@ -62,7 +62,8 @@ import yaml  # noqa: E402
 from scipy.linalg.blas import dsyrk  # noqa: E402
 
 from pipeline.identify import narx, sk  # noqa: E402
-from pipeline.models.pgnn import PGNN, RigidBodyForward  # noqa: E402
+from pipeline.models.pgnn import PGNN  # noqa: E402
+from pipeline.models.physics_maps import RigidBodyForward  # noqa: E402
 from pipeline.models.rational import filter_segments  # noqa: E402
 from pipeline.models.shared_ar import _lfilter_coefficients, _lfilter_step  # noqa: E402
 

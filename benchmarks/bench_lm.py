@@ -25,7 +25,8 @@ import numpy as np
 import torch
 
 from pipeline.identify.narx import identify_pgnn
-from pipeline.models.pgnn import PGNN, RigidBodyForward
+from pipeline.models.pgnn import PGNN
+from pipeline.models.physics_maps import RigidBodyForward
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from bench_b1 import motor_data  # noqa: E402

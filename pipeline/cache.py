@@ -79,6 +79,10 @@ class UntrustedCache(Exception):
     """A cache entry not signed with this machine's cache key (written elsewhere, or altered)."""
 
 
+class StaleCache(Exception):
+    """A signed cache entry whose pickle names a class the code no longer has there (moved)."""
+
+
 class BadKey(ValueError):
     """The signing key file cannot be used (the runner reports it as bad input, before any work)."""
 
@@ -193,7 +197,11 @@ def _read_signed(entry: Path) -> tuple[Any, dict | None]:
                                                    _signature(*_blobs(entry, entry, payload, rec))):
         raise UntrustedCache(f"{entry} is not signed with this machine's cache key ({cache_key_file()}), "
                              "or a file in it was altered, added or removed, or it was moved from another key")
-    return pickle.loads(payload), (json.loads(rec) if rec is not None else None)
+    try:
+        result = pickle.loads(payload)
+    except (AttributeError, ImportError) as exc:   # written by an older layout of the code (a class moved)
+        raise StaleCache(f"{entry} holds a class this code no longer has where it was ({exc})") from None
+    return result, (json.loads(rec) if rec is not None else None)
 
 
 def _load_trusted(entry: Path) -> tuple[Any, dict | None] | None:
@@ -206,7 +214,7 @@ def _load_trusted(entry: Path) -> tuple[Any, dict | None] | None:
         if entry.is_symlink() or not entry.is_dir():
             raise UntrustedCache(f"{entry} is not a folder")
         return _read_signed(entry)
-    except (UntrustedCache, FileNotFoundError, NotADirectoryError, IsADirectoryError) as why:
+    except (UntrustedCache, StaleCache, FileNotFoundError, NotADirectoryError, IsADirectoryError) as why:
         aside = entry.with_name(f".untrusted-{entry.name}-{time.time_ns()}")
         os.rename(entry, aside)
         print(f"warning: {why}; not loaded (moved to {aside.name}), recomputing", file=sys.stderr, flush=True)

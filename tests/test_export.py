@@ -27,7 +27,8 @@ from pipeline.invert.analytic import analytic_feedforward, physics_feedforward
 from pipeline.invert.direct import direct_feedforward
 from pipeline.invert.newton import newton_feedforward
 from pipeline.invert.rational_filter import rational_feedforward
-from pipeline.models.pgnn import PGNN, LinearFeatures, RigidBodyForward, RigidBodyInverse
+from pipeline.models.pgnn import PGNN
+from pipeline.models.physics_maps import LinearFeatures, RigidBodyForward, RigidBodyInverse
 from pipeline.models.rational import RationalFeedforward
 from pipeline.models.shared_ar import ReferenceWindow, SharedARPGNN, make_approximator
 

@@ -7,7 +7,9 @@ import torch
 from pipeline.invert.analytic import analytic_feedforward, physics_feedforward
 from pipeline.invert.direct import direct_feedforward
 from pipeline.invert.newton import BOUNDS, DIVERGED, newton_feedforward, newton_solve
-from pipeline.models.pgnn import PGNN, LinearFeatures, RigidBodyForward, RigidBodyInverse, fast_pgnn
+from pipeline.models.fast_pgnn import fast_pgnn
+from pipeline.models.pgnn import PGNN
+from pipeline.models.physics_maps import LinearFeatures, RigidBodyForward, RigidBodyInverse
 
 TS = 1e-3
 THETA_ARX = [1.5, -0.7, 1.0, 0.5]  # SPEC §2.4: stable, minimum phase (zero at -0.5)
@@ -199,7 +201,7 @@ def test_averaged_input_feedforward_is_bounded_without_nyquist_oscillation():
     # u(t-1)) oscillates at the Nyquist frequency
     from pipeline.identify.narx import identify_pgnn
     from pipeline.invert.direct import nyquist_fraction
-    from pipeline.models.pgnn import PhysicsModelFeatures, physics_features_for
+    from pipeline.models.physics_maps import PhysicsModelFeatures, physics_features_for
     from pipeline.references import b1_evaluation_reference, b1_training_reference
     from pipeline.systems.linear_motor import LinearMotor
     plant = LinearMotor(noise={"structure": "output", "std": 1e-7}, cogging=False)

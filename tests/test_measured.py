@@ -129,7 +129,8 @@ def test_sim_error_fit_recovers_the_loop_it_recorded():
     """Record τ from the physics loop with known θ, start from a 10 %-off θ*, no regulariser:
     the closed-loop simulation-error LM returns θ to 1e-6 relative."""
     import torch
-    from pipeline.models.pgnn import PGNN, physics_features_for
+    from pipeline.models.pgnn import PGNN
+    from pipeline.models.physics_maps import physics_features_for
     s, sig = _toy_loop(3000)
     true = s.published_theta()
     _, tau, _ = simulate_loop(LoopModel.physics_only(s.physics, true), s.ctrl, sig)

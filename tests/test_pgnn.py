@@ -8,7 +8,8 @@ import torch
 
 from pipeline.identify.narx import (criterion, forward_regressor, identify_pgnn,
                                     inverse_regressor, physics_least_squares, regularizer_sqrt)
-from pipeline.models.pgnn import PGNN, LinearFeatures, RigidBodyForward, RigidBodyInverse
+from pipeline.models.pgnn import PGNN
+from pipeline.models.physics_maps import LinearFeatures, RigidBodyForward, RigidBodyInverse
 
 TS = 1e-3
 
@@ -300,7 +301,7 @@ def test_best_of_restarts_validation_block_and_determinism():
 
 
 def test_builtin_physics_maps_equal_the_plants_physics_models():
-    from pipeline.models.pgnn import PhysicsModelFeatures, physics_features_for
+    from pipeline.models.physics_maps import PhysicsModelFeatures, physics_features_for
     from pipeline.systems.arx_bias import ARXPhysics
     from pipeline.systems.linear_motor import LinearMotorPhysics
     g = torch.Generator().manual_seed(0)

@@ -118,7 +118,8 @@ def test_sim_error_fit_over_several_records_recovers_the_loop():
     simulation-error LM from a 10 %-off start returns the θ that made both to 1e-6 relative."""
     import torch
     from pipeline.identify.measured_loop import identify_loop_sim_error
-    from pipeline.models.pgnn import PGNN, physics_features_for
+    from pipeline.models.pgnn import PGNN
+    from pipeline.models.physics_maps import physics_features_for
     phys, th, ctrl, model, r, y, tau, t = _moving_record(1500, k_cut=700)
     _, _, _, _, r2, y2, tau2, t2 = _moving_record(1200, k_cut=1500)
     sigs = [LoopSignals.recorded(a, np.zeros_like(a), b, c, tt, 20)

@@ -9,7 +9,8 @@ import torch
 from pipeline.identify.sim_error import closed_loop_exogenous, identify_sim_error, sim_error_criterion
 from pipeline.models.closed_loop import (ArxPGNN, DiscreteController, LoopState, arx_from_tf, jacobian_theta,
                                          jacobian_uff, simulate_closed_loop, simulate_closed_loop_torch)
-from pipeline.models.pgnn import PGNN, LinearFeatures
+from pipeline.models.pgnn import PGNN
+from pipeline.models.physics_maps import LinearFeatures
 from pipeline.systems.rot_trans_nmp import RotTransNMP
 
 

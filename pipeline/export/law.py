@@ -174,7 +174,7 @@ def from_pgnn(model, law: str, Ts: float, *, averaged: bool = False, k: int = 5,
               u_bounds=(-math.inf, math.inf), theta_start=None) -> Law:
     """The [B1] inversion ``law`` (direct | analytic | newton | physics) of a PGNN, from the
     flat arrays of :func:`~pipeline.models.pgnn.fast_pgnn` (the numba kernels' own data)."""
-    from pipeline.models.pgnn import fast_pgnn
+    from pipeline.models.fast_pgnn import fast_pgnn
     if law not in ("direct", "analytic", "newton", "physics"):
         raise ExportError(f"a PGNN is exported by law direct | analytic | newton | physics, not {law!r}")
     fm = fast_pgnn(model, theta_start=theta_start)
@@ -211,7 +211,8 @@ def from_linear_motor_physics(physics, theta) -> Law:
     """The physics feedforward (8) of the linear motor, w(k) = m δ²r(k+1) + f_v δr(k) +
     f_c sign δr(k) with r(-1) = 0 (``LinearMotorPhysics.feedforward``), as the physics part of
     an inverse PGNN (the same numba kernel)."""
-    from pipeline.models.pgnn import PGNN, RigidBodyInverse
+    from pipeline.models.pgnn import PGNN
+    from pipeline.models.physics_maps import RigidBodyInverse
     if physics.physics_law != "linear_motor":
         raise ExportError(f"the exporter ships the physics feedforward (8) of the linear motor "
                           f"(LinearMotorPhysics); this system's physics is {type(physics).__name__}")
@@ -338,7 +339,7 @@ def _pgnn_run(law: Law, r: np.ndarray) -> np.ndarray:
     from pipeline.invert.analytic import _run
     from pipeline.invert.direct import _direct_run, initial_state
     from pipeline.invert.newton import _newton_run
-    from pipeline.models.pgnn import FastPGNN
+    from pipeline.models.fast_pgnn import FastPGNN
     m = law.ints
     blob = law.arrays["blob"]
     meta = np.array([m[k] for k in _META], dtype=np.int64)

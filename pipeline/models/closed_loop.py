@@ -121,7 +121,7 @@ class ArxPGNN:
     def from_pgnn(cls, model, y_range: tuple[float, float] | None = None) -> "ArxPGNN":
         """Export a forward ``pipeline.models.pgnn.PGNN`` with ``LinearFeatures`` physics and
         zero or one tanh hidden layer (the PGNN (30) of [B2])."""
-        from pipeline.models.pgnn import LinearFeatures
+        from pipeline.models.physics_maps import LinearFeatures
         if model.structure not in ("forward", "invertible"):
             raise ValueError(f"closed-loop simulation needs a forward PGNN, got structure={model.structure!r}")
         if not (model.use_physics and isinstance(model.physics, LinearFeatures)

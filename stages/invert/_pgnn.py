@@ -6,7 +6,7 @@ import torch
 
 from pipeline.identify.narx import build_regression
 from pipeline.invert.direct import nyquist_fraction, per_sample_seconds
-from pipeline.models.pgnn import fast_pgnn
+from pipeline.models.fast_pgnn import fast_pgnn
 from pipeline.errors import ConfigError
 
 

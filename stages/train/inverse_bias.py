@@ -18,7 +18,8 @@ from omegaconf import OmegaConf
 
 from pipeline.identify.narx import (arx_inverse_asymptotics, forward_regressor,
                                     inverse_regressor, physics_least_squares)
-from pipeline.models.pgnn import PGNN, LinearFeatures
+from pipeline.models.pgnn import PGNN
+from pipeline.models.physics_maps import LinearFeatures
 from pipeline.errors import ConfigError
 
 

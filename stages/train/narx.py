@@ -22,7 +22,8 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from pipeline.identify.narx import identify_pgnn
-from pipeline.models.pgnn import PGNN, physics_features_for
+from pipeline.models.pgnn import PGNN
+from pipeline.models.physics_maps import physics_features_for
 from pipeline.errors import ConfigError
 from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
 

@@ -24,7 +24,8 @@ import numpy as np
 
 from pipeline.models.closed_loop import DiscreteController
 from pipeline.identify.sim_error import closed_loop_exogenous, identify_sim_error
-from pipeline.models.pgnn import PGNN, LinearFeatures
+from pipeline.models.pgnn import PGNN
+from pipeline.models.physics_maps import LinearFeatures
 from pipeline.errors import ConfigError
 from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
 from pipeline.systems.arx_bias import ARXPhysics

@@ -580,8 +580,10 @@ static void law_init(${name}_state *s, double r0)
 {
     int i;
     for (i = 0; i < ${NAME}_NX; ++i) s->x[i] = 0.0;
-    for (i = 0; i <= DA; ++i) s->x[XA + i] = (i == 0 || !A_DELTA) ? r0 : 0.0;
-    for (i = 0; i <= DW; ++i) s->x[XW + i] = (i == 0 || !W_DELTA) ? r0 : 0.0;
+    s->x[XA] = r0;                                 /* ψ_0 = r; δ^i r = 0 or r(k-i) = r0 at rest */
+    for (i = 1; i <= DA; ++i) s->x[XA + i] = A_DELTA ? 0.0 : r0;
+    s->x[XW] = r0;
+    for (i = 1; i <= DW; ++i) s->x[XW + i] = W_DELTA ? 0.0 : r0;
 ${reset}}
 
 static double law_step(${name}_state *s, const double *r_preview)

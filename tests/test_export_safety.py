@@ -321,3 +321,40 @@ def test_cppcheck_clean_and_every_misra_finding_has_a_reason(kind, tmp_path):
     for rule, n in c["misra"].items():
         assert f"| {rule} | {n} |" in readme
     print(kind, c["misra_total"], json.dumps(c["misra"]))
+
+
+@pytest.mark.slow   # one short linear-motor job with the export stage: ~20 s
+@needs_cc
+@pytest.mark.filterwarnings("ignore:the physics model of 'linear_motor' does not fit")
+def test_stage_builds_the_guard_from_config(store, cfg_of, tmp_path):
+    """export.limits / target_rate / prefix / precision through the stage: the envelope from the
+    identification data's y, the physics fallback's [m, f_v, f_c] from the baseline θ (8), the ZOH
+    effect and the float law's deviation in the manifest; the MLflow model returns the flags."""
+    import mlflow
+    import pandas as pd
+
+    from pipeline import runner, tracking
+    from tests.test_export import SHORT_B1
+    cfg = cfg_of(*SHORT_B1, "invert=physics", "stages=[generate,baseline,train,invert,export]",
+                 "export.limits.u_min=-150", "export.limits.u_max=150", "export.limits.rate=1e5",
+                 "export.limits.fallback=physics", "export.target_rate=4000", "export.prefix=axis1",
+                 "export.precision=single", "export.single_rtol=1")
+    res = runner.run_job(cfg)
+    man = res["export"]["packages"]["ff_physics"]
+    assert man["prefix"] == "axis1" and man["precision"] == "single" and man["zoh"]["factor"] == 4
+    assert man["limits"] == {"u_min": -150.0, "u_max": 150.0, "rate": 1e5}
+    ds = res["generate"]["dataset"]
+    y = ds["y"]
+    lo, hi = man["envelope"]["lo"], man["envelope"]["hi"]
+    assert lo[0] < float(np.min(y)) and hi[0] > float(np.max(y)) and all(map(math.isfinite, lo + hi))
+    theta = res["baseline"]["theta"]
+    np.testing.assert_allclose(man["fallback"]["physics"], np.array([1.0, theta[1], theta[2]]) / theta[0], rtol=1e-12)
+    # float positions in metres: δ²r loses ~3 digits and sign(δr) flips near rest (f_c / max|u| ~ 0.1)
+    assert 1e-4 < man["single_max_rel_diff"] <= 1
+    assert all(v["c_check"] == "pass" for v in man["vectors"].values())
+    run_id = tracking.search_runs("b1_linear_motor").iloc[0]["run_id"]
+    model = mlflow.pyfunc.load_model(f"runs:/{run_id}/ff_physics")
+    r = np.array(res["invert"]["r"]["v0.15"])
+    r[100:110] = np.nan
+    out = model.predict(pd.DataFrame({"r": r}))
+    assert np.all(np.isfinite(out["u_ff"])) and np.all(out["flags"].to_numpy()[100:110] & FLAG["NONFINITE_INPUT"])

@@ -73,7 +73,7 @@ def validate(cfg, system) -> None:
     if lo is not None and hi is not None and not lo < hi:
         raise ConfigError(f"export.limits.u_min={lo} is not below export.limits.u_max={hi}: give u_min < u_max "
                           "(e.g. export.limits.u_min=-200 export.limits.u_max=200)")
-    if lim.get("fallback") == "physics" and physics_coefficients(system, None) is None:
+    if lim.get("fallback") == "physics" and system is not None and physics_coefficients(system, None) is None:
         raise ConfigError(f"export.limits.fallback=physics needs a rigid-body physics law (linear motor or a measured "
                           f"axis); system '{getattr(system, 'name', '?')}' has none: use export.limits.fallback=hold "
                           "or ramp")

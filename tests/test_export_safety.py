@@ -46,6 +46,12 @@ def _law(kind: str) -> Law:
         return from_pgnn(_pgnn("inverse", RigidBodyInverse(Ts), theta=(5.0, 10.0, 2.0)), "direct", Ts)
     if kind == "analytic":
         return from_pgnn(_pgnn("invertible", RigidBodyForward(Ts, 2)), "analytic", Ts)
+    if kind == "shared_ar":
+        from pipeline.models.shared_ar import ReferenceWindow, SharedARPGNN, make_approximator
+        g = make_approximator("mlp", 3, seed=0, hidden=(6,), activation="tanh")
+        r = _reference(600)
+        return from_k_filter(SharedARPGNN(4, 2, g, ReferenceWindow(2, "delta", Ts).fit(r), basis="delta", Ts=Ts,
+                                          a=[0.0, 0.0, 20.0, 0.0], b=[2e-3, 1e-6]))
     if kind == "rational":
         return from_k_filter(RationalFeedforward(4, 2, basis="delta", Ts=Ts, a=[0.0, 0.0, 20.0, 0.0], b=[2e-3, 1e-6]))
     if kind == "table":
@@ -60,7 +66,7 @@ def _law(kind: str) -> Law:
 
 
 FAST = ["physics", "newton", "rational", "table"]
-SLOW = ["direct", "analytic", "measured"]
+SLOW = ["direct", "analytic", "shared_ar", "measured"]
 LAWS = FAST + [pytest.param(k, marks=pytest.mark.slow) for k in SLOW]
 
 
@@ -100,6 +106,14 @@ def test_every_flag_path_in_c_equals_python_and_never_steps_to_zero(kind, fallba
     man = write_package(law, "ff_x", tmp_path, {"ref": (r, u_study)}, source={}, timing_repeats=0)
     assert man["compiled"] and man["references"]["ref"]["c_flags_agree"]
     assert all(v["c_check"] == "pass" for v in man["vectors"].values())
+    if kind == "physics":                             # --check fails (exit 1) on a vector the C does not meet
+        exe = compile_harness(tmp_path / "ff_x", "ff_x", CC)
+        vec = (tmp_path / "ff_x" / "vectors_normal.csv").read_text().splitlines()
+        r_, u_, f_ = vec[50].split(",")
+        for bad_line in (f"{r_},{float(u_) * (1 + 1e-6)!r},{f_}", f"{r_},{u_},{int(f_) ^ FLAG['SATURATED']}"):
+            (tmp_path / "bad.csv").write_text("\n".join(vec[:50] + [bad_line] + vec[51:]) + "\n")
+            out = subprocess.run([str(exe), "--check", str(tmp_path / "bad.csv")], capture_output=True, text=True)
+            assert out.returncode == 1 and "sample 49" in out.stderr, out.stderr
     k = int(np.argmax(np.abs(np.diff(r))))            # the fastest sample: in motion
     bad = r.copy()
     bad[k:k + 10] = np.nan

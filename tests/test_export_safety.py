@@ -280,8 +280,8 @@ def _san_run(exe: Path, *args):
 
 @needs_san
 @pytest.mark.parametrize("kind", ["physics", *[pytest.param(k, marks=pytest.mark.slow)
-                                              for k in ("newton", "direct", "analytic", "rational", "table",
-                                                        "measured")]])
+                                              for k in ("newton", "direct", "analytic", "rational", "shared_ar",
+                                                        "table", "measured")]])
 def test_packages_pass_asan_ubsan_on_vectors_nan_empty_and_a_million_rows(kind, tmp_path):
     law = _law(kind)
     r = law.arrays["r"] if kind == "table" else _reference(600)
@@ -322,7 +322,8 @@ def test_a_million_rows_under_asan_ubsan(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("cppcheck") is None, reason="cppcheck is not installed (apt-get install cppcheck)")
-@pytest.mark.parametrize("kind", ["physics", "newton", "direct", "analytic", "rational", "table", "measured"])
+@pytest.mark.parametrize("kind", ["physics", "newton", "direct", "analytic", "rational", "shared_ar", "table",
+                                  "measured"])
 def test_cppcheck_clean_and_every_misra_finding_has_a_reason(kind, tmp_path):
     law = _law(kind)
     r = law.arrays["r"] if kind == "table" else _reference(300)

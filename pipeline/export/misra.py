@@ -118,10 +118,13 @@ def readme(law, name: str, man: dict) -> str:
               f"output ramped to 0 over {man['fallback']['ramp_time']:g} s; physics = M d2r + F_v dr + F_c sign dr "
               "(holds on a NaN reference). Never a step to 0 N.", "",
               "## Flags (`s.status`)", "", "| flag | bit | meaning |", "| --- | --- | --- |"]
-    lines += [f"| `{P}_{n}` | {b} | {d} |" for n, b, d in FLAGS]
+    lines += [f"| `{P}_{n}` | {b} | {d.replace('|', chr(92) + '|')} |" for n, b, d in FLAGS]
     lines += ["", "## Test vectors", "",
               f"`vectors_<case>.csv` (r, u_ff, flags; from the Python law, the MLflow model's code). Check: "
               f"`./main_{name} --check vectors_normal.csv` (exit 0: u_ff and flags agree).", "",
+              "Cases: `normal` (the first evaluation reference, at most 4000 samples), `out_of_range` (3 x its "
+              "motion), `nonfinite` (a NaN burst and an inf where it moves fastest), `limits` (2 x its motion: "
+              "SATURATED / RATE_LIMITED where export.limits sets limits), `past_end` (tables).", "",
               "| case | samples | flags raised (samples) |", "| --- | --- | --- |"]
     lines += [f"| {c} | {v['samples']} | {', '.join(f'{k}: {n}' for k, n in v['flags'].items()) or 'none'} |"
               for c, v in man["vectors"].items()]

@@ -116,17 +116,17 @@ def guard_of(ctx) -> dict:
     from dataclasses import asdict
 
     from pipeline.export.guard import Guard, envelope_of
-    lim = ctx.cfg.export.get("limits") or {}
-    get = lambda k, d: d if lim.get(k) is None else float(lim.get(k))   # noqa: E731
+    lim = ctx.cfg.export.limits          # every key set by pipeline.schema (null: no limit)
+    bound = lambda k, none: none if lim.get(k) is None else float(lim.get(k))   # noqa: E731
     ds = ctx.inputs["generate"]["dataset"]
     lo, hi = envelope_of((seg["y"].to_numpy(dtype=float) for seg in ds.segments()), float(ctx.system.Ts),
-                         get("envelope_margin", 0.1))
+                         float(lim.envelope_margin))
     phys = [0.0, 0.0, 0.0]
-    if lim.get("fallback") == "physics":
+    if lim.fallback == "physics":
         phys = physics_coefficients(ctx.system, ctx.inputs["baseline"]["theta"])
-    return asdict(Guard(u_min=get("u_min", -math.inf), u_max=get("u_max", math.inf), rate=get("rate", math.inf),
-                        env_lo=lo, env_hi=hi, envelope_action=str(lim.get("envelope_action", "flag")),
-                        fallback=str(lim.get("fallback", "hold")), ramp_time=get("ramp_time", 0.1), physics=phys))
+    return asdict(Guard(u_min=bound("u_min", -math.inf), u_max=bound("u_max", math.inf),
+                        rate=bound("rate", math.inf), env_lo=lo, env_hi=hi, envelope_action=str(lim.envelope_action),
+                        fallback=str(lim.fallback), ramp_time=float(lim.ramp_time), physics=phys))
 
 
 def build_laws(ctx) -> dict[str, tuple["laws.Law", list[str]]]:
@@ -189,8 +189,8 @@ def run(ctx) -> dict:
             prefix = c_name(f"{prefix}_{name.removeprefix(f'ff_{ctx.cfg.invert.kind}_')}")
         man = write_package(law, name, out, refs, source=source, cc=cc, rtol=float(e.rtol),
                             timing_repeats=int(e.timing_repeats), prefix=prefix,
-                            precision=str(e.get("precision", "double")), single_rtol=float(e.get("single_rtol", 0.1)),
-                            zoh_n=zoh_n, cppcheck=bool(e.get("cppcheck", True)) and find_cppcheck() is not None)
+                            precision=str(e.precision), single_rtol=float(e.single_rtol),
+                            zoh_n=zoh_n, cppcheck=bool(e.cppcheck) and find_cppcheck() is not None)
         manifests[name] = man
         ctx.artifacts += sorted(str(p.relative_to(out)) for p in (out / name).rglob("*") if p.is_file())
         ctx.models.append({"name": name, "law": f"artifacts/{name}/law",

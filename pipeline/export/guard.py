@@ -35,6 +35,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pipeline.errors import ExportError
+
 __all__ = ["FLAGS", "FLAG", "FALLBACKS", "Guard", "envelope_of", "run_guard", "regressors"]
 
 #: (name, bit, meaning) of every status flag of an exported law
@@ -75,7 +77,6 @@ class Guard:
     physics: list = field(default_factory=lambda: [0.0, 0.0, 0.0])   # [M, F_v, F_c] of the physics fallback
 
     def __post_init__(self):
-        from pipeline.export.law import ExportError
         for k in ("u_min", "u_max", "rate", "ramp_time"):
             setattr(self, k, float(getattr(self, k)))
         self.env_lo = [float(v) for v in self.env_lo]

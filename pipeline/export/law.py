@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.errors import ExportError
 from pipeline.export.guard import FLAG, Guard, run_guard
 
 __all__ = ["Law", "ExportError", "LAWS", "guarded", "from_pgnn", "from_linear_motor_physics", "from_measured_physics",
@@ -47,11 +48,6 @@ _FAMILY = {"physics": "pgnn", "direct": "pgnn", "analytic": "pgnn", "newton": "p
            "rational_filter": "k_filter", "fhofc": "table", "il_fhofc": "table"}
 # numba kernel layout of fast_pgnn's meta (pipeline.models.pgnn.FastPGNN)
 _META = ("kind", "p", "H", "n_phi", "u_index", "use_phys", "use_nn", "n_a", "n_b", "n_k", "n_cfg")
-
-
-class ExportError(ValueError):
-    """A feedforward the exporter cannot ship (unsupported law or model shape, no compiler, a
-    package that does not reproduce the study)."""
 
 
 @dataclass

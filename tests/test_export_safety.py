@@ -373,3 +373,22 @@ def test_stage_builds_the_guard_from_config(store, cfg_of, tmp_path):
     r[100:110] = np.nan
     out = model.predict(pd.DataFrame({"r": r}))
     assert np.all(np.isfinite(out["u_ff"])) and np.all(out["flags"].to_numpy()[100:110] & FLAG["NONFINITE_INPUT"])
+
+
+@needs_cc
+def test_an_overflowing_reference_falls_back_in_c_and_python(tmp_path):
+    """A finite but absurd reference (1e306 m) overflows the law's arithmetic: SINGULAR and the
+    fallback (hold) in C and in Python, never a jump to 0 N."""
+    law = _law("direct")
+    r = _reference(300)
+    write_package(law, "ff_x", tmp_path, {"ref": (r, feedforward(law, r))}, source={}, timing_repeats=0)
+    rc = r.copy()
+    rc[150] = 1e306                                   # d2r = 1e312 m/s2: inf
+    u_py, f_py = guarded(law, rc)
+    u_c, f_c = _c_run(law, "ff_x", tmp_path, rc)
+    np.testing.assert_array_equal(f_c, f_py)
+    np.testing.assert_allclose(u_c, u_py, rtol=0, atol=TOL * np.max(np.abs(u_py)))
+    bad = np.flatnonzero(f_py & FLAG["FALLBACK"])
+    assert bad.size and np.all(f_py[bad] & FLAG["SINGULAR"])
+    hold = u_py[bad[0] - 1]
+    assert hold != 0.0 and np.all(u_py[bad] == hold) and np.all(np.isfinite(u_c))

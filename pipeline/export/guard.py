@@ -42,8 +42,8 @@ __all__ = ["FLAGS", "FLAG", "FALLBACKS", "Guard", "envelope_of", "run_guard", "r
 #: (name, bit, meaning) of every status flag of an exported law
 FLAGS = (
     ("BOUNDS", 1, "Newton: the start or an update left [u_min, u_max] of invert (the best iterate is returned)"),
-    ("SINGULAR", 2, "the law's gain or prediction was zero/non-finite (PGNN: u = 0 or the best iterate; "
-                    "other laws: a non-finite output, replaced by the fallback)"),
+    ("SINGULAR", 2, "Newton: a zero/non-finite derivative or prediction (the best iterate is returned); any "
+                    "law: a non-finite output (an overflow), replaced by the fallback until init"),
     ("DIVERGED", 4, "Newton: the last |V_R| exceeds the first"),
     ("OTHER_REFERENCE", 8, "table: r(t) differs from the reference the table was made for"),
     ("PAST_END", 16, "table: past the end of the table, its last value is held"),
@@ -139,7 +139,8 @@ def regressors(r_c: np.ndarray, r0: float, preview: int, Ts: float) -> np.ndarra
     ext = np.concatenate([[r0, r0], r_c, np.full(preview, r_c[-1])])
     N, P = r_c.size, preview
     x0, x1, x2 = ext[P + 2:P + 2 + N], ext[P + 1:P + 1 + N], ext[P:P + N]
-    return np.stack([x0, (x0 - x1) / Ts, (x0 - 2.0 * x1 + x2) / (Ts * Ts)], axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):     # an absurd reference: inf, flagged OUT_OF_RANGE
+        return np.stack([x0, (x0 - x1) / Ts, (x0 - 2.0 * x1 + x2) / (Ts * Ts)], axis=1)
 
 
 def run_guard(g: Guard, Ts: float, preview: int, r: np.ndarray, r0: float, core) -> tuple[np.ndarray, np.ndarray]:

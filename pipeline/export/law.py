@@ -365,6 +365,7 @@ def _core(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             u = physics.feedforward(law.arrays["theta"], r) - ctrl.reference_force(r)
         return u, np.where(np.isfinite(u), 0, FLAG["SINGULAR"])
     w, f = _pgnn_run(law, np.append(r, r[-1]) if law.averaged else r)
+    f = f | np.where(np.isfinite(w), 0, FLAG["SINGULAR"])    # an overflow: kept, the guard falls back
     if not law.averaged:
         return w, f
     flags = f[1:].copy()          # step t runs w(t+1); the first also w(0)

@@ -10,6 +10,14 @@ package per reference: the signal was optimised offline for it).  On a measured 
 (``Recording``) physics only: the inverse rigid-body force minus the controller's force on the
 reference (``laws.from_measured_physics``).
 
+Every law is wrapped in its guard (``pipeline.export.guard``; ``export.limits``): input sanitation, the
+training envelope of the identification data's y, the fallback, force saturation and slew limit,
+status flags; the defaults leave a clean sample's u_ff untouched. ``export.prefix`` names the C
+symbols, ``export.precision=single`` writes the law in float (measured against the double study),
+``export.target_rate`` adds a zero-order hold for an integer multiple of the law's rate (refused
+otherwise, before any work), and with cppcheck installed its MISRA addon's findings go to the
+manifest and the package README.
+
 Verified here: the C compiled with ``cc -std=c99 -O2 -Wall -Wextra -Werror`` and the Python law
 (the MLflow model's code) must reproduce the invert stage's u_ff on every evaluation reference to
 ``export.rtol`` × max|u| (metric ``export/max_rel_diff``), else the stage fails and writes nothing.

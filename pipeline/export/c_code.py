@@ -7,6 +7,11 @@ in the same order, so the C output equals the study's to rounding.  Weights are 
 arrays printed with 17 significant digits (exact round trip); the state is a fixed-size struct;
 no allocation, no I/O, only ``<math.h>``.  Every helper is ``static inline`` so a law compiles
 what it uses with ``-Wall -Wextra -Werror`` and nothing else.
+
+Each family's template defines the law as ``static`` ``law_init`` / ``law_step``; the public
+``<prefix>_init`` / ``<prefix>_step`` are the guard around them (:data:`_GUARD`, the C of
+:func:`pipeline.export.guard.run_guard`, same operations in the same order). ``<file>`` names the
+files (the package), ``<prefix>`` the symbols (``export.prefix``).
 """
 from __future__ import annotations
 

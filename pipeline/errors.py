@@ -12,3 +12,8 @@ SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 
 class ConfigError(ValueError):
     """A bad config key or value, raised before any work is done."""
+
+
+class ExportError(ValueError):
+    """A feedforward the exporter cannot ship (unsupported law or model shape, no compiler, a
+    package that does not reproduce the study); ``pipeline.export.law`` re-exports it."""

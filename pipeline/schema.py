@@ -121,6 +121,23 @@ class Paths:
     results: Optional[str] = None    # report output; null = <repo>/results
 
 
+def _prefix_rule(v) -> str | None:
+    from pipeline.export.package import check_prefix
+    return check_prefix(v)
+
+
+@schema
+class Limits:
+    """export.limits: the guard around an exported law (pipeline.export.guard)."""
+    u_min: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=-200.0)
+    u_max: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=200.0)
+    rate: Optional[float] = spec(None, gt=0, le=1e12, unit="N/s", example=1e5)
+    envelope_margin: float = spec(0.1, ge=0, le=100)
+    envelope_action: Literal["flag", "fallback"] = "flag"
+    fallback: Literal["hold", "physics", "ramp"] = "hold"
+    ramp_time: float = spec(0.1, gt=0, le=3600.0, unit="s")
+
+
 @schema
 class Export:
     compile: bool = True
@@ -128,6 +145,12 @@ class Export:
     rtol: float = spec(1e-9, gt=0, lt=1)
     timing_repeats: int = spec(21, ge=0, le=COUNT_MAX)
     register: bool = False
+    prefix: Optional[str] = spec(None, check=_prefix_rule, example="axis1_ff")
+    precision: Literal["double", "single"] = "double"
+    single_rtol: float = spec(0.1, gt=0, le=10)
+    target_rate: Optional[float] = spec(None, gt=0, le=FREQ_MAX, unit="Hz", example=4000.0)
+    cppcheck: bool = True
+    limits: Limits = field(default_factory=Limits)
 
 
 @schema

@@ -10,6 +10,14 @@ package per reference: the signal was optimised offline for it).  On a measured 
 (``Recording``) physics only: the inverse rigid-body force minus the controller's force on the
 reference (``laws.from_measured_physics``).
 
+Every law is wrapped in its guard (``pipeline.export.guard``; ``export.limits``): input sanitation, the
+training envelope of the identification data's y, the fallback, force saturation and slew limit,
+status flags; the defaults leave a clean sample's u_ff untouched. ``export.prefix`` names the C
+symbols, ``export.precision=single`` writes the law in float (measured against the double study),
+``export.target_rate`` adds a zero-order hold for an integer multiple of the law's rate (refused
+otherwise, before any work), and with cppcheck installed its MISRA addon's findings go to the
+manifest and the package README.
+
 Verified here: the C compiled with ``cc -std=c99 -O2 -Wall -Wextra -Werror`` and the Python law
 (the MLflow model's code) must reproduce the invert stage's u_ff on every evaluation reference to
 ``export.rtol`` × max|u| (metric ``export/max_rel_diff``), else the stage fails and writes nothing.
@@ -25,14 +33,17 @@ from omegaconf import OmegaConf
 
 from pipeline import tracking
 from pipeline.export import law as laws
+from pipeline.export.c_code import c_name
+from pipeline.export.misra import find_cppcheck
 from pipeline.export.package import find_compiler, reference_file_clash, write_package
 from pipeline.errors import ConfigError
 from stages._common import reference_specs
 
 UPSTREAM = ("generate", "baseline", "train", "invert")
 DEPENDS = ("invert", "export.compile", "export.cc", "export.rtol", "export.timing_repeats",
-           "evaluate.references")
-VERSION = 2      # 2: the harness refuses lines it cannot read as one number (issue 24 item 10)
+           "export.prefix", "export.precision", "export.single_rtol", "export.target_rate", "export.cppcheck",
+           "export.limits", "evaluate.references")
+VERSION = 3      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22)
 
 
 def validate(cfg, system) -> None:
@@ -64,7 +75,66 @@ def validate(cfg, system) -> None:
     e = cfg.get("export")
     if e is None:
         raise ConfigError("export: the config has no 'export' node (conf/config.yaml defines it)")
-    # export.rtol in (0, 1), export.timing_repeats >= 0: pipeline.schema
+    # export.rtol in (0, 1), export.timing_repeats >= 0, the prefix a C identifier: pipeline.schema
+    lim = e.get("limits") or {}
+    lo, hi = lim.get("u_min"), lim.get("u_max")
+    if lo is not None and hi is not None and not lo < hi:
+        raise ConfigError(f"export.limits.u_min={lo} is not below export.limits.u_max={hi}: give u_min < u_max "
+                          "(e.g. export.limits.u_min=-200 export.limits.u_max=200)")
+    if lim.get("fallback") == "physics" and system is not None and physics_coefficients(system, None) is None:
+        raise ConfigError(f"export.limits.fallback=physics needs a rigid-body physics law (linear motor or a measured "
+                          f"axis); system '{getattr(system, 'name', '?')}' has none: use export.limits.fallback=hold "
+                          "or ramp")
+    if system is not None and e.get("target_rate") is not None:
+        zoh_factor(float(e.target_rate), float(system.Ts))
+
+
+def zoh_factor(target_rate: float, Ts: float) -> int:
+    """N of the zero-order hold for a loop at ``target_rate`` [Hz] of a law of sample time Ts: an
+    integer >= 1 (1: the law's own rate), else a ConfigError."""
+    n = target_rate * Ts
+    N = round(n)
+    if N < 1 or abs(n - N) > 1e-9 * max(N, 1):
+        raise ConfigError(f"export.target_rate={target_rate:g}: the law runs at {1 / Ts:g} Hz (Ts = {Ts:g} s); a "
+                          f"wrapper is generated for an integer multiple of it (e.g. export.target_rate={2 / Ts:g}), "
+                          "or null for the law's own rate")
+    return int(N)
+
+
+def physics_coefficients(system, theta) -> list | None:
+    """[M, F_v, F_c] of the system's rigid-body physics law (the physics fallback), None if it has
+    none; with theta None only whether it has one ([0, 0, 0])."""
+    physics = getattr(system, "physics", None)
+    law = getattr(physics, "physics_law", None)
+    if law not in ("linear_motor", "rigid_body"):
+        return None
+    if theta is None:
+        return [0.0, 0.0, 0.0]
+    t = [float(v) for v in physics.inverse_theta(theta)]
+    if law == "linear_motor":          # [m, f_v, f_c], (8)
+        return t[:3]
+    names = [e[0] for e in physics.terms.expanded()]
+    pick = lambda n: t[1 + names.index(n)] if n in names else 0.0   # noqa: E731
+    return [t[0], pick("fv_over_m"), pick("fc_over_m")]
+
+
+def guard_of(ctx) -> dict:
+    """The guard of every law of the job from export.limits, the identification data's envelope and
+    the physics fallback's coefficients (pipeline.export.guard.Guard)."""
+    from dataclasses import asdict
+
+    from pipeline.export.guard import Guard, envelope_of
+    lim = ctx.cfg.export.limits          # every key set by pipeline.schema (null: no limit)
+    bound = lambda k, none: none if lim.get(k) is None else float(lim.get(k))   # noqa: E731
+    ds = ctx.inputs["generate"]["dataset"]
+    lo, hi = envelope_of((seg["y"].to_numpy(dtype=float) for seg in ds.segments()), float(ctx.system.Ts),
+                         float(lim.envelope_margin))
+    phys = [0.0, 0.0, 0.0]
+    if lim.fallback == "physics":
+        phys = physics_coefficients(ctx.system, ctx.inputs["baseline"]["theta"])
+    return asdict(Guard(u_min=bound("u_min", -math.inf), u_max=bound("u_max", math.inf),
+                        rate=bound("rate", math.inf), env_lo=lo, env_hi=hi, envelope_action=str(lim.envelope_action),
+                        fallback=str(lim.fallback), ramp_time=float(lim.ramp_time), physics=phys))
 
 
 def build_laws(ctx) -> dict[str, tuple["laws.Law", list[str]]]:
@@ -116,10 +186,19 @@ def run(ctx) -> dict:
               "config_hash": ctx.key[:20]}
     out = ctx.workdir / "artifacts"
     manifests, worst = {}, 0.0
-    for name, (law, names) in build_laws(ctx).items():
+    built = build_laws(ctx)
+    guard = guard_of(ctx)
+    zoh_n = 1 if e.get("target_rate") is None else zoh_factor(float(e.target_rate), float(ctx.system.Ts))
+    for name, (law, names) in built.items():
+        law.guard = dict(guard)
         refs = {ref: (inv["r"][ref], inv["u_ff"][ref]) for ref in names}
+        prefix = e.get("prefix")
+        if prefix and len(built) > 1:     # one table per reference: one prefix each
+            prefix = c_name(f"{prefix}_{name.removeprefix(f'ff_{ctx.cfg.invert.kind}_')}")
         man = write_package(law, name, out, refs, source=source, cc=cc, rtol=float(e.rtol),
-                            timing_repeats=int(e.timing_repeats))
+                            timing_repeats=int(e.timing_repeats), prefix=prefix,
+                            precision=str(e.precision), single_rtol=float(e.single_rtol),
+                            zoh_n=zoh_n, cppcheck=bool(e.cppcheck) and find_cppcheck() is not None)
         manifests[name] = man
         ctx.artifacts += sorted(str(p.relative_to(out)) for p in (out / name).rglob("*") if p.is_file())
         ctx.models.append({"name": name, "law": f"artifacts/{name}/law",
@@ -132,6 +211,12 @@ def run(ctx) -> dict:
             if man["c_ns_per_sample"] is not None:
                 ctx.metric(f"{name}/c_ns_per_sample", man["c_ns_per_sample"])
         ctx.metric(f"{name}/flops", man["flops"])
+        if "single_max_rel_diff" in man:
+            ctx.metric(f"{name}/single_max_rel_diff", man["single_max_rel_diff"])
+        if man.get("cppcheck", {}).get("ran"):
+            ctx.metric(f"{name}/misra_findings", man["cppcheck"]["misra_total"])
+        if "zoh" in man:
+            ctx.metric(f"{name}/zoh_max_rel_diff", man["zoh"]["max_rel_diff_vs_interpolated"])
         ctx.metric(f"{name}/parameters", man["parameters"])
     ctx.metric("max_rel_diff", worst)
     return {"packages": manifests}

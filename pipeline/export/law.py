@@ -36,7 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["Law", "ExportError", "LAWS", "from_pgnn", "from_linear_motor_physics", "from_measured_physics",
+from pipeline.errors import ExportError
+from pipeline.export.guard import FLAG, Guard, run_guard
+
+__all__ = ["Law", "ExportError", "LAWS", "guarded", "from_pgnn", "from_linear_motor_physics", "from_measured_physics",
            "from_k_filter", "from_table", "feedforward"]
 
 #: every law the exporter covers, by ``invert.kind``
@@ -45,11 +48,6 @@ _FAMILY = {"physics": "pgnn", "direct": "pgnn", "analytic": "pgnn", "newton": "p
            "rational_filter": "k_filter", "fhofc": "table", "il_fhofc": "table"}
 # numba kernel layout of fast_pgnn's meta (pipeline.models.pgnn.FastPGNN)
 _META = ("kind", "p", "H", "n_phi", "u_index", "use_phys", "use_nn", "n_a", "n_b", "n_k", "n_cfg")
-
-
-class ExportError(ValueError):
-    """A feedforward the exporter cannot ship (unsupported law or model shape, no compiler, a
-    package that does not reproduce the study)."""
 
 
 @dataclass
@@ -67,6 +65,7 @@ class Law:
     arrays: dict = field(default_factory=dict)
     strings: dict = field(default_factory=dict)
     units: dict = field(default_factory=lambda: {"r": "m", "u_ff": "N"})
+    guard: dict = field(default_factory=dict)   # limits, envelope, fallback (pipeline.export.guard.Guard)
 
     def __post_init__(self):
         if self.law not in LAWS:
@@ -79,6 +78,11 @@ class Law:
             if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
                 raise ExportError(f"law array {k!r} holds NaN/inf: the model is not usable")
             self.arrays[k] = a
+        self.guard = asdict(Guard(**self.guard))   # checked; "inf" strings of law.json read back as floats
+
+    @property
+    def g(self) -> Guard:
+        return Guard(**self.guard)
 
     # ---- storage (json + npz: nothing executes on load) -----------------------------------
     def save(self, folder: Path) -> None:
@@ -313,10 +317,9 @@ def padded(law: Law, r: np.ndarray, n_before: int, n_after: int) -> np.ndarray:
 
 
 def feedforward(law: Law, r) -> np.ndarray:
-    """u_ff [N] of ``law`` on the reference r [N] (the study's kernels)."""
-    r = np.asarray(r, dtype=np.float64)
-    if r.ndim != 1 or r.size < 1:
-        raise ExportError(f"the reference must be a non-empty 1-D signal, got shape {r.shape}")
+    """u_ff [N] of ``law`` on the reference r [N] (the study's kernels), unguarded: NaN/inf in r and,
+    for a table, another reference are errors (:func:`guarded` flags them and falls back)."""
+    r = _check_reference(r)
     if not np.all(np.isfinite(r)):
         raise ExportError(f"the reference holds NaN/inf (first at sample {int(np.flatnonzero(~np.isfinite(r))[0])})")
     if law.family == "table":
@@ -324,18 +327,55 @@ def feedforward(law: Law, r) -> np.ndarray:
         if r.shape != R.shape or np.max(np.abs(r - R)) > law.floats["r_tol"]:
             raise ExportError(f"this {law.law} signal was optimised offline for one reference of "
                               f"{R.size} samples; the given reference ({r.size} samples) differs from it")
-        return law.arrays["u"].copy()
-    if law.family == "k_filter":
-        from pipeline.invert.rational_filter import rational_feedforward
-        return rational_feedforward(_k_model(law), r).f
-    if law.family == "rigid_body":
-        physics, ctrl = _rigid_body(law)
-        return physics.feedforward(law.arrays["theta"], r) - ctrl.reference_force(r)
-    w = _pgnn_run(law, np.append(r, r[-1]) if law.averaged else r)
-    return 0.5 * (w[:-1] + w[1:]) if law.averaged else w
+    return _core(law, r)[0]
 
 
-def _pgnn_run(law: Law, r: np.ndarray) -> np.ndarray:
+def guarded(law: Law, r) -> tuple[np.ndarray, np.ndarray]:
+    """(u_ff [N], flags [N]) of ``law`` with its guard (:mod:`pipeline.export.guard`): what the C
+    ``<prefix>_step`` returns and leaves in ``s->status``, sample for sample. On a clean reference
+    inside the limits u_ff is :func:`feedforward`'s to the bit."""
+    r = _check_reference(r)
+    r0 = 0.0 if law.rest == "zero" else float(r[0])
+    return run_guard(law.g, law.Ts, law.preview, r, r0, lambda r_c: _core(law, r_c))
+
+
+def _check_reference(r) -> np.ndarray:
+    r = np.asarray(r, dtype=np.float64)
+    if r.ndim != 1 or r.size < 1:
+        raise ExportError(f"the reference must be a non-empty 1-D signal, got shape {r.shape}")
+    return r
+
+
+def _core(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(u_ff, the law's own flags) on a finite reference r, as the C law_step computes them."""
+    N = r.size
+    if law.family == "table":
+        R, U, n = law.arrays["r"], law.arrays["u"], law.ints["n"]
+        k = np.arange(N)
+        inside = k < n
+        kk = np.minimum(k, n - 1)
+        other = inside & ~(np.abs(r - R[kk]) <= law.floats["r_tol"])
+        flags = np.where(other, FLAG["OTHER_REFERENCE"], 0) | np.where(inside, 0, FLAG["PAST_END"])
+        return U[kk].copy(), flags
+    if law.family in ("k_filter", "rigid_body"):
+        if law.family == "k_filter":
+            from pipeline.invert.rational_filter import rational_feedforward
+            u = rational_feedforward(_k_model(law), r).f
+        else:
+            physics, ctrl = _rigid_body(law)
+            u = physics.feedforward(law.arrays["theta"], r) - ctrl.reference_force(r)
+        return u, np.where(np.isfinite(u), 0, FLAG["SINGULAR"])
+    w, f = _pgnn_run(law, np.append(r, r[-1]) if law.averaged else r)
+    f = f | np.where(np.isfinite(w), 0, FLAG["SINGULAR"])    # an overflow: kept, the guard falls back
+    if not law.averaged:
+        return w, f
+    flags = f[1:].copy()          # step t runs w(t+1); the first also w(0)
+    flags[0] |= f[0]
+    return 0.5 * (w[:-1] + w[1:]), flags
+
+
+def _pgnn_run(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(w, flags): the numba kernels' w(t) (Newton's per-sample flags; the other laws raise none here)."""
     from pipeline.invert.analytic import _run
     from pipeline.invert.direct import _direct_run, initial_state
     from pipeline.invert.newton import _newton_run
@@ -347,11 +387,13 @@ def _pgnn_run(law: Law, r: np.ndarray) -> np.ndarray:
     r_ext = padded(law, r, m["n_a"], m["n_k"] + 1)
     state = initial_state(fm, r_ext)
     N = r.size
+    none = np.zeros(N, dtype=np.int64)
     if law.law == "direct":
-        return _direct_run(blob, meta, state, r_ext, N)
+        return _direct_run(blob, meta, state, r_ext, N), none
     if law.law == "newton":
-        return _newton_run(blob, meta, state, r_ext, N, m["k"], law.floats["u_min"], law.floats["u_max"])[0]
-    return _run(blob, meta, state, r_ext, N, law.law == "physics", bool(m["inverse_layout"]))
+        u, _, flags, _ = _newton_run(blob, meta, state, r_ext, N, m["k"], law.floats["u_min"], law.floats["u_max"])
+        return u, flags.astype(np.int64)
+    return _run(blob, meta, state, r_ext, N, law.law == "physics", bool(m["inverse_layout"])), none
 
 
 def _rigid_body(law: Law):

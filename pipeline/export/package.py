@@ -20,10 +20,42 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.export.c_code import CFLAGS, c_name, write_c
-from pipeline.export.law import ExportError, Law, feedforward, strict_json
+from pipeline.export.guard import FLAGS
+from pipeline.export.law import ExportError, Law, feedforward, guarded, strict_json
+from pipeline.export.misra import cppcheck_report, readme
 
 __all__ = ["find_compiler", "compile_harness", "run_harness", "time_harness", "write_package",
-           "replace_dir", "rel_diff"]
+           "replace_dir", "rel_diff", "default_prefix", "check_prefix", "law_hash", "VECTOR_SAMPLES"]
+
+#: the longest test vector [samples]
+VECTOR_SAMPLES = 4000
+#: a C identifier; the prefix's symbols are <prefix>_init, <prefix>_step, <PREFIX>_TS, ...
+_IDENT = __import__("re").compile(r"[A-Za-z][A-Za-z0-9_]{0,39}")
+
+
+def law_hash(law: Law) -> str:
+    """sha256 of the law's data (law.json fields and arrays): two different laws, two hashes."""
+    import hashlib
+    h = hashlib.sha256(strict_json({k: v for k, v in law.__dict__.items() if k != "arrays"}).encode())
+    for k in sorted(law.arrays):
+        h.update(k.encode())
+        h.update(np.ascontiguousarray(law.arrays[k]).tobytes())
+    return h.hexdigest()
+
+
+def default_prefix(law: Law, name: str) -> str:
+    """``<package>_<8 hex of the law's hash>``: laws of one kind from different runs link together."""
+    return f"{c_name(name)}_{law_hash(law)[:8]}"
+
+
+def check_prefix(prefix: str) -> str | None:
+    """What is wrong with ``prefix`` as the C symbol prefix, or None."""
+    if not _IDENT.fullmatch(prefix):
+        return ("is not a C identifier prefix: a letter, then letters, digits or '_', at most 40 characters "
+                "(its symbols are <prefix>_init, <prefix>_step, <PREFIX>_TS, ...)")
+    if prefix.startswith("_") or "__" in prefix:
+        return "is reserved in C (a leading '_' or '__'): use letters, digits and single '_'"
+    return None
 
 
 def find_compiler(cc: str | None = None) -> str | None:
@@ -68,11 +100,21 @@ def read_column(path: Path) -> np.ndarray:
     return np.array(vals)
 
 
-def run_harness(exe: Path, r_csv: Path) -> np.ndarray:
-    out = subprocess.run([str(exe), str(r_csv)], capture_output=True, text=True, timeout=600)
+def run_harness(exe: Path, r_csv: Path, flags: bool = False):
+    """u_ff of the harness on a reference CSV; with ``flags``: (u_ff, flags)."""
+    out = subprocess.run([str(exe), str(r_csv)] + (["--flags"] if flags else []), capture_output=True, text=True,
+                         timeout=600)
     if out.returncode != 0:
         raise ExportError(f"{exe.name} failed on {r_csv.name}: {out.stderr.strip()[:500]}")
-    return np.array([float(v) for v in out.stdout.split()[1:]])
+    if not flags:
+        return np.array([float(v) for v in out.stdout.split()[1:]])
+    rows = [line.split(",") for line in out.stdout.split()[1:]]
+    return np.array([float(a) for a, _ in rows]), np.array([int(b) for _, b in rows], dtype=np.int64)
+
+
+def check_vectors(exe: Path, vectors: Path) -> subprocess.CompletedProcess:
+    """``main_<name> --check vectors.csv`` (exit 0: C agrees with the vectors)."""
+    return subprocess.run([str(exe), "--check", str(vectors)], capture_output=True, text=True, timeout=600)
 
 
 def time_harness(exe: Path, r_csv: Path, repeats: int = 21) -> float:
@@ -104,15 +146,24 @@ def replace_dir(src: Path, final: Path) -> None:
 
 def write_package(law: Law, name: str, out: Path, references: dict, *, source: dict,
                   cc: str | None = "cc", rtol: float = 1e-9, timing_repeats: int = 21,
-                  keep_exe: bool = False) -> dict:
+                  keep_exe: bool = False, prefix: str | None = None, precision: str = "double",
+                  single_rtol: float = 1e-3, zoh_n: int = 1, cppcheck: bool = False) -> dict:
     """Write the package ``out/<name>`` for ``law``, verified on ``references`` = {ref name:
     (r, u_ff of the study)}; returns the manifest.
 
     ``cc``: the compiler (None: do not compile; a name not found: the package is written
     uncompiled and the manifest says so).  ``source``: provenance for the manifest (run id, git
     SHA, experiment, config hash).  Raises :class:`ExportError` before writing anything when the
-    law does not reproduce the study (Python or C) to ``rtol``.
+    law does not reproduce the study (Python or C) to ``rtol``.  ``prefix``: the C symbols' prefix
+    (default :func:`default_prefix`); ``precision``: double | single (the float C is measured against
+    the double study and accepted to ``single_rtol``); ``zoh_n`` > 1: a zero-order-hold wrapper for a
+    loop ``zoh_n`` times faster, its effect measured; ``cppcheck``: run cppcheck and its MISRA addon.
     """
+    opts = dict(prefix=prefix or default_prefix(law, name), precision=precision, single_rtol=single_rtol,
+                zoh_n=int(zoh_n), cppcheck=cppcheck)
+    why = check_prefix(opts["prefix"])
+    if why:
+        raise ExportError(f"export.prefix={opts['prefix']!r} {why}")
     name = c_name(name)
     out = Path(out)
     if not references:
@@ -123,7 +174,9 @@ def write_package(law: Law, name: str, out: Path, references: dict, *, source: d
     out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{name}-", dir=out))
     try:
-        manifest = _build(law, name, tmp, references, source, cc, rtol, timing_repeats, keep_exe)
+        manifest = _build(law, name, tmp, references, source, cc, rtol, timing_repeats, keep_exe, **opts)
+        (tmp / "README.md").write_text(readme(law, name, manifest))
+        manifest["files"] = sorted(p.name for p in tmp.iterdir())
         (tmp / "manifest.json").write_text(strict_json(manifest))
         replace_dir(tmp, out / name)
     except BaseException:
@@ -144,7 +197,47 @@ def reference_file_clash(names) -> str | None:
     return None
 
 
-def _build(law, name, folder, references, source, cc, rtol, repeats, keep_exe) -> dict:
+def _vectors(law: Law, r: np.ndarray) -> dict[str, np.ndarray]:
+    """The test vectors' references: normal operation and one per flag path (during motion)."""
+    r = r[:VECTOR_SAMPLES]
+    r0 = r[0]
+    k = int(np.argmax(np.abs(np.diff(r)))) if r.size > 1 else 0    # the fastest sample: in motion
+    nan = r.copy()
+    nan[k:k + 20] = np.nan                                         # a NaN burst, then an inf
+    nan[min(k + 40, r.size - 1)] = np.inf
+    cases = {"normal": r, "out_of_range": r0 + 3.0 * (r - r0), "nonfinite": nan,
+             "limits": r0 + 2.0 * (r - r0)}
+    if law.family == "table":
+        cases["past_end"] = np.concatenate([r, np.full(50, r[-1])])
+    return cases
+
+
+def _write_vectors(path: Path, r: np.ndarray, u: np.ndarray, flags: np.ndarray) -> None:
+    with open(path, "w") as f:
+        f.write("r,u_ff,flags\n")
+        f.writelines(f"{float(a)!r},{float(b)!r},{int(c)}\n" for a, b, c in zip(r, u, flags))
+
+
+def _flag_counts(flags: np.ndarray) -> dict:
+    return {n: int(np.count_nonzero(flags & b)) for n, b, _ in FLAGS if np.any(flags & b)}
+
+
+def _zoh_effect(law: Law, r: np.ndarray, n: int) -> dict:
+    """The zero-order hold at n x the law's rate on the reference r: its u_ff at the loop rate
+    (each law output held n samples) against the law's u_ff linearly interpolated to the loop rate."""
+    u = guarded(law, r)[0]
+    t = np.arange(u.size)
+    tf = np.arange((u.size - 1) * n + 1) / n
+    held = u[np.minimum(np.floor(tf).astype(int), u.size - 1)]
+    lin = np.interp(tf, t, u)
+    return {"loop_Ts": law.Ts / n, "factor": n, "max_rel_diff_vs_interpolated": rel_diff(held, lin),
+            "rms_rel_diff_vs_interpolated": float(np.sqrt(np.mean((held - lin) ** 2))
+                                                  / max(np.max(np.abs(lin)), 1e-300)),
+            "mean_delay_s": law.Ts * (n - 1) / (2 * n)}
+
+
+def _build(law, name, folder, references, source, cc, rtol, repeats, keep_exe, *, prefix, precision,
+           single_rtol, zoh_n, cppcheck) -> dict:
     refs = {}
     for ref, (r, u) in references.items():
         r, u = np.asarray(r, dtype=np.float64), np.asarray(u, dtype=np.float64)
@@ -160,21 +253,44 @@ def _build(law, name, folder, references, source, cc, rtol, repeats, keep_exe) -
         if not d <= rtol:
             raise ExportError(f"the exported law {name} does not reproduce the study on {ref!r} in Python: "
                               f"max|Δu|/max|u| = {d:.3g} > {rtol:g}")
+        ug, fg = guarded(law, r)
+        refs[ref]["guard_max_rel_change"] = rel_diff(ug, u)      # 0: the guard left the study's u_ff alone
+        refs[ref]["flags"] = _flag_counts(fg)
     first = next(iter(refs.values()))["file"]
     src = ", ".join(f"{k} {v}" for k, v in source.items() if v)
-    write_c(law, name, folder, src, example=first)
+    single = precision == "single"
+    tol = single_rtol if single else rtol
+    write_c(law, name, folder, src, example=first, prefix=prefix, precision=precision, zoh_n=zoh_n, check_tol=tol)
     law.save(folder / "law")
+    r_first = np.asarray(next(iter(references.values()))[0], dtype=np.float64)
+    vectors = {}
+    for case, rv in _vectors(law, r_first).items():
+        uv, fv = guarded(law, rv)
+        _write_vectors(folder / f"vectors_{case}.csv", rv, uv, fv)
+        vectors[case] = {"file": f"vectors_{case}.csv", "samples": int(rv.size), "flags": _flag_counts(fv)}
     compiler = find_compiler(cc) if cc else None
+    g = law.g
     manifest = {
-        "name": name, "law": law.law, "family": law.family, "model": law.strings.get("model", law.law),
-        "Ts": law.Ts, "preview": law.preview, "rest_before_start": law.rest,
-        "averaged_model_input": law.averaged, "units": law.units,
+        "name": name, "prefix": prefix, "law": law.law, "family": law.family,
+        "model": law.strings.get("model", law.law),
+        "Ts": law.Ts, "rate_hz": 1.0 / law.Ts, "preview": law.preview, "rest_before_start": law.rest,
+        "averaged_model_input": law.averaged, "units": law.units, "precision": precision,
         "parameters": law.n_params, **law.flops_per_sample(), **source,
+        "limits": {"u_min": g.u_min, "u_max": g.u_max, "rate": g.rate},
+        "envelope": {"regressors": ["r", "dr/dt", "d2r/dt2"], "lo": g.env_lo, "hi": g.env_hi,
+                     "action": g.envelope_action},
+        "fallback": {"kind": g.fallback, "ramp_time": g.ramp_time, "physics": g.physics},
+        "flag_bits": {n: b for n, b, _ in FLAGS},
+        "vectors": vectors,
         "files": sorted(p.name for p in folder.iterdir()),
         "compile": " ".join(["cc", *CFLAGS, "-o", f"main_{name}", f"main_{name}.c", f"{name}.c", "-lm"]),
         "references": refs, "rtol": rtol,
         "python_max_rel_diff": max(v["python_max_rel_diff"] for v in refs.values()),
     }
+    if zoh_n > 1:
+        manifest["zoh"] = _zoh_effect(law, r_first, zoh_n)
+    if cppcheck:
+        manifest["cppcheck"] = cppcheck_report(folder, name)
     if compiler is None:
         manifest.update(compiled=False, c_max_rel_diff=None, c_ns_per_sample=None,
                         note=f"no C compiler found ({cc!r}): source written, not compiled or verified")
@@ -182,14 +298,23 @@ def _build(law, name, folder, references, source, cc, rtol, repeats, keep_exe) -
     exe = compile_harness(folder, name, compiler)
     try:
         for ref, info in refs.items():
-            u_c = run_harness(exe, folder / info["file"])
+            u_c, f_c = run_harness(exe, folder / info["file"], flags=True)
             u = read_column(folder / info["study_u_ff"])
             if u_c.shape != u.shape:
                 raise ExportError(f"{exe.name} wrote {u_c.size} samples for {ref!r}, the study has {u.size}")
-            info["c_max_rel_diff"] = rel_diff(u_c, u)
-            if not info["c_max_rel_diff"] <= rtol:
+            ug, fg = guarded(law, references[ref][0])
+            info["c_max_rel_diff"] = rel_diff(u_c, ug)        # C against the (guarded) Python law
+            info["c_vs_study_max_rel_diff"] = rel_diff(u_c, u)
+            info["c_flags_agree"] = bool(np.array_equal(f_c, fg))
+            if not info["c_max_rel_diff"] <= tol or not (single or info["c_flags_agree"]):
                 raise ExportError(f"the C code of {name} does not reproduce the study on {ref!r}: "
-                                  f"max|Δu|/max|u| = {info['c_max_rel_diff']:.3g} > {rtol:g}")
+                                  f"max|Δu|/max|u| = {info['c_max_rel_diff']:.3g} > {tol:g}"
+                                  + ("" if info["c_flags_agree"] else " or its flags differ from the Python law's"))
+        for case, info in vectors.items():
+            out = check_vectors(exe, folder / info["file"])
+            info["c_check"] = "pass" if out.returncode == 0 else out.stderr.strip()[-300:]
+            if out.returncode != 0:
+                raise ExportError(f"the C code of {name} fails its test vectors {info['file']}: {info['c_check']}")
         longest = max(refs.values(), key=lambda v: v["samples"])
         ns = time_harness(exe, folder / longest["file"], repeats) if repeats else None
     finally:
@@ -198,4 +323,7 @@ def _build(law, name, folder, references, source, cc, rtol, repeats, keep_exe) -
     manifest.update(compiled=True, compiler=compiler_version(compiler),
                     c_max_rel_diff=max(v["c_max_rel_diff"] for v in refs.values()),
                     c_ns_per_sample=ns, timed_on=longest["file"], timing_repeats=repeats)
+    if single:
+        manifest["single_max_rel_diff"] = max(v["c_vs_study_max_rel_diff"] for v in refs.values())
+        manifest["single_rtol"] = single_rtol
     return manifest

@@ -1,16 +1,16 @@
 """The exported feedforward as an MLflow pyfunc model (``loader_module`` flavour: no pickle).
 
 ``mlflow models predict -m runs:/<run id>/<package> -i reference.csv -t csv --env-manager local``
-reads a one-column table ``r`` (one reference, in time order) and returns ``u_ff``, computed by
-:func:`pipeline.export.law.feedforward` from the law's ``law.json`` + ``law.npz`` (the data the C
-code was generated from).
+reads a one-column table ``r`` (one reference, in time order) and returns ``u_ff`` and ``flags``,
+computed by :func:`pipeline.export.law.guarded` from the law's ``law.json`` + ``law.npz`` (the data
+the C code was generated from): the law with its guard, flag for flag as the C.
 """
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
 
-from pipeline.export.law import ExportError, Law, feedforward
+from pipeline.export.law import ExportError, Law, guarded
 
 __all__ = ["FeedforwardModel", "signature", "_load_pyfunc"]
 
@@ -29,14 +29,16 @@ class FeedforwardModel:
             r = model_input["r"].to_numpy(np.float64)
         else:
             r = np.asarray(model_input, dtype=np.float64).reshape(-1)
-        return pd.DataFrame({"u_ff": feedforward(self.law, r)})
+        u, flags = guarded(self.law, r)
+        return pd.DataFrame({"u_ff": u, "flags": flags})
 
 
 def signature(law: Law, r_example: np.ndarray):
     """Input/output signature and example of the model (the first samples of a reference)."""
     from mlflow.models import infer_signature
     ex = pd.DataFrame({"r": np.asarray(r_example, dtype=np.float64)})
-    return infer_signature(ex, pd.DataFrame({"u_ff": np.zeros(len(ex))})), ex
+    out = pd.DataFrame({"u_ff": np.zeros(len(ex)), "flags": np.zeros(len(ex), dtype=np.int64)})
+    return infer_signature(ex, out), ex
 
 
 def _load_pyfunc(data_path: str) -> FeedforwardModel:

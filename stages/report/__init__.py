@@ -241,8 +241,8 @@ def _ship(dest: Path, which: tuple[str, str, str]) -> None:
         if not any(got.iterdir()):
             print(f"warning: no export packages in the {which[0]} runs: results/export not updated", flush=True)
             return
-        for f in got.glob("*/*.csv"):
-            if not f.stem.endswith(f"_{which[2]}"):
+        for f in got.glob("*/*.csv"):   # one reference; the test vectors stay (the package README lists them)
+            if not f.stem.endswith(f"_{which[2]}") and not f.stem.startswith("vectors_"):
                 f.unlink()
         for path in got.glob("*/manifest.json"):   # the manifest lists exactly what is shipped
             man, pkg = json.loads(path.read_text()), path.parent

@@ -21,7 +21,7 @@ from pipeline.export.guard import FLAG
 from pipeline.export.law import Law, feedforward, from_k_filter, from_linear_motor_physics, from_pgnn, from_table, \
     guarded
 from pipeline.export.package import compile_harness, run_harness, write_package
-from pipeline.models.pgnn import RigidBodyForward, RigidBodyInverse
+from pipeline.models.physics_maps import RigidBodyForward, RigidBodyInverse
 from pipeline.models.rational import RationalFeedforward
 from tests.test_export import Ts, _pgnn, _reference
 

@@ -35,10 +35,13 @@ class FeedforwardModel:
 
 def signature(law: Law, r_example: np.ndarray):
     """Input/output signature and example of the model (the first samples of a reference)."""
-    from mlflow.models import infer_signature
+    from mlflow.models import ModelSignature
+    from mlflow.types import ColSpec, Schema
     ex = pd.DataFrame({"r": np.asarray(r_example, dtype=np.float64)})
-    out = pd.DataFrame({"u_ff": np.zeros(len(ex)), "flags": np.zeros(len(ex), dtype=np.int64)})
-    return infer_signature(ex, out), ex
+    # stated, not inferred: flags are a bit field (int64), never missing (inference warns about that)
+    sig = ModelSignature(inputs=Schema([ColSpec("double", "r")]),
+                         outputs=Schema([ColSpec("double", "u_ff"), ColSpec("long", "flags")]))
+    return sig, ex
 
 
 def _load_pyfunc(data_path: str) -> FeedforwardModel:

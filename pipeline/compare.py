@@ -26,7 +26,8 @@ FACTORS = (("tags.invert", "inversion"), ("tags.model", "structure"), ("tags.reg
 #: value, reason); checked against the numbers, never assumed
 REASONS = (
     ("tags.regularizer", "tags.invert", "physics",
-     "the physics feedforward (8) uses the baseline least-squares θ*_phy only: no trained model, so no regulariser acts"),
+     "the physics feedforward (8) uses the baseline least-squares θ*_phy only: no trained model, so no "
+     "regulariser acts"),
     ("tags.regularizer", "tags.model", "rational",
      "the orthogonal regulariser ([K] (29)-(30)) penalises the PGNN's approximator g_φ; the rational model has "
      "none, so SK solves the same problem with and without it"),

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import subprocess
 import time
 from pathlib import Path
@@ -220,11 +221,19 @@ class JobRun:
                     raise
                 time.sleep(0.2 * (attempt + 1))
 
+    def model_name(self, package: str) -> str:
+        """The logged model's name: the package and the run's key (``ff_newton-linear_motor-equation-newton-s0``),
+        so the experiment's models tab tells the runs' models apart (issue 23)."""
+        tags = self.client.get_run(self.run_id).data.tags
+        key = re.sub(r"[^A-Za-z0-9_-]+", "_",   # MLflow refuses / : . % " ' in a model name
+                      tags.get("run_key") or tags.get("mlflow.runName") or "").strip("_")
+        return f"{package}-{key}"[:200] if key else package
+
     def log_feedforward_model(self, name: str, law_dir: Path, example_csv: Path,
                               register_as: str | None = None) -> str:
-        """Log an exported feedforward (``pipeline.export``) as an MLflow pyfunc model ``name`` of
-        this run (``runs:/<run id>/<name>``), with signature and input example; register it as
-        ``register_as`` with the run's evaluation metrics as tags.  Returns the model URI."""
+        """Log an exported feedforward (``pipeline.export``) as an MLflow pyfunc model of this run
+        named :meth:`model_name` (``runs:/<run id>/<that name>``), with signature and input example;
+        register it as ``register_as`` with the run's evaluation metrics as tags.  Returns the model URI."""
         import warnings
 
         import mlflow.pyfunc
@@ -236,6 +245,7 @@ class JobRun:
         r = read_column(example_csv)
         sig, example = signature(law, r if law.family == "table" else r[:200])
         status = self.client.get_run(self.run_id).info.status
+        name = self.model_name(name)
         with warnings.catch_warnings():   # MLflow's notes on environment capture and example conversion
             warnings.simplefilter("ignore")
             with mlflow.start_run(run_id=self.run_id):
@@ -292,6 +302,60 @@ def experiment_links(base_url: str = "http://127.0.0.1:5000") -> list[str]:
         if n:
             lines.append(f"  {exp.name:<24} {n:>4} runs  {base_url}/#/experiments/{exp.experiment_id}/runs?{ML_VIEW}")
     return lines
+
+
+#: the alias of each experiment's chosen feedforward in the Model Registry (issue 23)
+CHAMPION = "champion"
+
+
+def logged_models(experiment: str) -> dict[str, list]:
+    """{run id: its logged models (MLflow 3 ``LoggedModel``)} of ``experiment``."""
+    c = client()
+    exp = c.get_experiment_by_name(experiment)
+    out: dict[str, list] = {}
+    if exp is None:
+        return out
+    token = None
+    while True:
+        page = c.search_logged_models(experiment_ids=[exp.experiment_id], page_token=token, max_results=100)
+        for m in page:
+            if m.source_run_id:
+                out.setdefault(m.source_run_id, []).append(m)
+        token = page.token
+        if not token:
+            return out
+
+
+def register_champion(experiment: str, run_id: str, model, metric: str, tags: Mapping[str, Any],
+                      description: str = "") -> tuple[str, str]:
+    """Register ``model`` (a logged model of run ``run_id``) as a version of ``<experiment>-feedforward``
+    with alias ``champion`` and ``tags`` (the run's metrics, its names) as version tags; a champion that
+    is already this model is kept (no new version). Returns (registered name, version)."""
+    c = client()
+    name = f"{experiment}-feedforward"
+    try:
+        c.get_registered_model(name)
+    except mlflow.exceptions.MlflowException:
+        try:
+            c.create_registered_model(name, description=description or None)
+        except mlflow.exceptions.MlflowException:   # created meanwhile
+            pass
+    try:
+        current = c.get_model_version_by_alias(name, CHAMPION)
+    except mlflow.exceptions.MlflowException:
+        current = None
+    if current is not None and current.run_id == run_id and current.source == f"models:/{model.model_id}":
+        version = current.version
+    else:
+        version = c.create_model_version(name, source=f"models:/{model.model_id}", run_id=run_id,
+                                         model_id=model.model_id,
+                                         description=f"Best of `{experiment}` by `{metric}` (lowest).").version
+        c.set_registered_model_alias(name, CHAMPION, version)
+    for k, v in tags.items():
+        c.set_model_version_tag(name, version, k, str(v))
+    if description:
+        c.update_registered_model(name, description=description)
+    return name, str(version)
 
 
 def search_runs(experiment: str):

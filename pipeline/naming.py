@@ -6,7 +6,7 @@ A run has two names:
   what the template does not show (:func:`pipeline.runner.run_name_with_overrides`); stable, the
   report's identity of a run (summary.csv rows are keyed by it);
 - its **display name** (MLflow's run name, :func:`display_name`): what varies inside its experiment
-  first, short, joined by ``·`` (``direct·inverse·eq·σ1e-7``), then `` | `` and the fixed settings
+  first, short, joined by ``·`` (``direct·inv·eq·σ1e-7``), then `` | `` and the fixed settings
   (system, seed), so the visible start of the runs table's name column tells the runs apart.
 """
 from __future__ import annotations
@@ -23,8 +23,10 @@ SHORT = {"system.noise.structure": {"equation": "eq", "output": "out"},
 #: symbols that prefix a numeric value of a key
 PREFIX = {"system.noise.std": "σ", "regularizer.lam": "λ", "invert.gamma": "γ", "model.hidden": "n",
           "seed": "s", "data.n_samples": "N"}
-#: inversions of a PGNN: the display name adds which identification they use (forward / inverse / invertible)
+#: inversions of a PGNN: the display name adds which identification they use ([B1]: fwd = forward PGNN (10),
+#: inv = direct-inverse PGNN (13), invt = invertible PGNN (26)), short so that the name column shows it
 PGNN_INVERSIONS = ("direct", "newton", "analytic")
+PGNN_SHORT = {"forward": "fwd", "inverse": "inv", "invertible": "invt"}
 #: overrides that are not a variation of what a run computes
 SKIP = ("experiment", "hydra", "stages", "paths", "report", "export", "run_name", "experiment_name", "description")
 
@@ -34,7 +36,9 @@ def _num(v: Any) -> str:
         f = float(v)
     except (TypeError, ValueError):
         return str(v)
-    return f"{f:g}" if f != int(f) or abs(f) >= 1e5 else str(int(f))
+    if f != int(f) or abs(f) >= 1e5:   # 1e-07 -> 1e-7: every character counts in the name column
+        return re.sub(r"e([+-])0*(\d)", lambda m: "e" + m.group(1).replace("+", "") + m.group(2), f"{f:g}")
+    return str(int(f))
 
 
 def short_value(key: str, value: Any, model_name: str = "") -> str:
@@ -45,7 +49,8 @@ def short_value(key: str, value: Any, model_name: str = "") -> str:
     if key in SHORT and s in SHORT[key]:
         return SHORT[key][s]
     if key == "invert" and s in PGNN_INVERSIONS and model_name.startswith("pgnn-"):
-        return f"{s}·{model_name.removeprefix('pgnn-')}"   # direct·inverse, newton·forward, analytic·invertible
+        kind = model_name.removeprefix("pgnn-")
+        return f"{s}·{PGNN_SHORT.get(kind, kind)}"   # direct·inv, newton·fwd, analytic·invt
     if key in PREFIX:
         return PREFIX[key] + _num(value)
     if isinstance(value, bool) or s in ("True", "False", "true", "false"):

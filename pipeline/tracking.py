@@ -84,9 +84,11 @@ def client() -> MlflowClient:
 
 #: MLflow's description of an experiment or run (the UI's "Description" / note)
 NOTE = "mlflow.note.content"
-#: MLflow 3.x's UI opens on a global workflow type kept in the browser (default GenAI); this query
-#: parameter of an experiment's page switches it to "Machine learning" (README, Browse and compare)
-ML_VIEW = "workflowType=machine_learning"
+#: MLflow 3.x's UI opens on a global workflow type kept in the browser (default GenAI) and ignores the
+#: experiment's kind tag; this query of an experiment's runs page switches it to "Model training", and
+#: sorting by run name lists a sweep's children flat (MLflow nests them under the parent only when sorted
+#: by start time), grouped by what their names lead with (README, Browse and compare)
+ML_VIEW = "workflowType=machine_learning&orderByKey=attributes.run_name&orderByAsc=true"
 
 
 def experiment_id(name: str, description: str = "") -> str:

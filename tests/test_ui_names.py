@@ -130,3 +130,46 @@ def test_report_side_study_regularised_vs_not(tmp_path, store, monkeypatch):
     assert ratio["regularizer=none/equation/newton/v0.15"] == pytest.approx(1.25)
     assert ratio["regularizer=none/equation/physics/v0.15"] == 1.0
     assert "B1b conditions (`equation` noise) with the unregularised PGNNs" in md
+
+
+def _zero(model_input):   # a pyfunc model (a callable): u_ff = 0
+    return model_input * 0
+
+
+def test_champion_is_registered_once_and_moves_to_a_better_run(store):
+    import warnings
+
+    import mlflow
+    import mlflow.pyfunc
+
+    from pipeline import tracking
+    from stages.report import champion
+
+    def job(mae: float, invert: str) -> str:
+        run = tracking.JobRun("b1_linear_motor", f"{invert}·eq | linear_motor s0",
+                              {"invert": invert, "regularizer": "physics_l2", "run_key": f"lm-{invert}-{mae:g}"},
+                              {"compare_metrics": ["evaluate/v0.15/mae"]}, description="Compare ...")
+        run.log_metrics([("evaluate/v0.15/mae", mae, None), ("evaluate/v0.15/mae_um", 1e6 * mae, None)])
+        with warnings.catch_warnings(), mlflow.start_run(run_id=run.run_id):
+            warnings.simplefilter("ignore")
+            mlflow.pyfunc.log_model(name=run.model_name(f"ff_{invert}"), python_model=_zero,
+                                    pip_requirements=["mlflow"])
+        run.end()
+        return run.run_id
+
+    best = job(1e-6, "newton")
+    job(3e-6, "direct")
+    name, version = champion("b1_linear_motor")
+    c = tracking.client()
+    v = c.get_model_version_by_alias(name, tracking.CHAMPION)
+    assert name == "b1_linear_motor-feedforward" and v.version == int(version) and v.run_id == best
+    assert v.tags["evaluate/v0.15/mae_um"] == "1" and v.tags["run_key"] == "lm-newton-1e-06"
+    assert v.tags["chosen_by"] == "min evaluate/v0.15/mae"
+    assert champion("b1_linear_motor") == (name, version)          # the report rerun: no new version
+    assert len(c.search_model_versions(f"name='{name}'")) == 1
+    better = job(5e-7, "analytic")
+    assert champion("b1_linear_motor") == (name, "2")
+    assert c.get_model_version_by_alias(name, tracking.CHAMPION).run_id == better
+    # logged models are named after their run
+    names = {m.name for ms in tracking.logged_models("b1_linear_motor").values() for m in ms}
+    assert names == {"ff_newton-lm-newton-1e-06", "ff_direct-lm-direct-3e-06", "ff_analytic-lm-analytic-5e-07"}

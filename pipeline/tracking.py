@@ -519,7 +519,8 @@ try:  # the Hydra callback lives here so that tracking stays in one module
             meta = self.meta.get(run_id)
             if meta and interrupts.received() is None:
                 try:   # the children side by side; a failure here must not hide the sweep's own status
-                    log_comparison(run_id, meta["patterns"], f"{meta['experiment']}: {name}")
+                    log_comparison(run_id, meta["patterns"], meta["experiment"] if name == meta["experiment"]
+                                   else f"{meta['experiment']}: {name}")
                 except Exception as exc:  # noqa: BLE001
                     print(f"warning: no comparison logged on the sweep's parent run {run_id}: {exc}", flush=True)
             if status != "FINISHED":   # a worker SIGKILLed (OOM) leaves its child RUNNING: not for long

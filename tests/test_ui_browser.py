@@ -64,6 +64,28 @@ VISIBLE_JS = r"""
 """
 
 
+#: the artifact view's preview of compare/comparison.png: an <img> (of a blob: URL) laid out in the viewport;
+#: [its natural width, its shown width] or null
+FIGURE_JS = r"""
+(() => {
+  if (!document.body.innerText.includes('compare/comparison.png')) return null;
+  const i = [...document.images].find(i => i.complete && i.naturalWidth > 400 &&
+                                          (i.src.startsWith('blob:') || i.src.includes('comparison.png')));
+  if (!i) return null;
+  const r = i.getBoundingClientRect();
+  return r.width > 400 && r.top < window.innerHeight && r.bottom > 0 ? [i.naturalWidth, Math.round(r.width)] : null;
+})()
+"""
+
+
+def _close_assistant(b: Browser) -> None:
+    """Close MLflow 3.17's assistant side panel, if open (a third of the screenshot otherwise)."""
+    b.eval("(() => { const x = [...document.querySelectorAll('button[aria-label=\"Close\"]')].find(e => "
+           "e.getBoundingClientRect().left > window.innerWidth * 0.6 && e.getBoundingClientRect().top < 80); "
+           "if (x) x.click(); return !!x; })()")
+    time.sleep(1)
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -140,15 +162,18 @@ def test_runs_are_told_apart_and_the_comparison_is_shown(tmp_path, monkeypatch):
                 assert b.eval("[...document.querySelectorAll('[aria-checked=\"true\"],[aria-pressed=\"true\"],"
                               "[data-state=\"on\"],[aria-selected=\"true\"]')].some(e => e.textContent.trim() === "
                               "'Model training')") or "Model training" in b.eval("document.body.innerText")
+                _close_assistant(b)
                 b.screenshot(tmp_path / f"ui-runs-{exp}.png")
                 # the parent's comparison figure in the artifact view
                 exp_id = links[exp].split("/experiments/")[1].split("/")[0]
-                b.goto(f"{base}/#/experiments/{exp_id}/runs/{parent}/artifacts/compare/comparison.png")
-                size = b.wait_for("(() => { const i = [...document.images].find(i => i.src.includes('comparison.png') "
-                                  "&& i.complete && i.naturalWidth > 0); if (!i) return null; const r = "
-                                  "i.getBoundingClientRect(); return r.width > 200 && r.top < window.innerHeight "
-                                  "? [i.naturalWidth, Math.round(r.width)] : null; })()", timeout=120)
-                assert size[0] > 400
+                b.goto(f"{base}/#/experiments/{exp_id}/runs/{parent}/artifacts/compare/comparison.png"
+                       f"?{tracking.ML_VIEW.split('&')[0]}")
+                # the preview is an <img> of a blob: URL under the artifact's path, laid out in the viewport
+                size = b.wait_for(FIGURE_JS, timeout=120)
+                png = tracking.client().download_artifacts(parent, "compare/comparison.png", str(tmp_path))
+                import matplotlib.image
+                assert size[0] == matplotlib.image.imread(png).shape[1]     # the comparison figure itself
+                _close_assistant(b)
                 b.screenshot(tmp_path / f"ui-compare-{exp}.png")
     finally:
         os.killpg(server.pid, signal.SIGTERM)       # the server and its uvicorn worker (their own group)

@@ -19,10 +19,11 @@ LEAD = ("invert", "model", "system.noise.structure", "system.noise.std", "regula
         "model.hidden", "invert.gamma", "model.nn_inputs", "invert.trial_noise", "identify.theta_star")
 #: short forms of values (per key, then for any key)
 SHORT = {"system.noise.structure": {"equation": "eq", "output": "out"},
-         "regularizer": {"physics_l2": "L2", "none": "noreg", "orthogonal": "orth"}}
+         "regularizer": {"physics_l2": "L2", "none": "noreg", "orthogonal": "orth"},
+         "invert.trial_noise": {"True": "trialnoise", "False": "noiseless"}}
 #: symbols that prefix a numeric value of a key
 PREFIX = {"system.noise.std": "σ", "regularizer.lam": "λ", "invert.gamma": "γ", "model.hidden": "n",
-          "seed": "s", "data.n_samples": "N"}
+          "seed": "s", "data.n_samples": "N", "identify.theta_star": "θ*", "model.nn_inputs": "nn_"}
 #: inversions of a PGNN: the display name adds which identification they use ([B1]: fwd = forward PGNN (10),
 #: inv = direct-inverse PGNN (13), invt = invertible PGNN (26)), short so that the name column shows it
 PGNN_INVERSIONS = ("direct", "newton", "analytic")

@@ -50,8 +50,10 @@ def test_varying_keys_from_the_sweep_and_the_command_line():
                                         "hydra.launcher.n_jobs=2"]) == ["system.noise.structure", "system.noise.std"]
     assert naming.varying_keys({"model.hidden": "choice([48],[32])"}) == ["model.hidden"]
     assert naming.short_value("model.hidden", [48]) == "n48" and naming.short_value("invert.gamma", 5e-5) == "γ5e-5"
-    assert naming.short_value("invert.trial_noise", True) == "trial_noise"
-    assert naming.short_value("invert.trial_noise", False) == "no_trial_noise"
+    assert naming.short_value("invert.trial_noise", True) == "trialnoise"
+    assert naming.short_value("invert.trial_noise", False) == "noiseless"
+    assert naming.short_value("identify.theta_star", "oracle") == "θ*oracle"
+    assert naming.short_value("data.use_exact", True) == "use_exact"
     # nothing varies: the run keeps its key as name
     assert naming.display_name({}, [], "linear_motor", 0, "linear_motor-equation-physics-s0") == \
         "linear_motor-equation-physics-s0"

@@ -119,7 +119,7 @@ def run(ctx) -> dict:
             table, text = _merge(results, table, text, built, figdir)
         _write(results / "summary.csv", lambda p: table.to_csv(p, index=False))
         text = _with_checks(text, results)
-        text = _with_champions(text, [(e, champion(e)) for e in built])
+        text = _with_champions(text, [(e, _champion_or_warn(e)) for e in built])
         old = Path(tempfile.mkdtemp(prefix=".figures-old-", dir=results))
         if (results / "figures").exists():
             os.replace(results / "figures", old / "figures")
@@ -302,9 +302,21 @@ def _with_champions(text: str, champions: list) -> str:
         return text
     lines = ["Model Registry: each experiment's chosen feedforward (lowest first `compare_metrics` value among its "
              "headline runs) is the version with alias `champion` of `<experiment>-feedforward`, the run's metrics "
-             "as version tags: " + "; ".join(f"`models:/{n}@champion` (version {v})" for _, (n, v) in got) + ".", ""]
+             "as version tags: " + "; ".join(f"`models:/{n}@champion` (version {v})" for _, (n, v) in got) + "."
+             + (" No logged feedforward model (no `export` stage), so none registered: "
+                + ", ".join(f"`{e}`" for e, c in champions if not c) + "." if len(got) < len(champions) else ""), ""]
     head, rest = text.split("\n## ", 1) if "\n## " in text else (text, "")
     return head.rstrip("\n") + "\n\n" + "\n".join(lines) + ("\n## " + rest if rest else "")
+
+
+def _champion_or_warn(experiment: str):
+    """:func:`champion`, or None with a warning when the registry refuses (the report is written anyway)."""
+    import mlflow
+    try:
+        return champion(experiment)
+    except mlflow.exceptions.MlflowException as exc:
+        print(f"warning: {experiment}: no champion registered: {exc}", flush=True)
+        return None
 
 
 def champion(experiment: str) -> tuple[str, str] | None:

@@ -358,8 +358,9 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None,
                 "config_hash": keys[names[-1]][:20],  # the last stage's key: same hash, same config
                 "run_key": str(cfg.run_name), "mlflow.note.content": note,
                 **{g: choice(cfg, g) for g in TAG_GROUPS if g in cfg}}
-        run = tracking.JobRun(str(cfg.experiment_name), name, tags,
-                              OmegaConf.to_container(cfg, resolve=True),
+        params = OmegaConf.to_container(cfg, resolve=True)
+        params.pop("description", None)   # the experiment's note, not a parameter of the run
+        run = tracking.JobRun(str(cfg.experiment_name), name, tags, params,
                               description=str(OmegaConf.select(cfg, "description", default="") or ""))
     results: dict[str, dict] = {}
     status = "FAILED"

@@ -175,3 +175,29 @@ def test_champion_is_registered_once_and_moves_to_a_better_run(store):
     # logged models are named after their run
     names = {m.name for ms in tracking.logged_models("b1_linear_motor").values() for m in ms}
     assert names == {"ff_newton-lm-newton-1e-06", "ff_direct-lm-direct-3e-06", "ff_analytic-lm-analytic-5e-07"}
+
+
+def test_report_keys_runs_by_run_key_and_reads_stores_made_before_it():
+    from stages.report import _identity
+    old = pd.DataFrame({"tags.mlflow.runName": ["linear_motor-equation-newton-s0"], "run_id": ["a"]})
+    assert _identity(old).equals(old)                       # no run_key tag: the name is the key
+    new = pd.DataFrame({"tags.mlflow.runName": ["newton·fwd·eq·L2 | linear_motor s0", "b1_linear_motor-sweep"],
+                        "tags.run_key": ["linear_motor-equation-newton-s0", np.nan], "run_id": ["a", "p"]})
+    got = _identity(new)
+    assert list(got["tags.mlflow.runName"]) == ["linear_motor-equation-newton-s0", "b1_linear_motor-sweep"]
+    assert list(got["tags.display_name"]) == list(new["tags.mlflow.runName"])
+
+
+def test_experiments_carry_kind_and_note_and_links_open_the_model_training_view(store):
+    from pipeline import tracking
+    run = tracking.JobRun("b1_linear_motor", "direct·inv·eq | linear_motor s0", {"mlflow.note.content": "this run"},
+                          {"seed": 0}, description="Compare direct with indirect.")
+    run.end()
+    exp = tracking.client().get_experiment_by_name("b1_linear_motor")
+    assert exp.tags[tracking.NOTE] == "Compare direct with indirect."
+    assert exp.tags["mlflow.experimentKind"] == "custom_model_development"
+    tracking.experiment_id("b1_linear_motor", "Compare, revised.")          # a changed description replaces it
+    assert tracking.client().get_experiment_by_name("b1_linear_motor").tags[tracking.NOTE] == "Compare, revised."
+    (line,) = tracking.experiment_links("http://h:1")
+    assert line.split()[-1] == (f"http://h:1/#/experiments/{exp.experiment_id}/runs?workflowType=machine_learning"
+                                "&orderByKey=attributes.run_name&orderByAsc=true")

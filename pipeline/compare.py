@@ -41,7 +41,7 @@ UNITLESS_SYSTEMS = ("arx_bias",)
 def display_metrics(metrics: list[tuple[str, float, int | None]], system: str) -> list[tuple[str, float, int | None]]:
     """Twins of the metrics in units that read in the MLflow UI, the unit in the name: tracking errors
     in metres ``evaluate/<ref>/mae`` → ``evaluate/<ref>/mae_um`` [µm] (also ``max_abs``, ``rms``,
-    ``max_abs_<phase>``), seconds per sample ``…/sample_seconds_<stat>`` → ``…/sample_us_<stat>`` [µs].
+    ``max_abs_<phase>``), seconds per sample ``…/sample_seconds_<stat>`` → ``…/sample_seconds_<stat>_us`` [µs].
     The SI metrics stay (the report reads them)."""
     out = []
     for k, v, step in metrics:
@@ -49,8 +49,8 @@ def display_metrics(metrics: list[tuple[str, float, int | None]], system: str) -
         if (k.startswith("evaluate/") and system not in UNITLESS_SYSTEMS
                 and (leaf in LENGTH_LEAVES or leaf.startswith("max_abs_"))):
             out.append((f"{k}_um", 1e6 * float(v), step))
-        elif "/sample_seconds_" in k:
-            out.append((k.replace("/sample_seconds_", "/sample_us_"), 1e6 * float(v), step))
+        elif "/sample_seconds_" in k:   # the name keeps "seconds": timings stay recognisable as timings
+            out.append((f"{k}_us", 1e6 * float(v), step))
     return out
 
 

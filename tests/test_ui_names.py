@@ -103,7 +103,7 @@ def test_display_twins_in_micrometres_and_microseconds():
          ("train/loss/restart0", 0.1, 3)]
     twins = dict((k, v) for k, v, _ in compare.display_metrics(m, "linear_motor"))
     assert twins == pytest.approx({"evaluate/v0.15/mae_um": 15.0, "evaluate/v0.15/max_abs_accel_um": 20.0,
-                                   "invert/v0.15/sample_us_median": 3.0})
+                                   "invert/v0.15/sample_seconds_median_us": 3.0})
     assert all(not k.endswith("_um") for k, _, _ in compare.display_metrics(m, "arx_bias"))   # not a length
 
 

@@ -2,6 +2,7 @@
 ``python -m pipeline export RUN_ID [--out DIR]`` (:mod:`pipeline.export.cli`)."""
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import time
@@ -11,6 +12,7 @@ import hydra
 from omegaconf import DictConfig
 
 from pipeline import interrupts, resources, runner
+from pipeline.tracking import VARYING_ENV
 from pipeline.runner import ConfigError, run_job, run_name_with_overrides
 
 
@@ -22,7 +24,7 @@ def _main(cfg: DictConfig) -> dict:
         hc = HydraConfig.get()
         cfg.run_name = run_name_with_overrides(cfg, hc.overrides.task, hc.sweeper.get("params"))
         t0 = time.perf_counter()
-        run_job(cfg)
+        run_job(cfg, varying=[k for k in os.environ.get(VARYING_ENV, "").split(",") if k])
         # the job's own time, waits for another job's identical entry left out (hydra/sweeper=queue
         # orders by it: the waiting job is short next time and runs after the one it waited for)
         return {"seconds": time.perf_counter() - t0 - runner.WAITED}

@@ -207,7 +207,8 @@ def stage_key(cfg: DictConfig, name: str, mod, upstream_keys: dict[str, str],
 
 
 #: overrides that do not change what a run computes or are already its experiment: not in its name
-_NAME_SKIP = ("experiment", "hydra", "stages", "paths", "report", "export", "run_name", "experiment_name")
+_NAME_SKIP = ("experiment", "hydra", "stages", "paths", "report", "export", "run_name", "experiment_name",
+              "description")
 
 
 def run_name_with_overrides(cfg: DictConfig, overrides: Iterable[str], fixed: dict | None = None) -> str:
@@ -217,15 +218,21 @@ def run_name_with_overrides(cfg: DictConfig, overrides: Iterable[str], fixed: di
     (``experiment=physics_linear_motor model=pgnn`` is not named like the physics run).
     ``fixed``: the experiment's own single-valued sweep parameters (one value for every job: a
     setting of the experiment, not a variation), left out."""
-    fixed = {k: re.sub(r"^choice\((.*)\)$", r"\1", str(v)) for k, v in (fixed or {}).items()}
-    fixed = {k: v for k, v in fixed.items() if "," not in v}
     node = cfg._get_node("run_name")
     template = str(node._value()) if node is not None else ""
+    sweep = {k: re.sub(r"^choice\((.*)\)$", r"\1", str(v)) for k, v in (fixed or {}).items()}
+    fixed = {k: v for k, v in sweep.items() if "," not in v}
+    # a group the experiment sweeps without naming it in its template (b1_linear_motor's regularizer):
+    # its first value is the experiment's headline setting and stays out of the key, so the headline
+    # runs keep the key (and summary.csv rows) they had before the sweep was added
+    headline = {k: v.split(",")[0].strip() for k, v in sweep.items()
+                if "," in v and "." not in k and "${" + k + "." not in template}
     extra = []
     for ov in overrides:
         key, sep, raw = ov.lstrip("+~").partition("=")
         key = key.replace("/", ".")
-        if not sep or key.split(".")[0] in _NAME_SKIP or fixed.get(ov.lstrip("+~").partition("=")[0]) == raw:
+        bare = ov.lstrip("+~").partition("=")[0]
+        if not sep or key.split(".")[0] in _NAME_SKIP or fixed.get(bare) == raw or headline.get(bare) == raw:
             continue
         if "${" + key + "}" in template or "${" + key + "." in template:   # the name shows it already
             continue
@@ -318,8 +325,24 @@ def plan(cfg: DictConfig, names: list[str], modules: dict) -> dict[str, str]:
 WAITED = 0.0
 
 
-def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, dict]:
-    """Run the selected stages of one job; returns every stage's result by name."""
+def display(cfg: DictConfig, varying: list[str] | None) -> tuple[str, str]:
+    """The run's display name and note (:mod:`pipeline.naming`): what ``varying`` (the keys its sweep
+    or command line varies) are for this job first, then the fixed settings."""
+    from pipeline import naming
+    values = {k: (choice(cfg, k) if k in TAG_GROUPS else _select(cfg, k)) for k in varying or []}
+    system = str(OmegaConf.select(cfg, "system.name", default="") or "")
+    name = naming.display_name(values, list(varying or []), system, int(cfg.seed), str(cfg.run_name),
+                               choice(cfg, "model") if "model" in cfg else "")
+    note = naming.run_note(name, list(varying or []), values, str(cfg.experiment_name),
+                           str(OmegaConf.select(cfg, "description", default="") or ""))
+    return name, note
+
+
+def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None,
+            varying: list[str] | None = None) -> dict[str, dict]:
+    """Run the selected stages of one job; returns every stage's result by name.  ``varying``: the
+    dotted keys this job's sweep varies (they lead its MLflow run name; ``cfg.run_name`` is its
+    ``run_key`` tag, the report's identity of the run)."""
     global WAITED
     WAITED = 0.0
     names, system, modules = validate(cfg)
@@ -330,11 +353,15 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None) -> dict[str, 
               file=sys.stderr, flush=True)
     own_run = run is None
     if own_run:
+        name, note = display(cfg, varying)
         tags = {"experiment": cfg.experiment_name, "stages": ",".join(names),
                 "config_hash": keys[names[-1]][:20],  # the last stage's key: same hash, same config
+                "run_key": str(cfg.run_name), "mlflow.note.content": note,
                 **{g: choice(cfg, g) for g in TAG_GROUPS if g in cfg}}
-        run = tracking.JobRun(str(cfg.experiment_name), str(cfg.run_name), tags,
-                              OmegaConf.to_container(cfg, resolve=True))
+        params = OmegaConf.to_container(cfg, resolve=True)
+        params.pop("description", None)   # the experiment's note, not a parameter of the run
+        run = tracking.JobRun(str(cfg.experiment_name), name, tags, params,
+                              description=str(OmegaConf.select(cfg, "description", default="") or ""))
     results: dict[str, dict] = {}
     status = "FAILED"
     try:
@@ -424,8 +451,11 @@ def _seed_everything(seed: int, stage: str) -> None:
 
 
 def _log_stage(run, name: str, record: dict, stage_dir: Path, hit: bool, cfg=None) -> None:
+    from pipeline.compare import display_metrics
     metrics = [tuple(m) for m in record["metrics"]]
     metrics.append((f"time/{name}_s", record["seconds"], None))
+    system = str(OmegaConf.select(cfg, "system.name", default="") or "") if cfg is not None else ""
+    metrics += display_metrics(metrics, system)   # µm, µs twins: the UI's charts read (issue 23)
     run.log_metrics(metrics)
     run.set_tags({**record["tags"], f"cache.{name}": "hit" if hit else "miss"})
     for fig in record["figures"]:

@@ -165,6 +165,8 @@ class Config:
     seed: int = spec(0, ge=0)
     experiment_name: str = spec("default", check=_name_rule, example="my_study")
     run_name: str = "default"
+    description: str = ""            # the experiment's MLflow note: what it compares, which tags/metrics to read
+    compare_metrics: list[str] = spec(["evaluate/*/mae"])   # metric globs of the sweep's comparison (issue 23)
     stages: list[str] = spec(["generate", "baseline", "train", "invert", "evaluate"], min_len=1,
                              check=_stages_rule, example=["generate", "baseline"],
                              rule=f"give a non-empty list of stages from {list(ORDER)}")

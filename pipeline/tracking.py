@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import subprocess
 import time
 from pathlib import Path
@@ -27,6 +28,8 @@ from pipeline.cache import HOST, cache_dir, pid_alive, remove_stale_temporaries
 
 ROOT = Path(__file__).resolve().parent.parent
 PARENT_ENV = "PIPELINE_PARENT_RUN_ID"
+#: the keys a job's sweep varies (comma-separated; they lead its run name, pipeline/naming.py)
+VARYING_ENV = "PIPELINE_SWEEP_VARYING"
 #: MLflow 3 opens experiments on the GenAI page unless they carry this tag (DESIGN).
 EXPERIMENT_KIND = {"mlflow.experimentKind": "custom_model_development"}
 #: a job run by SLURM (hydra/launcher=slurm) names its SLURM job in these run tags
@@ -79,11 +82,26 @@ def client() -> MlflowClient:
     return c
 
 
-def experiment_id(name: str) -> str:
-    """Get or create the experiment ``name`` (artifacts beside the SQLite store)."""
+#: MLflow's description of an experiment or run (the UI's "Description" / note)
+NOTE = "mlflow.note.content"
+#: MLflow 3.x's UI opens on a global workflow type kept in the browser (default GenAI) and ignores the
+#: experiment's kind tag; this query of an experiment's runs page switches it to "Model training", and
+#: sorting by run name lists a sweep's children flat (MLflow nests them under the parent only when sorted
+#: by start time), grouped by what their names lead with (README, Browse and compare)
+ML_VIEW = "workflowType=machine_learning&orderByKey=attributes.run_name&orderByAsc=true"
+
+
+def experiment_id(name: str, description: str = "") -> str:
+    """Get or create the experiment ``name`` (artifacts beside the SQLite store); ``description``
+    (what the experiment compares, where to look) becomes its MLflow note when given."""
     c = client()
     exp = c.get_experiment_by_name(name)
     if exp is not None:
+        if description and exp.tags.get(NOTE) != description:
+            c.set_experiment_tag(exp.experiment_id, NOTE, description)
+        for k, v in EXPERIMENT_KIND.items():
+            if exp.tags.get(k) != v:   # an experiment made before the tag (e.g. by MLflow itself)
+                c.set_experiment_tag(exp.experiment_id, k, v)
         return exp.experiment_id
     location = None
     uri = tracking_uri()
@@ -94,8 +112,9 @@ def experiment_id(name: str) -> str:
             raise ValueError(f"experiment name {name!r} would put artifacts outside {root}; "
                              "use letters, digits, '.', '_' and '-'")
         location = folder.as_uri()
+    tags = {**EXPERIMENT_KIND, **({NOTE: description} if description else {})}
     try:
-        return c.create_experiment(name, artifact_location=location, tags=EXPERIMENT_KIND)
+        return c.create_experiment(name, artifact_location=location, tags=tags)
     except mlflow.exceptions.MlflowException:  # created meanwhile by another process
         return c.get_experiment_by_name(name).experiment_id
 
@@ -127,9 +146,9 @@ class JobRun:
     """One MLflow run for one pipeline job; batches what the stages record."""
 
     def __init__(self, experiment: str, run_name: str, tags: Mapping[str, str],
-                 params: Mapping[str, Any]):
+                 params: Mapping[str, Any], description: str = ""):
         self.client = client()
-        exp_id = experiment_id(experiment)
+        exp_id = experiment_id(experiment, description)
         mark_dead_runs_killed(exp_id)
         all_tags = {"git_sha": git_sha(), "host": _host(), "pid": str(os.getpid()),
                     **slurm_tags(), **{k: str(v) for k, v in tags.items()}}
@@ -204,11 +223,19 @@ class JobRun:
                     raise
                 time.sleep(0.2 * (attempt + 1))
 
+    def model_name(self, package: str) -> str:
+        """The logged model's name: the package and the run's key (``ff_newton-linear_motor-equation-newton-s0``),
+        so the experiment's models tab tells the runs' models apart (issue 23)."""
+        tags = self.client.get_run(self.run_id).data.tags
+        key = re.sub(r"[^A-Za-z0-9_-]+", "_",   # MLflow refuses / : . % " ' in a model name
+                      tags.get("run_key") or tags.get("mlflow.runName") or "").strip("_")
+        return f"{package}-{key}"[:200] if key else package
+
     def log_feedforward_model(self, name: str, law_dir: Path, example_csv: Path,
                               register_as: str | None = None) -> str:
-        """Log an exported feedforward (``pipeline.export``) as an MLflow pyfunc model ``name`` of
-        this run (``runs:/<run id>/<name>``), with signature and input example; register it as
-        ``register_as`` with the run's evaluation metrics as tags.  Returns the model URI."""
+        """Log an exported feedforward (``pipeline.export``) as an MLflow pyfunc model of this run
+        named :meth:`model_name` (``runs:/<run id>/<that name>``), with signature and input example;
+        register it as ``register_as`` with the run's evaluation metrics as tags.  Returns the model URI."""
         import warnings
 
         import mlflow.pyfunc
@@ -220,6 +247,7 @@ class JobRun:
         r = read_column(example_csv)
         sig, example = signature(law, r if law.family == "table" else r[:200])
         status = self.client.get_run(self.run_id).info.status
+        name = self.model_name(name)
         with warnings.catch_warnings():   # MLflow's notes on environment capture and example conversion
             warnings.simplefilter("ignore")
             with mlflow.start_run(run_id=self.run_id):
@@ -274,8 +302,62 @@ def experiment_links(base_url: str = "http://127.0.0.1:5000") -> list[str]:
     for exp in c.search_experiments(order_by=["name ASC"]):
         n = len(c.search_runs([exp.experiment_id], max_results=1000))
         if n:
-            lines.append(f"  {exp.name:<24} {n:>4} runs  {base_url}/#/experiments/{exp.experiment_id}")
+            lines.append(f"  {exp.name:<24} {n:>4} runs  {base_url}/#/experiments/{exp.experiment_id}/runs?{ML_VIEW}")
     return lines
+
+
+#: the alias of each experiment's chosen feedforward in the Model Registry (issue 23)
+CHAMPION = "champion"
+
+
+def logged_models(experiment: str) -> dict[str, list]:
+    """{run id: its logged models (MLflow 3 ``LoggedModel``)} of ``experiment``."""
+    c = client()
+    exp = c.get_experiment_by_name(experiment)
+    out: dict[str, list] = {}
+    if exp is None:
+        return out
+    token = None
+    while True:
+        page = c.search_logged_models(experiment_ids=[exp.experiment_id], page_token=token, max_results=100)
+        for m in page:
+            if m.source_run_id:
+                out.setdefault(m.source_run_id, []).append(m)
+        token = page.token
+        if not token:
+            return out
+
+
+def register_champion(experiment: str, run_id: str, model, metric: str, tags: Mapping[str, Any],
+                      description: str = "") -> tuple[str, str]:
+    """Register ``model`` (a logged model of run ``run_id``) as a version of ``<experiment>-feedforward``
+    with alias ``champion`` and ``tags`` (the run's metrics, its names) as version tags; a champion that
+    is already this model is kept (no new version). Returns (registered name, version)."""
+    c = client()
+    name = f"{experiment}-feedforward"
+    try:
+        c.get_registered_model(name)
+    except mlflow.exceptions.MlflowException:
+        try:
+            c.create_registered_model(name, description=description or None)
+        except mlflow.exceptions.MlflowException:   # created meanwhile
+            pass
+    try:
+        current = c.get_model_version_by_alias(name, CHAMPION)
+    except mlflow.exceptions.MlflowException:
+        current = None
+    if current is not None and current.run_id == run_id and current.source == f"models:/{model.model_id}":
+        version = current.version
+    else:
+        version = c.create_model_version(name, source=f"models:/{model.model_id}", run_id=run_id,
+                                         model_id=model.model_id,
+                                         description=f"Best of `{experiment}` by `{metric}` (lowest).").version
+        c.set_registered_model_alias(name, CHAMPION, version)
+    for k, v in tags.items():
+        c.set_model_version_tag(name, version, k, str(v))
+    if description:
+        c.update_registered_model(name, description=description)
+    return name, str(version)
 
 
 def search_runs(experiment: str):
@@ -287,6 +369,40 @@ def search_runs(experiment: str):
         return pd.DataFrame()
     return mlflow.search_runs([exp.experiment_id], filter_string="attributes.status = 'FINISHED'",
                               order_by=["attributes.start_time DESC"])
+
+
+def children(run_id: str):
+    """The finished child runs of the sweep parent ``run_id`` (MLflow's ``search_runs`` frame)."""
+    exp = client().get_run(run_id).info.experiment_id
+    return mlflow.search_runs([exp], filter_string=f"tags.mlflow.parentRunId = '{run_id}' and "
+                                                   "attributes.status = 'FINISHED'", max_results=10000)
+
+
+def log_comparison(run_id: str, patterns: list[str], title: str = ""):
+    """Log on the sweep parent ``run_id`` its children compared (:mod:`pipeline.compare`): artifacts
+    ``compare/comparison.csv``, ``.md`` and ``.png``; returns (table, findings), None if no children."""
+    import shutil
+    import tempfile
+
+    from pipeline import compare
+    kids = children(run_id)
+    if kids.empty:
+        return None
+    table, findings = compare.comparison(kids, patterns)
+    folder = Path(tempfile.mkdtemp(prefix="pgnn-compare-"))
+    try:
+        table.to_csv(folder / "comparison.csv", index=False)
+        (folder / "comparison.md").write_text(compare.markdown(table, findings))
+        compare.figure(table, folder / "comparison.png", title)
+        c = client()
+        for f in sorted(folder.iterdir()):
+            c.log_artifact(run_id, str(f), "compare")   # MLflow writes each through a temporary file
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    if findings:
+        note = c.get_run(run_id).data.tags.get(NOTE, "")
+        c.set_tag(run_id, NOTE, note + "\n\nFindings:\n\n" + "\n".join(f"- {x}" for x in findings))
+    return table, findings
 
 
 try:  # the Hydra callback lives here so that tracking stays in one module
@@ -316,7 +432,15 @@ try:  # the Hydra callback lives here so that tracking stays in one module
         def __init__(self) -> None:
             self.failed = 0
             self.parents: dict[str, str] = {}     # sweep (experiment file) -> parent run id
+            self.meta: dict[str, dict] = {}       # parent run id -> description, comparison metrics
+            self.varying: dict[str, str] = {}     # sweep -> the keys it varies (VARYING_ENV)
             self.cache = ""
+
+        def _describe(self, config) -> dict:
+            """What the parent's comparison needs from its sweep's config."""
+            return {"description": str(OmegaConf.select(config, "description", default="") or ""),
+                    "patterns": list(OmegaConf.select(config, "compare_metrics", default=None) or ["evaluate/*/mae"]),
+                    "experiment": str(config.experiment_name)}
 
         def on_multirun_start(self, config, **kwargs) -> None:
             import atexit
@@ -326,10 +450,20 @@ try:  # the Hydra callback lives here so that tracking stays in one module
                 return                        # the queue itself: it announces each experiment's sweep
             c = client()
             name = str(config.experiment_name)
-            run = c.create_run(experiment_id(name), run_name=f"{choice or name}-sweep",   # one name per sweep file
-                               tags={"git_sha": git_sha(), "experiment": name, "sweep": "parent"})
+            meta = self._describe(config)
+            note = (f"**Sweep `{choice or name}`**: its jobs are this run's children. Comparison of the children "
+                    "by the factors they vary: artifacts `compare/comparison.png`, `.md`, `.csv` (written when "
+                    "the sweep ends).\n\n" + meta["description"])
+            run = c.create_run(experiment_id(name, meta["description"]), run_name=f"{choice or name}-sweep",
+                               tags={"git_sha": git_sha(), "experiment": name, "sweep": "parent",
+                                     NOTE: note})   # one name per sweep file
             if not self.parents:
                 atexit.register(self._close, "FAILED")
+            self.meta[run.info.run_id] = meta
+            from pipeline.naming import varying_keys
+            self.varying[_sweep_key(config)] = ",".join(varying_keys(
+                OmegaConf.select(config, "hydra.sweeper.params", default=None),
+                OmegaConf.select(config, "hydra.overrides.task", default=None) or ()))
             self.parents[_sweep_key(config)] = run.info.run_id
             os.environ[PARENT_ENV] = run.info.run_id
             interrupts.on_abort(("run", run.info.run_id), lambda: self._close("KILLED"))
@@ -349,6 +483,9 @@ try:  # the Hydra callback lives here so that tracking stays in one module
                 os.environ[PARENT_ENV] = parent
             else:                             # a single-job experiment of the queue: no parent
                 os.environ.pop(PARENT_ENV, None)
+            varying = self.varying.get(_sweep_key(config)) or \
+                (next(iter(self.varying.values()), "") if len(self.varying) == 1 and not queue else "")
+            os.environ[VARYING_ENV] = varying
 
         def on_job_end(self, config, job_return, **kwargs) -> None:
             from hydra.core.utils import JobStatus
@@ -359,6 +496,7 @@ try:  # the Hydra callback lives here so that tracking stays in one module
             for name, run_id in list(self.parents.items()):
                 self._close_one(name, "FAILED" if self.failed or self._unfinished_children(run_id) else "FINISHED")
             os.environ.pop(PARENT_ENV, None)
+            os.environ.pop(VARYING_ENV, None)
 
         def _unfinished_children(self, run_id: str) -> int:
             """Children not FINISHED (parallel launchers report job ends in their workers)."""
@@ -378,6 +516,13 @@ try:  # the Hydra callback lives here so that tracking stays in one module
                 return
             interrupts.discard(("run", run_id))
             c = client()
+            meta = self.meta.get(run_id)
+            if meta and interrupts.received() is None:
+                try:   # the children side by side; a failure here must not hide the sweep's own status
+                    log_comparison(run_id, meta["patterns"], meta["experiment"] if name == meta["experiment"]
+                                   else f"{meta['experiment']}: {name}")
+                except Exception as exc:  # noqa: BLE001
+                    print(f"warning: no comparison logged on the sweep's parent run {run_id}: {exc}", flush=True)
             if status != "FINISHED":   # a worker SIGKILLed (OOM) leaves its child RUNNING: not for long
                 mark_dead_runs_killed(c.get_run(run_id).info.experiment_id)
             if status != "FINISHED" and interrupts.received() is not None:   # Ctrl-C / kill

@@ -233,7 +233,7 @@ def test_export_stage_logs_a_verified_package_and_a_pyfunc_model(invert, noise, 
     assert run["metrics.export/max_rel_diff"] <= 1e-9
     files = {a.path for a in tracking.client().list_artifacts(run["run_id"], f"export/{name}")}
     assert {f"export/{name}/{name}.c", f"export/{name}/{name}.h", f"export/{name}/manifest.json"} <= files
-    model = mlflow.pyfunc.load_model(f"runs:/{run['run_id']}/{name}")
+    model = mlflow.pyfunc.load_model(f"runs:/{run['run_id']}/{name}-{run['tags.run_key']}")
     u_py = model.predict(pd.DataFrame({"r": res["invert"]["r"]["v0.15"]}))["u_ff"].to_numpy()
     assert np.max(np.abs(u_py - u_study)) <= 1e-9 * np.max(np.abs(u_study))
     assert run["status"] == "FINISHED"
@@ -255,7 +255,8 @@ def test_mlflow_models_predict_and_the_export_cli(store, cfg_of, tmp_path):
     r = res["invert"]["r"]["v0.15"]
     pd.DataFrame({"r": r}).to_csv(tmp_path / "ref.csv", index=False)
     mlflow_cli = str(__import__("pathlib").Path(sys.executable).parent / "mlflow")
-    out = subprocess.run([mlflow_cli, "models", "predict", "-m", f"runs:/{run_id}/ff_analytic", "-i",
+    key = tracking.search_runs("b1_linear_motor").iloc[0]["tags.run_key"]
+    out = subprocess.run([mlflow_cli, "models", "predict", "-m", f"runs:/{run_id}/ff_analytic-{key}", "-i",
                           str(tmp_path / "ref.csv"), "-t", "csv", "--env-manager", "local",
                           "-o", str(tmp_path / "pred.json")], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]

@@ -134,6 +134,12 @@ def test_queue_gives_each_swept_experiment_its_parent_and_the_same_runs(store):
     assert c.get_run(parents["run_id"].iloc[0]).info.status == "FINISHED"
     kids = runs[runs["tags.mlflow.parentRunId"] == parents["run_id"].iloc[0]]
     assert len(kids) == 4 and set(kids["status"]) == {"FINISHED"}
-    assert all(n.startswith("rot_trans_nmp-il_fhofc-linear_") for n in kids["tags.mlflow.runName"])
+    assert all(n.startswith("rot_trans_nmp-il_fhofc-linear_") for n in kids["tags.run_key"])
+    # the parent's comparison of its children (issue 23), logged when the queue ended its sweep
+    arts = {a.path for a in c.list_artifacts(parents["run_id"].iloc[0], "compare")}
+    assert arts == {"compare/comparison.csv", "compare/comparison.md", "compare/comparison.png"}
+    # the MLflow names lead with what the sweep varies (issue 23): trial noise, then θ*
+    assert set(kids["tags.mlflow.runName"]) == {f"{a}·θ*{b} | rot_trans_nmp s0"
+                                                for a in ("trialnoise", "noiseless") for b in ("arx", "oracle")}
     single = runs[runs["tags.mlflow.runName"] == "arx_bias-physics-s0"]
     assert len(single) == 1 and single["tags.sweep"].iloc[0] == "single"

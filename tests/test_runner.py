@@ -429,10 +429,13 @@ def test_no_two_configs_of_a_sweep_share_a_run_name(store):
     runs = tracking.search_runs("physics_baseline")
     runs = runs[runs["tags.sweep"] == "child"]
     assert len(runs) == 4
-    assert runs["tags.mlflow.runName"].nunique() == 4
-    assert (runs.groupby("tags.mlflow.runName")["tags.config_hash"].nunique() == 1).all()
+    assert runs["tags.mlflow.runName"].nunique() == 4 and runs["tags.run_key"].nunique() == 4
+    assert (runs.groupby("tags.run_key")["tags.config_hash"].nunique() == 1).all()
     assert any(n.startswith("two_mass_stribeck-physics-s1-data.references=") and n.endswith("-noise.std=1e-07")
-               for n in runs["tags.mlflow.runName"])
+               for n in runs["tags.run_key"])
+    # the MLflow name leads with what the command line sweeps (issue 23)
+    assert set(runs["tags.mlflow.runName"]) == {f"σ{sg}·s{seed} | two_mass_stribeck" for sg in ("0", "1e-7")
+                                                for seed in (0, 1)}
 
 
 def test_a_short_or_empty_cache_key_is_refused_and_a_new_key_is_whole(tmp_path, monkeypatch, cfg_of):

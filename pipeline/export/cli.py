@@ -121,7 +121,9 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
         man = packages[name]
         c = f"C max|Δu|/max|u| = {man['c_max_rel_diff']:.2g}, {man['c_ns_per_sample']:.0f} ns/sample" \
             if man["compiled"] else "C not compiled (no compiler)"
-        print(f"{final}: {man['law']} ({c}); MLflow model runs:/{run_id}/{name}")
+        from pipeline import tracking
+        model = tracking.JobRun.resume(run_id).model_name(name)
+        print(f"{final}: {man['law']} ({c}); MLflow model runs:/{run_id}/{model}")
     return packages
 
 

@@ -65,7 +65,7 @@ def providers() -> dict[str, object]:
 def latest_runs(experiment: str) -> tuple[pd.DataFrame, list[str]]:
     """Latest finished run per run name (sweep parents excluded), and the run names whose
     finished runs carry more than one config hash (the report uses the latest; say so)."""
-    df = tracking.search_runs(experiment)
+    df = _identity(tracking.search_runs(experiment))
     if df.empty:
         return df, []
     if "tags.sweep" in df:
@@ -75,6 +75,32 @@ def latest_runs(experiment: str) -> tuple[pd.DataFrame, list[str]]:
         n = df.groupby("tags.mlflow.runName")["tags.config_hash"].nunique()
         mixed = sorted(n[n > 1].index)
     return df.drop_duplicates("tags.mlflow.runName", keep="first").reset_index(drop=True), mixed
+
+
+def _identity(df: pd.DataFrame) -> pd.DataFrame:
+    """Runs keyed by their ``run_key`` tag (the stable name; issue 23), their MLflow run name kept as
+    ``tags.display_name``: the sections and summary.csv keys read ``tags.mlflow.runName`` as before.
+    Runs made before the tag keep their MLflow name as key."""
+    if df.empty or "tags.run_key" not in df:
+        return df
+    df = df.copy()
+    df["tags.display_name"] = df["tags.mlflow.runName"]
+    df["tags.mlflow.runName"] = df["tags.run_key"].where(df["tags.run_key"].notna(), df["tags.mlflow.runName"])
+    return df
+
+
+#: side studies inside an experiment, reported beside its claims but not in them (their own rows):
+#: experiment -> (column, value) of the side runs
+SIDE = {"b1_linear_motor": ("tags.regularizer", "none")}
+
+
+def split_side(experiment: str, runs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(headline runs, side-study runs) of an experiment (:data:`SIDE`)."""
+    col, val = SIDE.get(experiment, (None, None))
+    if col is None or runs.empty or col not in runs:
+        return runs, runs.iloc[0:0]
+    side = runs[col].astype(object) == val
+    return runs[~side].reset_index(drop=True), runs[side].reset_index(drop=True)
 
 
 def _fmt_holds(v) -> str:
@@ -93,6 +119,7 @@ def run(ctx) -> dict:
             table, text = _merge(results, table, text, built, figdir)
         _write(results / "summary.csv", lambda p: table.to_csv(p, index=False))
         text = _with_checks(text, results)
+        text = _with_champions(text, [(e, _champion_or_warn(e)) for e in built])
         old = Path(tempfile.mkdtemp(prefix=".figures-old-", dir=results))
         if (results / "figures").exists():
             os.replace(results / "figures", old / "figures")
@@ -162,9 +189,15 @@ def _build(cfg, figdir: Path, skip_empty: bool = False) -> tuple[pd.DataFrame, s
                             f"({tracking.tracking_uri()}); run `make reproduce`.\n")
             continue
         mod = provs.get(str(exp)) or importlib.import_module("stages.report.generic")
+        every = runs
+        runs, side = split_side(str(exp), runs)
         r, md = mod.section(str(exp), runs, figdir)
         rows += r
-        for extra in (_stop_reasons(str(exp), runs), _exports(str(exp), runs)):
+        if not side.empty and hasattr(mod, "side_section"):
+            r, extra = mod.side_section(str(exp), runs, side, figdir)
+            rows += r
+            md += extra
+        for extra in (_stop_reasons(str(exp), runs), _exports(str(exp), every), _comparison(str(exp), every, figdir)):
             if extra:
                 rows += extra[0]
                 md += extra[1]
@@ -234,6 +267,7 @@ def _ship(dest: Path, which: tuple[str, str, str]) -> None:
     try:
         got = tmp / "export"
         got.mkdir()
+        runs, _ = split_side(which[0], runs)   # the headline runs' packages (one per package name)
         for _, r in runs[runs[col].notna() & runs["tags.mlflow.runName"].str.contains(which[1])].iterrows():
             for a in tracking.client().list_artifacts(r["run_id"], "export"):
                 if a.is_dir:   # downloaded as got/<package>
@@ -258,6 +292,97 @@ def _ship(dest: Path, which: tuple[str, str, str]) -> None:
         shutil.rmtree(old, ignore_errors=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _with_champions(text: str, champions: list) -> str:
+    """REPORT.md with the Model Registry's champions (one per experiment with a logged feedforward) in
+    its header: `models:/<name>@champion` serves it (README: Browse and compare)."""
+    got = [(e, c) for e, c in champions if c]
+    if not got:
+        return text
+    lines = ["Model Registry: each experiment's chosen feedforward (lowest first `compare_metrics` value among its "
+             "headline runs) is the version with alias `champion` of `<experiment>-feedforward`, the run's metrics "
+             "as version tags: " + "; ".join(f"`models:/{n}@champion` (version {v})" for _, (n, v) in got) + "."
+             + (" No logged feedforward model (no `export` stage), so none registered: "
+                + ", ".join(f"`{e}`" for e, c in champions if not c) + "." if len(got) < len(champions) else ""), ""]
+    head, rest = text.split("\n## ", 1) if "\n## " in text else (text, "")
+    return head.rstrip("\n") + "\n\n" + "\n".join(lines) + ("\n## " + rest if rest else "")
+
+
+def _champion_or_warn(experiment: str):
+    """:func:`champion`, or None with a warning when the registry refuses (the report is written anyway)."""
+    import mlflow
+    try:
+        return champion(experiment)
+    except mlflow.exceptions.MlflowException as exc:
+        print(f"warning: {experiment}: no champion registered: {exc}", flush=True)
+        return None
+
+
+def champion(experiment: str) -> tuple[str, str] | None:
+    """Register the experiment's chosen feedforward (issue 23): among its headline runs with a logged
+    model, the lowest value of the first metric of its ``compare_metrics``; the model whose name holds
+    the run's inversion (else its first). Alias ``champion``; the run's metrics as version tags."""
+    from pipeline import compare
+    runs, _ = split_side(experiment, latest_runs(experiment)[0])
+    models = tracking.logged_models(experiment)
+    runs = runs[runs["run_id"].isin(models)] if not runs.empty else runs
+    if runs.empty:
+        return None
+    cols = [c for c in compare.metric_columns(runs, compare_patterns(runs)) if runs[c].notna().any()]
+    if not cols:
+        return None
+    metric = cols[0].removeprefix("metrics.").removesuffix("_um")
+    col = f"metrics.{metric}" if f"metrics.{metric}" in runs else cols[0]
+    best = runs.loc[runs[col].astype(float).idxmin()]
+    mods = sorted(models[best["run_id"]], key=lambda m: m.name)
+    model = next((m for m in mods if str(best.get("tags.invert", "")) in m.name), mods[0])
+    tags = {k[len("metrics."):]: f"{float(v):.6g}" for k, v in best.items()
+            if k.startswith("metrics.evaluate/") and pd.notna(v)
+            and k.rsplit("/", 1)[-1] in ("mae", "max_abs", "rms", "mae_um", "max_abs_um", "rms_um", "sq_norm2")}
+    tags |= {"run_id": best["run_id"], "run_key": best["tags.mlflow.runName"], "chosen_by": f"min {metric}",
+             "run_name": best.get("tags.display_name", best["tags.mlflow.runName"])}
+    desc = tracking.client().get_experiment_by_name(experiment).tags.get(tracking.NOTE, "")
+    return tracking.register_champion(experiment, best["run_id"], model, metric, tags, desc)
+
+
+def compare_patterns(runs: pd.DataFrame) -> list[str]:
+    """The experiment's ``compare_metrics`` as its runs logged them (a param), else every ``evaluate/*/mae``."""
+    import ast
+    col = "params.compare_metrics"
+    vals = runs[col].dropna() if col in runs else []
+    for v in vals:
+        try:
+            got = ast.literal_eval(str(v))
+        except (ValueError, SyntaxError):
+            continue
+        if isinstance(got, list) and got:
+            return [str(x) for x in got]
+    return ["evaluate/*/mae"]
+
+
+def _comparison(experiment: str, runs: pd.DataFrame, figdir: Path):
+    """summary rows (none) and a REPORT.md part: the sweep's runs side by side by the factors they vary,
+    the sweep parents' ``compare/`` artifacts computed again from the runs reported here (issue 23)."""
+    from pipeline import compare
+    if runs.empty or "tags.mlflow.parentRunId" not in runs or runs["tags.mlflow.parentRunId"].isna().all():
+        return None
+    swept = runs[runs["tags.mlflow.parentRunId"].notna()].copy()
+    if len(swept) < 2:
+        return None
+    if "tags.display_name" in swept:
+        swept["tags.mlflow.runName"] = swept["tags.display_name"].where(swept["tags.display_name"].notna(),
+                                                                        swept["tags.mlflow.runName"])
+    table, findings = compare.comparison(swept, compare_patterns(swept))
+    if table.empty or len(table.columns) < 2:
+        return None
+    fig = compare.figure(table, figdir / f"{experiment}-comparison.png", f"{experiment}: runs side by side")
+    md = ["", "", f"### Comparison of the {len(table)} swept runs (the sweep parent's `compare/` artifacts)", "",
+          "Every run by the factors its sweep varies, metrics in the units of the name (`_um`: µm); "
+          "the MLflow run names lead with the same factors.", "", compare.markdown(table, findings)]
+    if fig is not None:
+        md += [f"![comparison]({'figures/' + fig.name})", ""]
+    return [], "\n".join(md)
 
 
 def _stop_reasons(experiment: str, runs: pd.DataFrame):

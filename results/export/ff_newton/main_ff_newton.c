@@ -1,12 +1,19 @@
 /* main_ff_newton.c: test harness of ff_newton. Reads a reference (CSV, one value per line, header
- * lines before the first number skipped; any other line that is not exactly one number is an error),
- * writes u_ff (header "u_ff", one value per line, %.17g) to stdout and the number
- * of flagged samples to stderr. With --time R: runs the whole reference R times and prints the
- * median wall time per sample to stderr ("ns_per_sample=...").
+ * lines before the first number skipped; any other line that is not exactly one number is an error;
+ * nan/inf are read as such and go to the guard), writes u_ff (header "u_ff", one value per line,
+ * %.17g) to stdout and the number of flagged samples to stderr.
+ *   --flags      writes "u_ff,flags" (flags: the status bits of each sample)
+ *   --time R     also runs the whole reference R times and prints the median wall time per sample
+ *                to stderr ("ns_per_sample=...")
+ *   --check V    the test vectors V (vectors_*.csv: r,u_ff,flags per line): runs r, compares u_ff to
+ *                |du| <= TOL * max|u_ff| (TOL = 1e-09) and the flags exactly; exit 0 if all
+ *                agree, 1 otherwise (the first mismatch on stderr)
  *   cc -std=c99 -O2 -Wall -Wextra -Werror -o main_ff_newton main_ff_newton.c ff_newton.c -lm
- *   ./main_ff_newton r_v0_05.csv > u_ff_c.csv */
+ *   ./main_ff_newton r_v0_05.csv > u_ff_c.csv
+ *   ./main_ff_newton --check vectors_normal.csv && echo ok */
 #define _POSIX_C_SOURCE 199309L
 #include <errno.h>
+#include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -14,20 +21,24 @@
 #include "ff_newton.h"
 
 #define LINE_MAX_BYTES 4096
+#define CHECK_TOL 1e-09
+#define CHECK_FLAGS 1   /* 0 in the float variant: its flags may differ at a boundary */
 
-static double *read_column(const char *path, long *n)
-{   /* one number per line; lines before the first number are a header; anything else is an error
-     * (a `t,r` CSV, a line cut by the buffer, text amid the data): never a silently wrong sample */
+static double *read_columns(const char *path, int ncol, long *n)
+{   /* ncol numbers per line (comma separated); lines before the first number are a header; anything
+     * else is an error (a `t,r` CSV, a line cut by the buffer, text amid the data): never a silently
+     * wrong sample. Returns n rows of ncol values, row-major. */
     FILE *f = fopen(path, "r");
     char line[LINE_MAX_BYTES];
     long cap = 4096, lineno = 0;
     double *r, *grown;
     if (!f) { fprintf(stderr, "error: cannot open %s\n", path); return NULL; }
-    r = malloc((size_t)cap * sizeof *r);
+    r = malloc((size_t)cap * (size_t)ncol * sizeof *r);
     *n = 0;
     while (r && fgets(line, sizeof line, f)) {
         char *end, *p;
-        double v;
+        double v[3];
+        int c;
         ++lineno;
         if (!strchr(line, '\n') && !feof(f)) {
             fprintf(stderr, "error: %s line %ld is longer than %d bytes\n", path, lineno, LINE_MAX_BYTES - 2);
@@ -35,47 +46,83 @@ static double *read_column(const char *path, long *n)
         }
         for (p = line; *p == ' ' || *p == '\t'; ++p) {}
         if (*p == '\n' || *p == '\r' || *p == '\0') continue;            /* empty line */
-        v = strtod(p, &end);
-        if (end == p) {
-            if (*n == 0) continue;                                       /* header */
-            fprintf(stderr, "error: %s line %ld is not a number\n", path, lineno);
+        for (c = 0; c < ncol; ++c) {
+            v[c] = strtod(p, &end);
+            if (end == p) break;
+            p = end;
+            if (c < ncol - 1) {
+                if (*p != ',') { end = p; c = -1; break; }
+                ++p;
+            }
+        }
+        if (c == 0 && *n == 0) continue;                                 /* header */
+        if (c != ncol) {
+            fprintf(stderr, "error: %s line %ld is not %s\n", path, lineno, ncol == 1 ? "a number" : "r,u_ff,flags");
             free(r); fclose(f); return NULL;
         }
-        for (p = end; *p == ' ' || *p == '\t' || *p == '\r' || *p == '\n'; ++p) {}
+        for (; *p == ' ' || *p == '\t' || *p == '\r' || *p == '\n'; ++p) {}
         if (*p != '\0') {
-            fprintf(stderr, "error: %s line %ld holds more than one value: give the reference r as one "
-                    "column (as r_<reference>.csv)\n", path, lineno);
+            fprintf(stderr, "error: %s line %ld holds more than %s: give the reference r as one "
+                    "column (as r_<reference>.csv)\n", path, lineno, ncol == 1 ? "one value" : "three values");
             free(r); fclose(f); return NULL;
         }
         if (*n == cap) {
             cap *= 2;
-            grown = realloc(r, (size_t)cap * sizeof *r);
+            grown = realloc(r, (size_t)cap * (size_t)ncol * sizeof *r);
             if (!grown) { free(r); r = NULL; break; }
             r = grown;
         }
-        r[(*n)++] = v;
+        for (c = 0; c < ncol; ++c) r[*n * ncol + c] = v[c];
+        (*n)++;
     }
     fclose(f);
     if (!r) fprintf(stderr, "error: out of memory reading %s\n", path);
     return r;
 }
 
-static double run(const double *r, long n, double *u)
-{   /* the reference sample by sample, as a real-time loop feeds it; returns Σ u */
-    ff_newton_state s;
-    double rp[FF_NEWTON_PREVIEW + 1], sum = 0.0;
+static double run(const double *r, long n, long stride, double *u, int *flags)
+{   /* the reference sample by sample, as a real-time loop feeds it; returns the sum of u */
+    ff_newton_3cdbd4c8_state s;
+    ff_newton_3cdbd4c8_real rp[FF_NEWTON_3CDBD4C8_PREVIEW + 1];
+    double sum = 0.0;
     long t;
     int i;
-    ff_newton_init(&s, FF_NEWTON_REST_AT_ZERO ? 0.0 : r[0]);
+    ff_newton_3cdbd4c8_init(&s, (ff_newton_3cdbd4c8_real)(FF_NEWTON_3CDBD4C8_REST_AT_ZERO ? 0.0 : r[0]));
     for (t = 0; t < n; ++t) {
         double v;
-        for (i = 0; i <= FF_NEWTON_PREVIEW; ++i) rp[i] = r[t + i < n ? t + i : n - 1];
-        v = ff_newton_step(&s, rp);
+        for (i = 0; i <= FF_NEWTON_3CDBD4C8_PREVIEW; ++i) rp[i] = (ff_newton_3cdbd4c8_real)r[(t + i < n ? t + i : n - 1) * stride];
+        v = ff_newton_3cdbd4c8_step(&s, rp);
         if (u) u[t] = v;
+        if (flags) flags[t] = s.status;
         sum += v;
     }
     if (u) fprintf(stderr, "samples flagged: %llu of %ld\n", (unsigned long long)s.n_flagged, n);
     return sum;
+}
+
+static int check(const char *path)
+{   /* the test vectors: r, u_ff, flags per line */
+    long n, t;
+    double *v = read_columns(path, 3, &n), *u, scale = 0.0;
+    int *flags, bad = 0;
+    if (!v) return 1;
+    if (n == 0) { fprintf(stderr, "error: no vectors in %s\n", path); free(v); return 1; }
+    u = malloc((size_t)n * sizeof *u);
+    flags = malloc((size_t)n * sizeof *flags);
+    if (!u || !flags) { free(v); free(u); free(flags); return 1; }
+    run(v, n, 3, u, flags);
+    for (t = 0; t < n; ++t) scale = fabs(v[3 * t + 1]) > scale ? fabs(v[3 * t + 1]) : scale;
+    for (t = 0; t < n && !bad; ++t) {
+        const double want = v[3 * t + 1];
+        if (!(fabs(u[t] - want) <= CHECK_TOL * scale) || (CHECK_FLAGS && flags[t] != (int)v[3 * t + 2])) {
+            fprintf(stderr, "%s: sample %ld: u_ff %.17g flags %d, expected %.17g flags %d\n", path, t, u[t],
+                    flags[t], want, (int)v[3 * t + 2]);
+            bad = 1;
+        }
+    }
+    if (!bad) fprintf(stderr, "%s: %ld samples agree (u_ff to %g x max|u|, flags exactly)\n", path, n, CHECK_TOL);
+    free(v); free(u); free(flags);
+    return bad;
 }
 
 static int cmp(const void *a, const void *b)
@@ -88,7 +135,9 @@ int main(int argc, char **argv)
 {
     long n, t;
     double *r, *u;
+    int *flags = NULL, with_flags = 0;
     long R = 0;
+    if (argc == 3 && strcmp(argv[1], "--check") == 0) return check(argv[2]);
     if (argc == 4 && strcmp(argv[2], "--time") == 0) {     /* 1 <= R <= 10^6, a whole number */
         char *end;
         errno = 0;
@@ -97,27 +146,34 @@ int main(int argc, char **argv)
             fprintf(stderr, "error: --time needs a whole number of repeats in [1, 1000000], got %s\n", argv[3]);
             return 2;
         }
+    } else if (argc == 3 && strcmp(argv[2], "--flags") == 0) {
+        with_flags = 1;
     } else if (argc != 2) {
-        fprintf(stderr, "usage: %s REFERENCE.csv [--time REPEATS]\n", argv[0]);
+        fprintf(stderr, "usage: %s REFERENCE.csv [--time REPEATS | --flags] | %s --check VECTORS.csv\n",
+                argv[0], argv[0]);
         return 2;
     }
-    r = read_column(argv[1], &n);
+    r = read_columns(argv[1], 1, &n);
     if (!r) return 1;
-    if (n == 0) { fprintf(stderr, "error: no samples in %s\n", argv[1]); return 1; }
+    if (n == 0) { fprintf(stderr, "error: no samples in %s\n", argv[1]); free(r); return 1; }
     u = malloc((size_t)n * sizeof *u);
-    if (!u) return 1;
-    run(r, n, u);
-    printf("u_ff\n");
-    for (t = 0; t < n; ++t) printf("%.17g\n", u[t]);
+    if (with_flags) flags = malloc((size_t)n * sizeof *flags);
+    if (!u || (with_flags && !flags)) { free(r); free(u); free(flags); return 1; }
+    run(r, n, 1, u, flags);
+    printf(with_flags ? "u_ff,flags\n" : "u_ff\n");
+    for (t = 0; t < n; ++t) {
+        if (with_flags) printf("%.17g,%d\n", u[t], flags[t]);
+        else printf("%.17g\n", u[t]);
+    }
     if (R > 0) {
         long k;
         double *ns = malloc((size_t)R * sizeof *ns);
         volatile double sink = 0.0;
-        if (!ns) { fprintf(stderr, "error: out of memory for %ld timings\n", R); return 1; }
+        if (!ns) { fprintf(stderr, "error: out of memory for %ld timings\n", R); free(r); free(u); return 1; }
         for (k = 0; k < R; ++k) {
             struct timespec a, b;
             clock_gettime(CLOCK_MONOTONIC, &a);
-            sink += run(r, n, NULL);
+            sink += run(r, n, 1, NULL, NULL);
             clock_gettime(CLOCK_MONOTONIC, &b);
             ns[k] = ((double)(b.tv_sec - a.tv_sec) * 1e9 + (double)(b.tv_nsec - a.tv_nsec)) / (double)n;
         }
@@ -127,5 +183,6 @@ int main(int argc, char **argv)
     }
     free(r);
     free(u);
+    free(flags);
     return 0;
 }

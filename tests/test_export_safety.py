@@ -392,3 +392,27 @@ def test_an_overflowing_reference_falls_back_in_c_and_python(tmp_path):
     assert bad.size and np.all(f_py[bad] & FLAG["SINGULAR"])
     hold = u_py[bad[0] - 1]
     assert hold != 0.0 and np.all(u_py[bad] == hold) and np.all(np.isfinite(u_c))
+
+
+def test_the_report_counts_misra_findings_per_package():
+    """Issue 22 acceptance: the MISRA count is in the report (a column of the exported-feedforward table
+    and a summary row), n/a for a package built where cppcheck is not installed."""
+    import pandas as pd
+
+    from stages.report import _exports
+    runs = pd.DataFrame([
+        {"tags.mlflow.runName": "a-run", "metrics.export/max_rel_diff": 0.0,
+         "metrics.export/ff_newton/c_max_rel_diff": 0.0, "metrics.export/ff_newton/python_max_rel_diff": 0.0,
+         "metrics.export/ff_newton/misra_findings": 75.0, "metrics.export/ff_newton/flops": 700.0,
+         "metrics.export/ff_newton/parameters": 84.0},
+        {"tags.mlflow.runName": "b-run", "metrics.export/max_rel_diff": 0.0,
+         "metrics.export/ff_direct/c_max_rel_diff": 0.0, "metrics.export/ff_direct/python_max_rel_diff": 0.0,
+         "metrics.export/ff_newton/misra_findings": float("nan"), "metrics.export/ff_direct/flops": 200.0,
+         "metrics.export/ff_direct/parameters": 84.0}])
+    rows, md = _exports("some_experiment", runs)
+    assert "| MISRA findings |" in md
+    line_a = next(x for x in md.splitlines() if x.startswith("| `a-run`"))
+    line_b = next(x for x in md.splitlines() if x.startswith("| `b-run`"))
+    assert line_a.endswith("| 75 |") and line_b.endswith("| n/a |")
+    misra = [r for r in rows if r["metric"] == "misra_findings"]
+    assert [(r["variant"], r["value"]) for r in misra] == [("export/a-run/ff_newton", 75.0)]

@@ -229,26 +229,29 @@ SHIPPED = ("b1_linear_motor", "-equation-", "v0_15")
 def _exports(experiment: str, runs: pd.DataFrame):
     """summary.csv rows and a REPORT.md table of the feedforwards the export stage shipped
     (issue 12): per package, the C code's and the Python law's max|Δu|/max|u| against the study,
-    ns per sample in C, flops and parameters."""
+    ns per sample in C, flops, parameters and the MISRA C:2012 findings of cppcheck's addon (issue 22;
+    n/a where cppcheck is not installed: the package README lists them per rule with the reasons)."""
     col = "metrics.export/max_rel_diff"
     if col not in runs or runs[col].isna().all():
         return None
     rows = []
     lines = ["", "", "Exported feedforward (the `export` stage; C99 compiled with `cc -std=c99 -O2 -Wall -Wextra "
              "-Werror`, run by its harness on every evaluation reference; Δu against the study's u_ff):", "",
-             "| run | package | C max Δu / max u | Python max Δu / max u | C ns/sample | flops/sample | parameters |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]
+             "| run | package | C max Δu / max u | Python max Δu / max u | C ns/sample | flops/sample | parameters "
+             "| MISRA findings |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for _, r in runs[runs[col].notna()].sort_values("tags.mlflow.runName").iterrows():
         m = run_metrics(r)
         for pkg in sorted({k.split("/")[1] for k in m if k.startswith("export/ff_")}):
             get = {k.split("/")[-1]: v for k, v in m.items() if k.startswith(f"export/{pkg}/")}
             name = r["tags.mlflow.runName"]
-            for k in ("c_max_rel_diff", "python_max_rel_diff", "c_ns_per_sample"):
+            for k in ("c_max_rel_diff", "python_max_rel_diff", "c_ns_per_sample", "misra_findings"):
                 if k in get:
                     rows.append(row(experiment, f"export/{name}/{pkg}", k, get[k]))
             fmt = lambda k, f: format(get[k], f) if k in get else "n/a"   # noqa: E731
             lines.append(f"| `{name}` | `{pkg}` | {fmt('c_max_rel_diff', '.2g')} | {fmt('python_max_rel_diff', '.2g')} "
-                         f"| {fmt('c_ns_per_sample', '.0f')} | {fmt('flops', '.0f')} | {fmt('parameters', '.0f')} |")
+                         f"| {fmt('c_ns_per_sample', '.0f')} | {fmt('flops', '.0f')} | {fmt('parameters', '.0f')} "
+                         f"| {fmt('misra_findings', '.0f')} |")
     if experiment == SHIPPED[0]:
         lines += ["", f"The packages of the `{SHIPPED[1].strip('-')}` runs are in `results/export/<package>/`, "
                   f"with the reference `{SHIPPED[2].replace('_', '.')}` (README: Deploy the feedforward)."]

@@ -34,6 +34,7 @@ def sweep_store(tmp_path_factory):
     return tmp, env
 
 
+@pytest.mark.slow   # a real multirun (~30 s): the default run stays under 5 min on 2 cores (make test-full)
 def test_multirun_has_one_parent_with_three_children(sweep_store):
     import mlflow
     tmp, env = sweep_store
@@ -78,8 +79,9 @@ def _timing(key: str) -> bool:
     return "time/" in key or "seconds" in key
 
 
-# submitit_local is the SLURM code path run locally: slow (make test-full); joblib stays in the fast suite
-@pytest.mark.parametrize("launcher", ["local", pytest.param("submitit_local", marks=pytest.mark.slow)])
+# real launchers sweep (~50 s each): slow (make test-full), as the README's test section says
+@pytest.mark.slow
+@pytest.mark.parametrize("launcher", ["local", "submitit_local"])
 def test_parallel_launchers_match_the_serial_sweep(sweep_store, tmp_path, launcher):
     """Issue 10: joblib (conf/hydra/launcher/local.yaml) and submitit's local executor run a 2-job
     sweep into one store: parent and both children FINISHED, every metric equal to the serial run."""
@@ -92,6 +94,7 @@ def test_parallel_launchers_match_the_serial_sweep(sweep_store, tmp_path, launch
         assert _science(par[seed]) and _science(par[seed]) == _science(ser[seed])
 
 
+@pytest.mark.slow   # a two-job joblib sweep (~40 s); test_runner.py keeps the fast lock-wait test
 def test_concurrent_jobs_sharing_stages_compute_them_once(tmp_path):
     """Two parallel jobs with one config (only the run name differs) need the same five stage
     results: each is computed once (one cache miss, one entry), the other job waits and loads it."""

@@ -52,6 +52,8 @@ def _train_entry(cache: Path):
     return pickle.loads((entry / "result.pkl").read_bytes())
 
 
+@pytest.mark.slow   # a real job process and its rerun (~45 s): make test-full; the in-process
+# interrupt of test_an_interrupted_stage_ends_its_run_killed_and_leaves_no_temporary stays fast
 def test_first_sigint_in_train_stops_the_job_killed_and_a_rerun_resumes_bit_identically(store, cfg_of,
                                                                                        monkeypatch):
     """The first SIGINT, sent to the job's process group in the train stage (after its first LM

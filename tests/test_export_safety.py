@@ -367,8 +367,8 @@ def test_stage_builds_the_guard_from_config(store, cfg_of, tmp_path):
     # float positions in metres: δ²r loses ~3 digits and sign(δr) flips near rest (f_c / max|u| ~ 0.1)
     assert 1e-4 < man["single_max_rel_diff"] <= 1
     assert all(v["c_check"] == "pass" for v in man["vectors"].values())
-    run_id = tracking.search_runs("b1_linear_motor").iloc[0]["run_id"]
-    model = mlflow.pyfunc.load_model(f"runs:/{run_id}/ff_physics")
+    run = tracking.search_runs("b1_linear_motor").iloc[0]
+    model = mlflow.pyfunc.load_model(f"runs:/{run['run_id']}/ff_physics-{run['tags.run_key']}")   # named after its run
     r = np.array(res["invert"]["r"]["v0.15"])
     r[100:110] = np.nan
     out = model.predict(pd.DataFrame({"r": r}))

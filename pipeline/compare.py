@@ -116,10 +116,9 @@ def identical(runs: pd.DataFrame, factors: list[tuple[str, str]], metrics: list[
     """Findings: for each factor, the groups of runs (all other factors equal) whose metrics are equal
     to the bit across that factor's values, with the reason where the stages give one."""
     out = []
-    results = [m for m in metrics if m.startswith("metrics.evaluate/")] or metrics   # the feedforward's numbers
-    if not results:
+    metrics = [m for m in metrics if m.startswith("metrics.evaluate/")] or metrics   # the feedforward's numbers
+    if not metrics:
         return out
-    metrics = results
     for col, lbl in factors:
         others = [c for c, _ in factors if c != col]
         same, differ = [], 0
@@ -170,9 +169,8 @@ def markdown(table: pd.DataFrame, findings: list[str]) -> str:
 def figure(table: pd.DataFrame, path: Path, title: str = "") -> Path | None:
     """One panel per metric: a horizontal bar per run (labelled by its name, the varying part first),
     on a log scale where the values span more than a decade."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from pipeline.plots import _plt
+    plt = _plt()
     metrics = [c for c in table.columns if pd.api.types.is_float_dtype(table[c])]
     if not metrics or table.empty:
         return None

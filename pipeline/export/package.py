@@ -238,7 +238,7 @@ def _zoh_effect(law: Law, r: np.ndarray, n: int) -> dict:
 
 def _build(law, name, folder, references, source, cc, rtol, repeats, keep_exe, *, prefix, precision,
            single_rtol, zoh_n, cppcheck) -> dict:
-    refs = {}
+    refs, guarded_u = {}, {}      # guarded_u: the guarded Python law per reference (u_ff, flags), for the C check
     for ref, (r, u) in references.items():
         r, u = np.asarray(r, dtype=np.float64), np.asarray(u, dtype=np.float64)
         if r.shape != u.shape or r.ndim != 1:
@@ -253,7 +253,7 @@ def _build(law, name, folder, references, source, cc, rtol, repeats, keep_exe, *
         if not d <= rtol:
             raise ExportError(f"the exported law {name} does not reproduce the study on {ref!r} in Python: "
                               f"max|Δu|/max|u| = {d:.3g} > {rtol:g}")
-        ug, fg = guarded(law, r)
+        ug, fg = guarded_u[ref] = guarded(law, r)
         refs[ref]["guard_max_rel_change"] = rel_diff(ug, u)      # 0: the guard left the study's u_ff alone
         refs[ref]["flags"] = _flag_counts(fg)
     first = next(iter(refs.values()))["file"]
@@ -302,7 +302,7 @@ def _build(law, name, folder, references, source, cc, rtol, repeats, keep_exe, *
             u = read_column(folder / info["study_u_ff"])
             if u_c.shape != u.shape:
                 raise ExportError(f"{exe.name} wrote {u_c.size} samples for {ref!r}, the study has {u.size}")
-            ug, fg = guarded(law, references[ref][0])
+            ug, fg = guarded_u[ref]
             info["c_max_rel_diff"] = rel_diff(u_c, ug)        # C against the (guarded) Python law
             info["c_vs_study_max_rel_diff"] = rel_diff(u_c, u)
             info["c_flags_agree"] = bool(np.array_equal(f_c, fg))

@@ -30,6 +30,7 @@ import pandas as pd
 
 from pipeline import owned, tracking
 from pipeline.export.law import strict_json
+from stages.report import claims
 from stages.report._rows import row, run_metrics
 from pipeline.runner import ROOT
 
@@ -192,7 +193,7 @@ def _build(cfg, figdir: Path, skip_empty: bool = False) -> tuple[pd.DataFrame, s
         every = runs
         runs, side = split_side(str(exp), runs)
         r, md = mod.section(str(exp), runs, figdir)
-        rows += r
+        rows += claims.judge(r)     # the claim table gives every verdict (idempotent on judged rows)
         if not side.empty and hasattr(mod, "side_section"):
             r, extra = mod.side_section(str(exp), runs, side, figdir)
             rows += r
@@ -408,15 +409,14 @@ def _stop_reasons(experiment: str, runs: pd.DataFrame):
 def _claim_table(table: pd.DataFrame) -> list[str]:
     """The header's claim table: a claim holds when every one of its rows holds; beside it, how many
     of the experiment's fits stopped on an iteration cap."""
-    claims = table[table["claim"] != ""]
-    if claims.empty:
+    claimed = table[table["claim"] != ""]
+    if claimed.empty:
         return []
     fits = table[table["variant"] == "training"].set_index(["experiment", "metric"])["value"]
-    no_fits = {c for m in providers().values() for c in getattr(m, "CLAIMS_WITHOUT_FITS", ())}
     out = ["| claim | experiment | holds | its experiment's fits stopped on a cap |", "| --- | --- | --- | --- |"]
-    for (c, e), g in claims.groupby(["claim", "experiment"], sort=False):
+    for (c, e), g in claimed.groupby(["claim", "experiment"], sort=False):
         cap = (f"{float(fits[(e, 'fits_stopped_on_cap')]):.0f} of {float(fits[(e, 'fits_with_stop_reason')]):.0f}"
-               if (e, "fits_stopped_on_cap") in fits.index and c not in no_fits else "")
+               if (e, "fits_stopped_on_cap") in fits.index and c not in claims.CLAIMS_WITHOUT_FITS else "")
         if cap and not cap.startswith("0 "):
             cap = f"**{cap}**"
         out.append(f"| {c} | {e} | {'yes' if (g['claim_holds'] == 'true').all() else 'no'} | {cap} |")

@@ -4,10 +4,11 @@ from __future__ import annotations
 import pandas as pd
 
 
-def row(experiment, variant, metric, value, claim="", holds=None, paper=None) -> dict:
-    """One summary.csv row; ``claim`` a SPEC §8 id with ``holds`` True/False, else "" and None."""
-    return {"experiment": experiment, "claim": claim, "variant": variant, "metric": metric,
-            "value": float(value), "paper_value": paper, "claim_holds": holds}
+def row(experiment, variant, metric, value, *, paper=None) -> dict:
+    """One summary.csv row, without a verdict: the claim table (stages/report/claims.py, ``judge``)
+    gives the rows it names their SPEC §8 id, ``claim_holds`` and paper value."""
+    return {"experiment": experiment, "claim": "", "variant": variant, "metric": metric,
+            "value": float(value), "paper_value": paper, "claim_holds": None}
 
 
 def run_metrics(run: pd.Series) -> dict[str, float]:

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from stages.report import claims
 from stages.report._figures import load_errors
 from stages.report._rows import fit_cost_row, row, run_metrics
 
@@ -19,10 +20,7 @@ EXPERIMENTS = ("emps",)
 #: published figures (EMPS README; the authors' simulation convention)
 PUBLISHED = {"train": {"force_rel_error": 5.85, "position_rel_error": 0.0138},
              "test": {"force_rel_error": 8.94, "position_rel_error": 0.0080}}
-TOL = {"force_rel_error": 0.5, "position_rel_error": 0.001}     # acceptance: points of %
-PHYS_TOL = 0.02                                                 # |relative deviation| of M, F_v, F_c, OF
-X1_FORCE = 4.5                                                  # [%] test force error, data timing
-X1_R2 = 0.99                                                    # open-loop R²: a usable simulator (SPEC §8 X1)
+X1_R2 = claims.threshold("X1", "benchmark_r2>=0.99")            # open-loop R²: a usable simulator (SPEC §8 X1)
 TRAIN_R2 = "evaluate/train/benchmark_r2"
 VAL = "evaluate/train/data/force_rel_error_tail"
 
@@ -57,16 +55,15 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
     # ---- physics baseline vs published parameters
     lines += ["### Physics baseline (filtered inverse-model least squares)", "",
               "| parameter | estimate | published | deviation |", "| --- | --- | --- | --- |"]
-    ok_all = True
-    for k, pub in (("M", 95.1089), ("F_v", 203.5034), ("F_c", 20.3935), ("OF", -3.1648)):
+    for k in ("M", "F_v", "F_c", "OF"):
         est, dev = pm.get(f"baseline/{k}"), pm.get(f"baseline/rel_error_published/{k}")
         if est is None or dev is None:
             continue
-        ok = abs(dev) <= PHYS_TOL
-        ok_all &= ok
+        pub = claims.paper("X1", f"baseline/{k}")
         lines.append(f"| {k} | {est:.5g} | {pub:.5g} | {100 * dev:+.2f} % |")
-        rows.append(row(E, "physics", f"baseline/{k}", est, "X1", ok, pub))
-    lines += ["", f"Every parameter within {100 * PHYS_TOL:.0f} % of the published value: "
+        rows.append(row(E, "physics", f"baseline/{k}", est))
+    ok_all = all(r["claim_holds"] for r in claims.judge(rows) if r["metric"].startswith("baseline/"))
+    lines += ["", f"Every parameter within {claims.rule('X1', 'baseline/M').split('± ')[1]} of the published value: "
               f"**{'yes' if ok_all else 'no'}**." + (f" Warning: {P['warn']}" if P["warn"] else ""), ""]
     # ---- the published model in both conventions
     lines += ["### The published model replayed", "",
@@ -84,13 +81,9 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
             pubp = PUBLISHED[f]["position_rel_error"] if conv == "published" else None
             lines.append(f"| {f} | {conv} | {fe:.3f} | {pubf if pubf else ''} | {pe:.5f} | "
                          f"{pubp if pubp else ''} | {rm:.4f} |")
-            if conv == "published":
-                okf = abs(fe - pubf) <= TOL["force_rel_error"]
-                okp = abs(pe - pubp) <= TOL["position_rel_error"]
-                claim = f == "test"   # acceptance: the test force error; positions on both files
-                rows.append(row(E, f"published_model/{f}/published", "force_rel_error", fe,
-                                "X1" if claim else "", okf if claim else None, pubf))
-                rows.append(row(E, f"published_model/{f}/published", "position_rel_error", pe, "X1", okp, pubp))
+            if conv == "published":   # X1: the test force error; positions on both files (claims.py)
+                rows.append(row(E, f"published_model/{f}/published", "force_rel_error", fe, paper=pubf))
+                rows.append(row(E, f"published_model/{f}/published", "position_rel_error", pe, paper=pubp))
             else:
                 rows.append(row(E, f"published_model/{f}/data", "force_rel_error", fe))
                 rows.append(row(E, f"published_model/{f}/data", "position_rel_error", pe))
@@ -172,13 +165,14 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
         te, tr = m["evaluate/test/data/force_rel_error"], m["evaluate/train/data/force_rel_error"]
         v = f"pgnn-{best['kind']}/test/data"
         r2 = m.get("evaluate/test/benchmark_r2", float("nan"))
-        c1, c2, c4 = te < X1_FORCE, te < pte, r2 >= X1_R2
-        rows += [row(E, v, "force_rel_error<4.5", te, "X1", c1, X1_FORCE),
-                 row(E, v, "force_rel_error<physics", te, "X1", c2, pte),
-                 row(E, f"pgnn-{best['kind']}/test", "benchmark_r2>=0.99", r2, "X1", c4, X1_R2),
-                 row(E, v, "train_test_gap<=physics", te - tr, "", None, pte - ptr)]
+        mine = claims.judge(rows + [row(E, v, "force_rel_error<4.5", te),
+                                    row(E, v, "force_rel_error<physics", te),
+                                    row(E, f"pgnn-{best['kind']}/test", "benchmark_r2>=0.99", r2)])[len(rows):]
+        c1, c2, c4 = (r["claim_holds"] for r in mine)
+        rows += mine + [row(E, v, "train_test_gap<=physics", te - tr, paper=pte - ptr)]
+        x1_force = claims.threshold("X1", "force_rel_error<4.5")
         lines += [f"X1 candidate (lowest validation error over both criteria among the usable simulators): "
-                  f"`{best['name']}`. Test force error {te:.2f} % ({'<' if c1 else '≥'} {X1_FORCE} %), physics "
+                  f"`{best['name']}`. Test force error {te:.2f} % ({'<' if c1 else '≥'} {x1_force:g} %), physics "
                   f"{pte:.2f} % ({'below' if c2 else 'not below'}); open-loop test R² {r2:.4f} "
                   f"({'≥' if c4 else '<'} {X1_R2}: {'a usable simulator' if c4 else 'not a usable simulator'}); "
                   f"train/test gap {te - tr:+.2f} points vs physics {pte - ptr:+.2f} (information, not a "

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline import interrupts, owned, tracking
@@ -62,6 +63,11 @@ def make_system(cfg: DictConfig):
     if name and getattr(system, "name", None) != name:   # e.g. a Recording: its config names it
         system.name = str(name)
     return system
+
+
+def experiment_file() -> str:
+    """The experiment file this job composed (Hydra's ``experiment`` choice), "" outside a Hydra app."""
+    return str(HydraConfig.get().runtime.choices.get("experiment") or "") if HydraConfig.initialized() else ""
 
 
 def choice(cfg: DictConfig, group: str) -> str:
@@ -357,6 +363,7 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None,
         tags = {"experiment": cfg.experiment_name, "stages": ",".join(names),
                 "config_hash": keys[names[-1]][:20],  # the last stage's key: same hash, same config
                 "run_key": str(cfg.run_name), "mlflow.note.content": note,
+                "experiment_file": experiment_file(),   # conf/experiment/<file>.yaml: what the report selects by
                 **{g: choice(cfg, g) for g in TAG_GROUPS if g in cfg}}
         params = OmegaConf.to_container(cfg, resolve=True)
         params.pop("description", None)   # the experiment's note, not a parameter of the run

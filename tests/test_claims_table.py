@@ -86,7 +86,7 @@ def test_sections_give_no_verdicts_of_their_own():
     """A verdict comes from the table only: the row helper takes no claim, and no section compares a
     quantity with a literal threshold to set ``claim_holds``."""
     with pytest.raises(TypeError):
-        row("e", "v", "m", 1.0, "B1a", True)      # noqa: the old signature
+        row("e", "v", "m", 1.0, "B1a", True)      # the old signature gave a verdict
     for f in (ROOT / "stages" / "report").glob("claims_*.py"):
         text = f.read_text()
         assert not re.search(r'claim_holds"?\]?\s*=\s*(?!None)', text), f.name   # clearing one is fine

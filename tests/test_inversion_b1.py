@@ -305,8 +305,9 @@ def test_noise_sweep_report_section(store, tmp_path, monkeypatch):
     assert "within 0.5% of the true mass" in md  # forward LS: 20 + 0.1 at σ = 1e-6
     assert "best of 3 restarts" in md and (tmp_path / "b1_noise_sweep.png").exists()
     assert "Newton / direct peak error at 0.15 m/s: 0.25 at σ = 0, 0.25 at σ = 1e-06." in md
-    # method and σ from run names when tags/params are missing (sweep names carry sigma<σ>)
-    run = pd.Series({"tags.mlflow.runName": "linear_motor-output-sigma1e-08-analytic-s0"})
+    # method and noise from the logged tag and param, never from the run's name
+    run = pd.Series({"tags.mlflow.runName": "linear_motor-equation-sigma1e-08-newton-s0", "tags.invert": "analytic",
+                     "params.system.noise.structure": "output"})
     assert claims_b1._variant(run) == ("output", "analytic")
     # the headline comparison reads the headline's σ and restarts from its params
     head = pd.DataFrame([{"tags.mlflow.runName": "linear_motor-equation-newton-s0", "tags.invert": "newton",

@@ -135,6 +135,9 @@ def test_queue_gives_each_swept_experiment_its_parent_and_the_same_runs(store):
     kids = runs[runs["tags.mlflow.parentRunId"] == parents["run_id"].iloc[0]]
     assert len(kids) == 4 and set(kids["status"]) == {"FINISHED"}
     assert all(n.startswith("rot_trans_nmp-il_fhofc-linear_") for n in kids["tags.run_key"])
+    # each run names the experiment file it came from, inside the one queue too (the report selects by it)
+    assert set(kids["tags.experiment_file"]) == {"b2_rot_trans_linear"}
+    assert set(runs.loc[runs["tags.sweep"] == "single", "tags.experiment_file"]) == {"physics_arx"}
     # the parent's comparison of its children (issue 23), logged when the queue ended its sweep
     arts = {a.path for a in c.list_artifacts(parents["run_id"].iloc[0], "compare")}
     assert arts == {"compare/comparison.csv", "compare/comparison.md", "compare/comparison.png"}

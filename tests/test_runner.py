@@ -302,16 +302,20 @@ def test_report_update_rebuilds_only_the_named_sections(store, cfg_of):
     md = (results / "REPORT.md").read_text()
     assert "## other_exp\n\nkept text" in md and "old physics text" not in md
     assert md.index("## other_exp") < md.index("## physics_baseline")        # order kept
-    assert "| Z1 | other_exp | yes |" in md and "`abc`" in md
+    assert "| Z1 | other_exp | yes |" in md
+    # the header's commits come from the runs in the store, never from parsing the old header
+    assert "`abc`" not in md and "the others kept from the previous report (their runs in this store made at " \
+        "git unknown)" in md
     table = pd.read_csv(results / "summary.csv")
     assert set(table["experiment"]) == {"other_exp", "physics_baseline"}
     assert "old" not in set(table["variant"]) and float(table[table.claim == "Z1"]["value"].iloc[0]) == 0.125
     figs = {p.name for p in (results / "figures").iterdir()}
     assert "other_exp-fig.png" in figs and "physics_baseline-stale.png" not in figs
-    # a second update keeps the kept sections' SHA (not the rebuilt ones')
+    # a second update: the rebuilt section's commit from its runs, the kept one's still unknown
     runner.run_job(cfg_of("stages=[report]", "experiment_name=report", f"paths.results={results}",
                           "report.experiments=[physics_baseline]", "report.update=true"))
-    assert "kept from the previous report (runs made at git `abc`)" in (results / "REPORT.md").read_text()
+    md = (results / "REPORT.md").read_text()
+    assert f"runs made at git `{tracking.git_sha()[:12]}`" in md and "made at git unknown)" in md
 
 
 def test_restarts_cached_one_by_one_and_reused_bit_identically(store, cfg_of, tmp_path, monkeypatch):

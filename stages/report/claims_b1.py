@@ -73,15 +73,8 @@ def _arx_bias(experiment, runs, figdir):
 
 # ---------------------------------------------------------------------------------- B1b, B1c
 def _variant(run) -> tuple[str, str]:
-    name = str(run.get("tags.mlflow.runName", ""))
-    noise = run.get("params.system.noise.structure")
-    method = run.get("tags.invert")
-    parts = name.split("-")
-    if (noise is None or pd.isna(noise)) and len(parts) >= 3:
-        noise = parts[1]
-    if (method is None or pd.isna(method)) and len(parts) >= 3:
-        method = parts[-2]   # <system>-<noise>[-sigma<σ>]-<method>-s<seed>
-    return str(noise), str(method)
+    """(noise structure, inversion) of a run, from its logged param and tag (never from its name)."""
+    return str(run.get("params.system.noise.structure")), str(run.get("tags.invert"))
 
 
 def _linear_motor(experiment, runs, figdir):

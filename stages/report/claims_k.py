@@ -25,10 +25,21 @@ SPREAD_FLOOR = 1e-3                    # K2: count references where the unregula
 
 
 
+def _of_file(runs: pd.DataFrame, name: str) -> pd.DataFrame:
+    """The runs made by experiment file ``name`` (tag ``experiment_file``; runs logged before the tag
+    count as the headline file's)."""
+    col = "tags.experiment_file"
+    if col not in runs:
+        return runs if name == EXPERIMENTS[0] else runs.iloc[0:0]
+    return runs[runs[col].fillna(EXPERIMENTS[0]).astype(str) == name]
+
+
 def _find(runs: pd.DataFrame) -> dict[str, pd.Series]:
+    """The headline run of each variant, by its ``model`` and ``regularizer`` tags."""
     out = {}
+    head = _of_file(runs, EXPERIMENTS[0])
     for key, (model, reg) in VARIANTS.items():
-        sel = runs[runs["tags.mlflow.runName"].astype(str).str.startswith(f"two_mass-{model}-{reg}-s")]
+        sel = head[(head.get("tags.model") == model) & (head.get("tags.regularizer") == reg)]
         if not sel.empty:
             out[key] = sel.iloc[0]
     return out
@@ -284,9 +295,8 @@ def _k3(experiment: str, m: dict, found: dict, rows: list) -> list[str]:
 
 def _lambda_sweep(experiment: str, runs: pd.DataFrame, rows: list) -> list[str]:
     """Table of the optional ``k_lambda_sweep`` runs (regularizer.lam swept), if present."""
-    names = runs["tags.mlflow.runName"].astype(str)
-    found = names.str.extract(r"^two_mass-pgnn_shared_ar-orthogonal-lam([0-9.eE+-]+)-s", expand=False)
-    sel = runs[found.notna()].assign(lam=found[found.notna()].astype(float)).sort_values("lam")
+    sel = _of_file(runs, "k_lambda_sweep")
+    sel = sel.assign(lam=pd.to_numeric(sel.get("params.regularizer.lam"), errors="coerce")).sort_values("lam")
     if sel.empty:
         return ["λ sweep: not run (`python -m pipeline experiment=k_lambda_sweep`).", ""]
     out = ["λ sweep of the regulariser (`experiment=k_lambda_sweep`, same data and budget):", "",

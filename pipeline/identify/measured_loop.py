@@ -484,23 +484,27 @@ def identify_loop_sim_error(model, averaged: bool, ctrl, sig, tau_meas, *, lam: 
     reg = bool(np.any(Rs != 0))
     cache: dict = {}
 
-    def run(theta):
+    def run(theta, sens: bool):
+        """The loop simulated at θ, with the sensitivities only where the Jacobian needs them: a trial
+        step, a rejected step or the geodesic acceleration's extra point needs the residual alone
+        (about 20× cheaper; ŷ and τ̂ are the same to the bit with or without them)."""
         key = theta.tobytes()
-        if key not in cache:
+        if key not in cache or (sens and len(cache[key][0]) < 5):
             cache.clear()
             m = loop0.with_theta(theta)
-            cache[key] = [simulate_loop(m, ctrl, s_, "data", sens=True) for s_ in sigs]
+            cache[key] = [simulate_loop(m, ctrl, s_, "data", sens=sens) for s_ in sigs]
         return cache[key]
 
     def residual(th):
         theta = th.numpy()
-        e = np.concatenate([(t[n0:nt] - out[1][n0:nt]) * cn for t, out, n0, nt in zip(taus, run(theta), n0s, nts)])
+        e = np.concatenate([(t[n0:nt] - out[1][n0:nt]) * cn
+                            for t, out, n0, nt in zip(taus, run(theta, False), n0s, nts)])
         if not np.all(np.isfinite(e)):
             e = np.full_like(e, 1e150)        # a diverged simulation: LM rejects the step
         return torch.from_numpy(np.concatenate([e, Rs @ (theta[:npy] - ts)]) if reg else e)
 
     def jacobian(th):
-        J = np.concatenate([-out[4][n0:nt] * cn for out, n0, nt in zip(run(th.numpy()), n0s, nts)])
+        J = np.concatenate([-out[4][n0:nt] * cn for out, n0, nt in zip(run(th.numpy(), True), n0s, nts)])
         if reg:
             Jr = np.zeros((npy, J.shape[1]))
             Jr[:, :npy] = Rs

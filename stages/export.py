@@ -35,14 +35,46 @@ from pipeline import tracking
 from pipeline.export import law as laws
 from pipeline.export.c_code import c_name
 from pipeline.export.misra import find_cppcheck
-from pipeline.export.package import find_compiler, reference_file_clash, write_package
+from pipeline.export.package import check_prefix, find_compiler, reference_file_clash, write_package
 from pipeline.errors import ConfigError
 from stages._common import reference_specs
+from dataclasses import field
+from typing import Literal, Optional
+from pipeline.schema import schema, spec, FORCE_MAX, FREQ_MAX, COUNT_MAX
+
+
+@schema
+class Limits:
+    """export.limits: the guard around an exported law (pipeline.export.guard)."""
+    u_min: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=-200.0)
+    u_max: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=200.0)
+    rate: Optional[float] = spec(None, gt=0, le=1e12, unit="N/s", example=1e5)
+    envelope_margin: float = spec(0.1, ge=0, le=100)
+    envelope_action: Literal["flag", "fallback"] = "flag"
+    fallback: Literal["hold", "physics", "ramp"] = "hold"
+    ramp_time: float = spec(0.1, gt=0, le=3600.0, unit="s")
+
+
+@schema
+class Params:
+    compile: bool = True
+    cc: str = "cc"
+    rtol: float = spec(1e-9, gt=0, lt=1)
+    timing_repeats: int = spec(21, ge=0, le=COUNT_MAX)
+    register: bool = False
+    prefix: Optional[str] = spec(None, check=check_prefix, example="axis1_ff")
+    precision: Literal["double", "single"] = "double"
+    single_rtol: float = spec(0.1, gt=0, le=10)
+    target_rate: Optional[float] = spec(None, gt=0, le=FREQ_MAX, unit="Hz", example=4000.0)
+    cppcheck: bool = True
+    limits: Limits = field(default_factory=Limits)
 
 UPSTREAM = ("generate", "baseline", "train", "invert")
 DEPENDS = ("invert", "export.compile", "export.cc", "export.rtol", "export.timing_repeats",
            "export.prefix", "export.precision", "export.single_rtol", "export.target_rate", "export.cppcheck",
            "export.limits", "evaluate.references")
+
+
 VERSION = 3      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22)
 
 

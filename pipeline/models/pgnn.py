@@ -41,6 +41,29 @@ from scipy.linalg.blas import dsyrk as _dsyrk
 from torch import nn
 
 from pipeline.models.physics_maps import PhysicsFeatures
+from typing import Literal
+from pipeline.schema import schema, spec
+
+
+_WIDTHS = "widths must be positive integers"
+
+
+@schema
+class Params:
+    name: str = "pgnn-forward"
+    structure: Literal["forward", "inverse", "invertible"] = "forward"
+    n_a: int = spec(2, ge=0, le=1000)
+    n_b: int = spec(1, ge=1, le=1000)
+    n_k: int = spec(0, ge=0, le=1000)
+    hidden: list[int] = spec([16], ge=1, le=100_000, rule=_WIDTHS)
+    activation: Literal["tanh", "sigmoid", "relu", "softplus", "elu", "gelu", "identity"] = "tanh"
+    use_physics: bool = True
+    use_nn: bool = True
+    input_transform: Literal["raw", "delta"] = "raw"
+    out_init: Literal["mirrored", "scaled"] = "mirrored"
+    out_init_scale: float = spec(1.0, ge=0, le=1e6)
+    mirror_jitter: float = spec(0.0, ge=0, le=10)
+    nn_inputs: Literal["all", "outputs"] = "all"
 
 __all__ = ["PGNN", "Prepared", "blas_syrk_lower", "blas_gemv_n"]
 

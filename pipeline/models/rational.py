@@ -29,6 +29,17 @@ import scipy.linalg
 import scipy.signal
 import torch
 from torch import nn
+from typing import Literal
+from pipeline.schema import schema, spec
+
+
+@schema
+class Params:
+    kind: Literal["rational"]
+    name: str = "rational"
+    n_a: int = spec(10, ge=1, le=1000)
+    n_b: int = spec(9, ge=0, le=1000)
+    basis: Literal["delta", "shift"] = "delta"
 
 __all__ = ["BASES", "Segments", "basis_matrix", "basis_columns", "ar_polynomial",
            "basis_coefficients", "reflect_unstable_roots", "filter_segments", "RecursiveFilter",

@@ -21,6 +21,31 @@ from torch import nn
 
 from pipeline.models.pgnn import blas_syrk_lower
 from pipeline.models.rational import BASES, RationalFeedforward, Segments, basis_columns
+from typing import Literal
+from pipeline.schema import schema, spec
+
+
+KIND = "pgnn_shared_ar"   # the model option (model.kind, or model=physics) this module's Params checks
+
+_WIDTHS = "widths must be positive integers"
+
+
+@schema
+class Params:
+    kind: Literal["pgnn_shared_ar"]
+    name: str = "pgnn_shared_ar"
+    n_a: int = spec(5, ge=1, le=1000)
+    n_b: int = spec(2, ge=0, le=1000)
+    basis: Literal["delta", "shift"] = "delta"
+    approximator: Literal["mlp", "residual"] = "mlp"
+    hidden: list[int] = spec([10, 10], ge=1, le=100_000, rule=_WIDTHS)
+    width: int = spec(10, ge=1, le=100_000)
+    n_blocks: int = spec(2, ge=1, le=1000)
+    activation: Literal["tanh", "relu", "sigmoid", "softplus"] = "tanh"
+    out_bias: bool = False
+    out_init_scale: float = spec(1.0, ge=0, le=1e6)
+    window: int = spec(4, ge=0, le=10_000)
+    window_basis: Literal["delta", "shift"] = "delta"
 
 __all__ = ["ReferenceWindow", "MLP", "ResidualMLP", "SharedARPGNN", "make_approximator",
            "per_sample_jacobian"]

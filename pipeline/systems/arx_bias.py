@@ -21,6 +21,26 @@ import numpy as np
 
 from pipeline.identify.least_squares import solve_scaled as least_squares
 from pipeline.systems.base import PhysicsModel, SimResult, System, check_signal, lfilter
+from dataclasses import field
+from typing import Literal
+from pipeline.schema import schema, spec
+
+
+@schema
+class Noise:
+    structure: Literal["equation"] = "equation"
+    std: float = spec(0.1, ge=0, le=1e3, unit="(output units)")
+
+
+@schema
+class Params:
+    _target_: str
+    name: str = "arx_bias"
+    a: list[float] = spec([1.5, -0.7], ge=-1e3, le=1e3)
+    b: list[float] = spec([1.0, 0.5], ge=-1e6, le=1e6, min_len=1)
+    noise: Noise = field(default_factory=Noise)
+    u_std: float = spec(1.0, ge=0, le=1e6)
+    Ts: float = spec(1.0, gt=0, le=3600.0, unit="s")   # a discrete system: Ts is only recorded
 
 
 def lagged(x: np.ndarray, lags) -> np.ndarray:

@@ -42,6 +42,42 @@ from pipeline.identify.least_squares import solve_scaled as least_squares
 from pipeline.systems._statespace import ss_step
 from pipeline.systems.arx_bias import _noise_options
 from pipeline.systems.base import PhysicsModel, SimResult, System, check_limits, check_signal, loop_signals
+from dataclasses import field
+from typing import Literal
+from pipeline.schema import (schema, spec, TS_MAX, MASS_MAX, DAMP_MAX,
+                             FORCE_MAX, LENGTH_MAX, SPEED_MAX, NOISE_MAX, FREQ_MAX)
+
+
+@schema
+class Noise:
+    structure: Literal["equation", "output"] = "equation"
+    std: float = spec(1e-6, ge=0, lt=NOISE_MAX, unit="m")
+
+
+@schema
+class Params:
+    _target_: str
+    name: str = "linear_motor"
+    Ts: float = spec(1e-3, gt=0, le=TS_MAX, unit="s")
+    m: float = spec(20.0, gt=0, le=MASS_MAX, unit="kg")
+    f_v: float = spec(50.0, ge=0, le=DAMP_MAX, unit="N s/m")
+    f_c: float = spec(10.0, ge=0, le=FORCE_MAX, unit="N")
+    f_s: float = spec(15.0, ge=0, le=FORCE_MAX, unit="N")
+    v_s: float = spec(0.01, gt=0, le=SPEED_MAX, unit="m/s")
+    eps_v: float = spec(1e-3, gt=0, le=SPEED_MAX, unit="m/s")
+    p: float = spec(0.025, gt=0, le=LENGTH_MAX, unit="m")
+    A1: float = spec(5.0, ge=-FORCE_MAX, le=FORCE_MAX, unit="N")
+    A2: float = spec(2.0, ge=-FORCE_MAX, le=FORCE_MAX, unit="N")
+    phi1: float = spec(0.3, ge=-2 * math.pi, le=2 * math.pi, unit="rad")
+    phi2: float = spec(1.1, ge=-2 * math.pi, le=2 * math.pi, unit="rad")
+    cogging: bool = True
+    friction: Literal["stribeck", "sign"] = "stribeck"
+    noise: Noise = field(default_factory=Noise)
+    substeps: int = spec(20, ge=1, le=10_000)
+    crossover_hz: float = spec(20.0, gt=0, le=FREQ_MAX, unit="Hz")
+    physics_input: Literal["auto", "direct", "averaged"] = "auto"
+    stroke: float = spec(0.2, gt=0, le=LENGTH_MAX, unit="m")
+    v_limit: float = spec(0.5, gt=0, le=SPEED_MAX, unit="m/s")
 
 
 # --------------------------------------------------------------------------- controller

@@ -26,6 +26,40 @@ from pipeline.systems.base import System, check_signal
 from pipeline.systems.controller import LTIController
 from pipeline.systems.force_terms import ForceTerms
 from pipeline.systems.linear_motor import LinearMotorPhysics
+from dataclasses import field
+from typing import Literal, Optional
+from pipeline.schema import schema, spec, TS_MAX, MASS_MAX, DAMP_MAX, FORCE_MAX, FREQ_MAX
+from pipeline.systems.controller import Params as ControllerParams
+from pipeline.systems.force_terms import Params as ForceTermsParams
+
+
+@schema
+class Published:
+    M: float = spec(gt=0, le=MASS_MAX, unit="kg", example=95.1)
+    F_v: float = spec(ge=-DAMP_MAX, le=DAMP_MAX, unit="N s/m", example=203.5)
+    F_c: float = spec(ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=20.4)
+    OF: float = spec(ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=-3.2)
+
+
+@schema
+class Idim:
+    cutoff_hz: float = spec(50.0, gt=0, le=FREQ_MAX, unit="Hz")
+    order: int = spec(4, ge=1, le=20)
+    decimation: int = spec(10, ge=1, le=10_000)
+    trim: int = spec(50, ge=0, le=10**8)
+
+
+@schema
+class Params:
+    _target_: str
+    name: str = "measured"
+    Ts: float = spec(1e-3, gt=0, le=TS_MAX, unit="s")
+    controller: ControllerParams = spec(example="{kp:160.18,kv:243.45}")
+    physics_input: Literal["averaged", "direct"] = "averaged"
+    force_terms: ForceTermsParams = field(default_factory=lambda: ForceTermsParams())
+    disturbance: Optional[str] = None
+    published: Optional[Published] = None
+    idim: Idim = field(default_factory=Idim)
 
 
 # --------------------------------------------------------------------------- physics model

@@ -37,6 +37,39 @@ from numba import njit
 from pipeline.systems._statespace import ss_step
 from pipeline.systems.arx_bias import ARXPhysics, _noise_options
 from pipeline.systems.base import SimResult, System, check_limits, check_signal, loop_signals, lfilter
+from dataclasses import field
+from typing import Literal
+from pipeline.schema import (schema, spec, TS_MAX, MASS_MAX, STIFF_MAX,
+                             DAMP_MAX, FORCE_MAX, LENGTH_MAX, SPEED_MAX, NOISE_MAX, FREQ_MAX)
+
+
+@schema
+class Noise:
+    structure: Literal["output"] = "output"
+    std: float = spec(1e-6, ge=0, lt=NOISE_MAX, unit="m")
+
+
+@schema
+class Params:
+    _target_: str
+    name: str = "rot_trans_nmp"
+    Ts: float = spec(0.01, gt=0, le=TS_MAX, unit="s")
+    m: float = spec(20.0, gt=0, le=MASS_MAX, unit="kg")
+    l_x: float = spec(1.0, gt=0, le=LENGTH_MAX, unit="m")
+    l_y: float = spec(1.0, ge=-LENGTH_MAX, le=LENGTH_MAX, unit="m")
+    J: float = spec(40.0 / 3.0, gt=0, le=MASS_MAX * LENGTH_MAX**2, unit="kg m^2")
+    f_v: float = spec(50.0, ge=0, le=DAMP_MAX, unit="kg/s")
+    k: float = spec(25e3 / 3.0, ge=0, le=STIFF_MAX, unit="kg/s^2")
+    d: float = spec(575.0 / 3.0, ge=0, le=DAMP_MAX, unit="kg/s")
+    l_m: float = spec(0.05, gt=0, le=LENGTH_MAX, unit="m")
+    c: float = spec(1.0, ge=-FORCE_MAX, le=FORCE_MAX, unit="N")
+    controller_gain: float = spec(5000.0, gt=0, le=STIFF_MAX, unit="N/m")
+    controller_zero: float = spec(4.0 * math.pi, gt=0, le=FREQ_MAX, unit="rad/s")
+    controller_pole: float = spec(20.0 * math.pi, gt=0, le=FREQ_MAX, unit="rad/s")
+    noise: Noise = field(default_factory=Noise)
+    substeps: int = spec(20, ge=1, le=10_000)
+    r_limit: float = spec(0.5, gt=0, le=LENGTH_MAX, unit="m")
+    v_limit: float = spec(1.0, gt=0, le=SPEED_MAX, unit="m/s")
 
 
 # --------------------------------------------------------------------------- numba kernel

@@ -37,6 +37,29 @@ import numpy as np
 from numba import njit
 
 from pipeline.systems.base import PhysicsModel, SimResult, System, check_signal, lfilter
+from dataclasses import field
+from pipeline.schema import schema, spec, TS_MAX, MASS_MAX, STIFF_MAX, DAMP_MAX, NOISE_MAX
+
+
+@schema
+class Noise:
+    std: float = spec(0.0, ge=0, lt=NOISE_MAX, unit="m")
+
+
+@schema
+class Params:
+    _target_: str
+    name: str = "two_mass_stribeck"
+    m1: float = spec(1.0, gt=0, le=MASS_MAX, unit="kg")
+    m2: float = spec(2.0, gt=0, le=MASS_MAX, unit="kg")
+    k1: float = spec(1.0, ge=0, le=STIFF_MAX, unit="N/m")
+    k2: float = spec(15000.0, gt=0, le=STIFF_MAX, unit="N/m")
+    d2: float = spec(50.0, ge=0, le=DAMP_MAX, unit="N s/m")
+    c1: float = spec(1.0, ge=0, le=DAMP_MAX, unit="N s/m")
+    c2: float = spec(20.0, ge=0, le=DAMP_MAX, unit="N s/m")
+    alpha: float = spec(20.0, ge=0, le=1e9, unit="s/m")
+    Ts: float = spec(1e-3, gt=0, le=TS_MAX, unit="s")
+    noise: Noise = field(default_factory=Noise)
 
 #: min over x of sech(x) (1 - x tanh x): the most negative slope of v ↦ sech(αv) v, per unit
 _MIN_SECH_SLOPE = -0.2511478713708375

@@ -11,6 +11,25 @@ import numpy as np
 from pipeline.data import Dataset
 from pipeline.errors import ConfigError
 from stages._common import check_references, reference_specs
+from dataclasses import field
+from typing import Any, Literal, Optional
+from pipeline.schema import schema, spec, FORCE_MAX, references_rule
+
+
+@schema
+class Excitation:
+    std: float = spec(0.0, ge=0, le=FORCE_MAX, unit="N")
+    t_start: Optional[float] = spec(None, ge=0, le=1e7, unit="s", example=10.0)
+    t_stop: Optional[float] = spec(None, ge=0, le=1e7, unit="s", example=40.0)
+
+
+@schema
+class Params:
+    kind: Literal["closed_loop"]
+    name: str = "closed_loop"
+    references: Any = spec([], check=references_rule, example="[{name:move,kind:b2_R}]")
+    feedforward: Literal["none", "exact"] = "none"
+    excitation: Excitation = field(default_factory=Excitation)
 
 
 def check(cfg, system) -> None:

@@ -20,6 +20,18 @@ from omegaconf import OmegaConf
 
 from pipeline import data
 from pipeline.runner import ROOT, ConfigError
+from typing import Literal, Optional
+from pipeline.schema import schema, spec
+
+
+@schema
+class Params:
+    kind: Literal["measured"]
+    name: str = "measured"
+    path: str = spec(example="../shared/data/emps")
+    format: Literal["table", "emps"] = "table"     # = stages.generate.measured.FORMATS
+    file: Optional[str] = None
+    files: Optional[list[str]] = spec(None, min_len=1, example=["run1.csv", "run2.csv"])   # several records
 
 FORMATS = ("table", "emps")
 #: relative rms of (recorded force - controller law on the recorded position) above which the

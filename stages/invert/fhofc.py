@@ -21,6 +21,30 @@ from pipeline.models.closed_loop import DiscreteController
 from pipeline.invert.fhofc import fhofc, fhofc_receding
 from pipeline.metrics_bound import bound_terms
 from pipeline.errors import ConfigError
+from dataclasses import field
+from typing import Literal, Optional
+from pipeline.schema import schema, spec, FORCE_MAX, ITER_MAX
+
+
+@schema
+class Bounds:
+    lower: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=-100.0)
+    upper: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=100.0)
+
+
+@schema
+class Params:
+    kind: Literal["fhofc"]
+    name: str = "fhofc"
+    model_structure: Literal["forward", "inverse", "invertible"] = "forward"
+    gamma: float = spec(1e-6, ge=0, le=1.0, unit="m/N")
+    horizon: Optional[int] = spec(None, ge=1, le=10**6, example=50)
+    uff_bounds: Bounds = field(default_factory=Bounds)
+    u_bounds: Bounds = field(default_factory=Bounds)
+    max_iter: int = spec(50, ge=1, le=ITER_MAX)
+    ftol: float = spec(1e-10, ge=0, lt=1)
+    check_range: bool = True
+    range_margin: float = spec(0.1, ge=0, le=100.0)
 
 VERSION = 2   # 2: the FHOFC solve is timed warm (the first solve of a process compiles numba kernels)
 

@@ -19,6 +19,21 @@ from pipeline.models.closed_loop import DiscreteController
 from pipeline.invert.fhofc import il_fhofc
 from pipeline.errors import ConfigError
 from stages.invert.fhofc import check as check_fhofc
+from typing import Literal
+from pipeline.schema import schema, spec, COUNT_MAX
+from stages.invert.fhofc import Params as FhofcParams
+
+
+@schema
+class Params(FhofcParams):
+    kind: Literal["il_fhofc"]
+    name: str = "il_fhofc"
+    gamma: float = spec(1e-8, ge=0, le=1.0, unit="m/N")
+    alpha: float = spec(1.0, gt=0, le=1, rule="the learning gain must be in (0, 1]")
+    n_trials: int = spec(7, ge=1, le=COUNT_MAX)
+    trial_noise: bool = False
+    ideal_w_rel: float = spec(1e-10, ge=0, le=1.0)
+    ideal_trials: int = spec(12, ge=1, le=COUNT_MAX)
 
 
 def check(cfg, system) -> None:

@@ -11,6 +11,18 @@ import math
 from pipeline.invert.newton import newton_feedforward, newton_step
 from pipeline.errors import ConfigError
 from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
+from typing import Literal, Optional
+from pipeline.schema import schema, spec, FORCE_MAX
+
+
+@schema
+class Params:
+    kind: Literal["newton"]
+    name: str = "newton"
+    model_structure: Literal["forward", "inverse", "invertible"] = "forward"
+    k: int = spec(5, ge=0, le=1000)
+    u_min: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=-100.0)
+    u_max: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=100.0)
 
 VERSION = 2   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
 

@@ -6,7 +6,35 @@ baseline is the model.
 """
 from __future__ import annotations
 
+import math
 from pipeline.runner import implementation
+from typing import Any, Literal
+from pipeline.schema import schema, spec, is_number
+
+
+@schema
+class RegularizerNone:
+    name: Literal["none"]
+
+
+def _lam_rule(v) -> str | None:
+    """regularizer.lam of physics_l2: a number or a list (diag Λ) of numbers, finite, >= 0."""
+    vals = v if isinstance(v, list) else [v]
+    if not vals or not all(is_number(x) and math.isfinite(x) and 0 <= x <= 1e12 for x in vals):
+        return "give a finite number >= 0 and <= 1e12, or a list of them (diag Λ)"
+    return None
+
+
+@schema
+class PhysicsL2:
+    name: Literal["physics_l2"]
+    lam: Any = spec(0.01, check=_lam_rule)
+
+
+@schema
+class Orthogonal:
+    name: Literal["orthogonal"]
+    lam: float = spec(1.0, ge=0, le=1e12)
 
 UPSTREAM = ("generate", "baseline")
 DEPENDS = ("model", "identify", "regularizer", "seed")

@@ -26,6 +26,26 @@ from pipeline.models.pgnn import PGNN
 from pipeline.models.physics_maps import physics_features_for
 from pipeline.errors import ConfigError
 from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
+from typing import Literal
+from pipeline.schema import schema, spec, ITER_MAX, COUNT_MAX
+
+
+@schema
+class Params:
+    kind: Literal["narx"]
+    name: str = "narx"
+    n_restarts: int = spec(10, ge=1, le=COUNT_MAX)
+    max_iter: int = spec(2000, ge=0, le=ITER_MAX)
+    screen_iter: int = spec(50, ge=0, le=ITER_MAX)
+    ftol: float = spec(1e-10, ge=0, lt=1)
+    gtol: float = spec(1e-10, ge=0, lt=1)
+    mu0: float = spec(1e-3, gt=0, le=1e12)
+    val_fraction: float = spec(0.2, ge=0, lt=1)
+    patience: int = spec(20, ge=1, le=ITER_MAX)
+    geodesic: bool = False
+    stat_window: int = spec(10, ge=0, le=ITER_MAX)
+    stat_tol: float = spec(0.1, ge=0, le=100)
+    stat_frac: float = spec(0.0, ge=0, lt=1)
 
 VERSION = 2   # 2: the statistical window spans a continued restart's screening steps (issue 19)
 

@@ -29,6 +29,28 @@ from pipeline.models.physics_maps import LinearFeatures
 from pipeline.errors import ConfigError
 from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
 from pipeline.systems.arx_bias import ARXPhysics
+from typing import Literal
+from pipeline.schema import schema, spec, ITER_MAX, COUNT_MAX
+
+
+@schema
+class Params:
+    kind: Literal["sim_error"]
+    name: str = "sim_error"
+    theta_star: Literal["arx", "sim_error", "oracle"] = "sim_error"
+    linear_max_iter: int = spec(500, ge=0, le=ITER_MAX)
+    n_restarts: int = spec(3, ge=1, le=COUNT_MAX)
+    max_iter: int = spec(8000, ge=0, le=ITER_MAX)
+    screen_iter: int = spec(300, ge=0, le=ITER_MAX)
+    ftol: float = spec(1e-10, ge=0, lt=1)
+    gtol: float = spec(1e-10, ge=0, lt=1)
+    mu0: float = spec(1e-3, gt=0, le=1e12)
+    val_fraction: float = spec(0.0, ge=0, lt=0.5)
+    patience: int = spec(5, ge=1, le=ITER_MAX)
+    geodesic: bool = True
+    stat_window: int = spec(10, ge=0, le=ITER_MAX)
+    stat_tol: float = spec(1.0, ge=0, le=100)
+    stat_frac: float = spec(0.3, ge=0, lt=1)
 
 THETA_STAR = ("arx", "sim_error", "oracle")   # oracle: the plant's true linear part (an oracle, simulation only)
 VERSION = 4   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zeros logged;

@@ -39,9 +39,35 @@ from pipeline.models.rational import RationalFeedforward, basis_coefficients, ba
 from pipeline.models.shared_ar import ReferenceWindow, SharedARPGNN, make_approximator
 from pipeline.errors import ConfigError
 from pipeline.resources import job_cores
+from typing import Literal
+from pipeline.schema import schema, spec, ITER_MAX, COUNT_MAX
+
+
+@schema
+class Params:
+    kind: Literal["sk_oe"]
+    name: str = "sk_oe"
+    max_iter: int = spec(30, ge=1, le=ITER_MAX)
+    tol: float = spec(1e-6, gt=0, lt=1)
+    lm_max_iter: int = spec(3000, ge=1, le=ITER_MAX)
+    lm_ftol: float = spec(1e-9, ge=0, lt=1)
+    lm_gtol: float = spec(1e-10, ge=0, lt=1)
+    column_scale: bool = True
+    screen_max_iter: int = spec(4, ge=0, le=ITER_MAX)
+    screen_lm_max_iter: int = spec(30, ge=0, le=ITER_MAX)
+    n_restarts: int = spec(5, ge=1, le=COUNT_MAX)
+    n_jobs: int = spec(5, ge=1, le=1024)
+    oe_check_iter: int = spec(3000, ge=1, le=ITER_MAX)
+    geodesic: bool = True
+    cost_tol: float = spec(1e-7, ge=0, lt=1)
+    stall_window: int = spec(10, ge=0, le=ITER_MAX)
+    stall_tol: float = spec(1e-3, ge=0, lt=1)
+    output_tol: float = spec(0.0, ge=0, lt=1)
 
 VERSION = 3   # 2: SK and the OE check stop on tolerances (stop reasons logged); regularised check on J_OE + λR;
               # 3: the 'stalled' stop of SK without a fixed point
+
+
 KINDS = ("rational", "pgnn_shared_ar")
 REGULARIZERS = ("none", "orthogonal")
 

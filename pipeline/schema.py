@@ -117,22 +117,29 @@ class Paths:
 
 @schema
 class Report:
-    experiments: list[str] = spec(["physics_baseline"], min_len=1)
+    # MLflow experiments summarised, in order
+    experiments: list[str] = spec(["physics_baseline", "b1_arx_bias", "b1_linear_motor", "b1_noise_sweep", "k_two_mass",
+                                   "b2_rot_trans", "emps"], min_len=1)
+    # true: rebuild only these experiments' sections, keep the rest of results/
     update: bool = False
 
 
 @schema
 class Config:
     """The top level; each group (system, data, ...) is checked by its option's class below."""
+    # seeds every random draw of the job (SPEC §0)
     seed: int = spec(0, ge=0)
+    # MLflow experiment (one per paper experiment)
     experiment_name: str = spec("default", check=_name_rule, example="my_study")
     run_name: str = "default"
     description: str = ""            # the experiment's MLflow note: what it compares, which tags/metrics to read
     compare_metrics: list[str] = spec(["evaluate/*/mae"])   # metric globs of the sweep's comparison (issue 23)
+    # subset of generate,baseline,train,invert,evaluate,export,report
     stages: list[str] = spec(["generate", "baseline", "train", "invert", "evaluate"], min_len=1,
                              check=_stages_rule, example=["generate", "baseline"],
                              rule=f"give a non-empty list of stages from {list(ORDER)}")
     paths: Paths = field(default_factory=Paths)
+    # the export stage (stages=[..., export]): C99 code + MLflow model of the feedforward
     export: Any = None               # stages/export.py Params
     report: Report = field(default_factory=Report)
     system: Any = None
@@ -181,10 +188,19 @@ def _model_option(node: dict) -> str:
 # ------------------------------------------------------------------------------------------------
 @schema
 class Evaluate:
+    # reference specs (pipeline.references.from_spec), scored one by one
     references: Any = spec([], check=references_rule, example="[{name:R,kind:b2_R}]")
+    # (evaluate/default.yaml) false: noise-free evaluation runs; true: the plant's noise model (seeded)
+    # (evaluate/k_heldout.yaml) the two-mass plant is noise-free
+    # (evaluate/measured.yaml) measured data carry their own noise; nothing is added
     noise: bool = False
+    # a model identified on measured data (data=measured) is scored on a simulator only if true (the run is tagged
+    # evaluated_on): it says nothing about the machine the data came from
     allow_simulator: bool = False
+    # data: as recorded (default) | published: the EMPS authors' script (one more sample of delay on the controller
+    # output, time base t(10) - t(9)); both are logged, this one is plotted
     convention: Literal["data", "published"] = "data"   # = pipeline.identify.measured_loop.CONVENTIONS
+    # last share of a record scored separately (training file: the held-out block)
     validation_tail: float = spec(0.2, ge=0, lt=1)
 
 

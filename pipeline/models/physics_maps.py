@@ -16,9 +16,11 @@ from pipeline.schema import schema
 
 KIND = "physics"   # the model option (model.kind, or model=physics) this module's Params checks
 
+
 @schema
 class Params:
     name: str = "physics"
+
 
 __all__ = ["PhysicsFeatures", "LinearFeatures", "RigidBodyForward", "RigidBodyInverse", "PhysicsModelFeatures",
            "physics_features_for"]

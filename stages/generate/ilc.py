@@ -23,12 +23,19 @@ from stages.generate.closed_loop import Params as ClosedLoopParams
 
 @schema
 class Ilc:
+    # maximum number of trials (runs of the true plant)
     trials: int = spec(30, ge=1, le=COUNT_MAX)
+    # learning gain L in (0, 2): f_{j+1} = f_j + L Δf
     gain: float = spec(1.0, gt=0, lt=2, rule="the learning gain must be in (0, 2)")
+    # weight of ‖f‖², relative to σ_max(G)² (SPEC §2.3)
     w_rel: float = spec(0.0, ge=0, le=1e6)
+    # weight of ‖f_{j+1} − f_j‖², relative to σ_max(G)² (SPEC §2.3: ≤ 1e-10)
     w_delta_rel: float = spec(0.0, ge=0, le=1e6)
+    # [m] stop at this rms tracking error
     tol: float = spec(0.0, ge=0, lt=NOISE_MAX, unit="m")
+    # lifted (dense, short references) | matrix_free (CG on filters) | auto
     backend: Literal["auto", "lifted", "matrix_free"] = "auto"
+    # trials see the plant's noise model (seeded)
     noise: bool = True
 
 

@@ -11,7 +11,9 @@ from pipeline.schema import schema
 class Params:
     kind: Literal["analytic"]
     name: str = "analytic"
+    # the model this inversion needs (fills model.structure)
     model_structure: Literal["forward", "inverse", "invertible"] = "invertible"
+
 
 VERSION = 2   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
 

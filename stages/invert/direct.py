@@ -11,7 +11,9 @@ from pipeline.schema import schema
 class Params:
     kind: Literal["direct"]
     name: str = "direct"
+    # the model this inversion needs (fills model.structure)
     model_structure: Literal["forward", "inverse", "invertible"] = "inverse"
+
 
 VERSION = 2   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
 

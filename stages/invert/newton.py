@@ -19,10 +19,15 @@ from pipeline.schema import schema, spec, FORCE_MAX
 class Params:
     kind: Literal["newton"]
     name: str = "newton"
+    # the model this inversion needs (fills model.structure)
     model_structure: Literal["forward", "inverse", "invertible"] = "forward"
+    # Newton updates per sample ([B1] §VI: 5)
     k: int = spec(5, ge=0, le=1000)
+    # [N] lower bound of the search (null = none); leaving it is reported
     u_min: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=-100.0)
+    # [N] upper bound of the search (null = none)
     u_max: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=100.0)
+
 
 VERSION = 2   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
 

@@ -8,6 +8,7 @@ class Params:   # nothing to set
     kind: Literal["physics"]
     name: str = ""
 
+
 VERSION = 2   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
 
 

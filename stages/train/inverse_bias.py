@@ -31,8 +31,10 @@ from pipeline.schema import schema, spec, COUNT_MAX
 class Params:
     kind: Literal["inverse_bias"]
     name: str = "inverse_bias"
+    # N [samples] per data set
     sample_sizes: list[int] = spec([1000, 10000, 100000], ge=10, le=10**8, min_len=2,
                                    rule="give at least two sizes >= 10 (and <= 1e8)")
+    # data sets per N (SPEC: >= 20)
     n_seeds: int = spec(20, ge=2, le=COUNT_MAX)
 
 

@@ -47,22 +47,47 @@ from pipeline.schema import schema, spec, ITER_MAX, COUNT_MAX
 class Params:
     kind: Literal["sk_oe"]
     name: str = "sk_oe"
+    # safety cap on SK iterations (each: one weighted problem [K] (10)/(30)); the PGNN converges by j ≈ 3
     max_iter: int = spec(30, ge=1, le=ITER_MAX)
+    # stop when the relative parameter change (column-scaled θ, and φ) is below this (and the step's inner LM
+    # converged); with lm_ftol 1e-9 the regularised PGNN meets it in 3-6 steps
     tol: float = spec(1e-6, gt=0, lt=1)
+    # safety cap on the LM iterations of one SK step (PGNN; the rational step is closed form)
     lm_max_iter: int = spec(3000, ge=1, le=ITER_MAX)
+    # inner LM converged: an accepted step lowers the cost by less than this fraction
     lm_ftol: float = spec(1e-9, ge=0, lt=1)
+    # inner LM converged: scaled gradient (cosine of every Jacobian column with the residual)
     lm_gtol: float = spec(1e-10, ge=0, lt=1)
+    # scale the columns of W M to unit norm before least squares / SVD (SPEC §5)
     column_scale: bool = True
+    # restarts are screened: every restart runs SK on this short budget (and screen_lm_max_iter LM
     screen_max_iter: int = spec(4, ge=0, le=ITER_MAX)
+    # steps per SK step), the best by training cost is then run to convergence (init = its model); the others stay at
+    # the screening budget and count as capped (0: no screening)
     screen_lm_max_iter: int = spec(30, ge=0, le=ITER_MAX)
+    # random initialisations of g_φ, lowest training cost (J_OE, + λR) kept (SPEC §5; [K] K2 uses 5); 1 for the
+    # rational model
     n_restarts: int = spec(5, ge=1, le=COUNT_MAX)
+    # processes for the screened restarts, at most the cores free to this job (pipeline.resources.job_cores: the cores
+    # over the jobs the launcher runs at once); results equal to the bit for any count
     n_jobs: int = spec(5, ge=1, le=1024)
+    # safety cap of the direct LM from the SK result (SPEC §8 K3), >= lm_max_iter; same lm_ftol/lm_gtol
     oe_check_iter: int = spec(3000, ge=1, le=ITER_MAX)
+    # geodesic acceleration in the PGNN's inner LM solves (Transtrum & Sethna; lm.py). The unregularised PGNN's θ is
+    # not unique (K2): where the parameter test cannot pass, cost_tol ends it
     geodesic: bool = True
+    # stop also when J_OE (+ λR) changed by <= cost_tol of itself over an SK step whose inner LM converged (0: off)
     cost_tol: float = spec(1e-7, ge=0, lt=1)
+    # no fixed point (the rational model: roots of B reflected at every step, SPEC §5): stop when the best
     stall_window: int = spec(10, ge=0, le=ITER_MAX)
+    # J_OE (+ λR) has not fallen by more than stall_tol of itself over stall_window SK iterations (reason 'stalled',
+    # not a cap; the best iterate is kept). k_two_mass rational: best at j = 5 (1957.7), J_OE then drifts up to 2217
+    # by j = 30; stops at j = 14 with the same kept model
     stall_tol: float = spec(1e-3, ge=0, lt=1)
+    # with > 0, 'tol' and 'cost_tol' also need the model's training output to have moved by at most this fraction of
+    # its own error over the step (‖Δŷ‖/√J_OE): what is computed from it has settled
     output_tol: float = spec(0.0, ge=0, lt=1)
+
 
 VERSION = 3   # 2: SK and the OE check stop on tolerances (stop reasons logged); regularised check on J_OE + λR;
               # 3: the 'stalled' stop of SK without a fixed point

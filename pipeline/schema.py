@@ -1,14 +1,24 @@
-"""The typed schema of the composed config: what every key may hold, checked before any work.
+"""The strict checker of the composed config: what every key may hold, checked before any work.
 
-One dataclass per config group option (``system`` by ``_target_``, ``data`` / ``identify`` /
-``invert`` by ``kind``, ``model`` by ``kind`` or layout, ``regularizer`` by ``name``) plus the
-top level (:class:`Config`: seed, experiment name, stages, paths, ``export``, ``report``). A field's
-annotation is its type (``bool``, ``int``, ``float``, ``str``, ``Literal[...]`` for an enumeration,
-``list[...]``, ``Optional[...]`` for null, a nested dataclass for a sub-node, ``Any`` for what a
-library checks itself, e.g. reference specs); its metadata (:func:`spec`) gives the range
+Each option owns its parameters: one strict dataclass (:data:`schema`) next to its code, named
+``Params``: a plant's in its module of pipeline/systems/ (found by ``system._target_``), a data /
+identify / invert option's in its stage implementation stages/<stage>/<kind>.py (found by ``kind``,
+as the runner finds the stage), a model's in its pipeline/models/ module (``KIND`` or the module's
+name), the regularizers' in stages/train/__init__.py (by ``name``), the export stage's in
+stages/export.py; sub-nodes next to the code using them (the controller's in
+pipeline/systems/controller.py). This module keeps the top level (:class:`Config`, ``paths``,
+``report``, ``evaluate``), the checker and the magnitude bounds; it imports no option module (they
+import it) and finds a class with importlib: no registry. A field's annotation is its type
+(``bool``, ``int``, ``float``, ``str``, ``Literal[...]`` for an enumeration, ``list[...]``,
+``Optional[...]`` for null, a nested dataclass for a sub-node, ``Any`` for what a library checks
+itself, e.g. reference specs); its metadata (:func:`spec`) gives the range
 (``gt``/``ge``/``lt``/``le``, on every item of a list), the unit, a list's shortest length, and
 the rule and example quoted in the message. Every ``float`` must be finite, and every physical
 quantity has an upper bound that rules out implausible magnitudes (``system.noise.std=1e300``).
+
+A key's default is stated once, in its class: :func:`register` gives Hydra every class's defaults
+before it composes (conf/config.yaml merges ``_params/<group>/<option>`` under each group), so the
+YAML files hold only values that differ and every key can still be set on the command line.
 
 :func:`check` validates the resolved config against these classes: an unknown key, a missing
 mandatory value (``???``), a value of the wrong type, outside its range or not one of its choices
@@ -17,13 +27,14 @@ and an example, e.g. ``model.hidden=[-3]: widths must be positive integers (e.g.
 model.hidden=[16])``. Types are strict: nothing is coerced (``true``/``false`` only for a bool, not
 ``maybe``, ``yes`` or 1; an integer for an int, not 1.5 or '3'); this is why the check walks the
 annotations itself instead of merging into ``OmegaConf.structured`` (which converts 'yes' and 1 to
-True and '3' to 3). Keys a config leaves out keep the stages' defaults. Checks across keys or
-against the plant (orders against the physics model, bounds lower < upper, references within the
-plant's limits) stay in the stages' ``validate`` / ``check`` functions, which run after this one.
+True and '3' to 3), and why Hydra gets the defaults as plain values, not as typed structured configs.
+Keys a config still leaves out are set to their defaults. Checks across keys or against the plant
+(orders against the physics model, bounds lower < upper, references within the plant's limits) stay
+in the stages' ``validate`` / ``check`` functions, which run after this one.
 
-Adding a plant or a method: add its dataclass here and to :data:`SYSTEMS`, :data:`DATA`,
-:data:`MODELS`, :data:`IDENTIFY`, :data:`REGULARIZERS` or :data:`INVERT` (tests/test_config_schema.py
-checks that every stage implementation has one).
+Adding a plant: its module pipeline/systems/<plant>.py (the System and its ``Params``) and
+conf/system/<plant>.yaml. Adding a method: stages/<stage>/<kind>.py (with its ``Params``) and its
+conf/<group>/<kind>.yaml (tests/test_config_schema.py checks that every implementation declares one).
 """
 from __future__ import annotations
 
@@ -126,7 +137,7 @@ class Report:
 
 @schema
 class Config:
-    """The top level; each group (system, data, ...) is checked by its option's class below."""
+    """The top level; each group (system, data, ...) is checked by its option's own class."""
     # seeds every random draw of the job (SPEC §0)
     seed: int = spec(0, ge=0)
     # MLflow experiment (one per paper experiment)
@@ -214,7 +225,6 @@ CHOOSER = {"system": "_target_", "data": "kind", "model": "kind", "identify": "k
 STAGE = {"data": "generate", "identify": "train", "invert": "invert"}
 #: top-level nodes a stage owns: their class is that stage module's ``Params``
 OWNED = {"export": "stages.export"}
-#: the model option of a node without ``kind``: the physics model (model=physics) or a NARX PGNN (model=pgnn)
 _ROOT = Path(__file__).resolve().parent.parent
 
 

@@ -228,6 +228,11 @@ OWNED = {"export": "stages.export"}
 _ROOT = Path(__file__).resolve().parent.parent
 
 
+def owned_class(key: str) -> type:
+    """The class of a top-level node a stage owns (``export``: stages/export.py ``Params``)."""
+    return importlib.import_module(OWNED[key]).Params
+
+
 def _modules(package: str) -> list[str]:
     """The public modules of a package folder (``stages.train`` -> its ``<kind>.py``)."""
     folder = _ROOT.joinpath(*package.split("."))
@@ -342,8 +347,8 @@ def register(conf: Path | None = None) -> None:
     conf = Path(conf or _ROOT / "conf")
     store = ConfigStore.instance()
     top = {k: v for k, v in defaults(Config).items() if k not in CHOOSER and k != "evaluate"}
-    for key, module in OWNED.items():
-        top[key] = defaults(importlib.import_module(module).Params)
+    for key in OWNED:
+        top[key] = defaults(owned_class(key))
     store.store(name="_params_config", node=top)
     for group in (*CHOOSER, "evaluate"):
         for path in sorted((conf / group).glob("*.yaml")):
@@ -388,9 +393,9 @@ def _default(f: dataclasses.Field) -> Any:
 
 def _check_nodes(raw: dict) -> None:
     _check_node(Config, raw, "", "the config")
-    for key, module in OWNED.items():
+    for key in OWNED:
         node = raw.get(key)
-        _check_node(importlib.import_module(module).Params, {} if node is None else node, key, key)
+        _check_node(owned_class(key), {} if node is None else node, key, key)
     for group in CHOOSER:
         node = raw.get(group)
         if node is None:

@@ -243,8 +243,13 @@ def k_problem(sk_iter: int, lm_iter: int, seed: int = 0):
     next SK step's weighted problem (as ``sk_iterations`` builds it)."""
     from bench_k import training_data
     from stages.train.sk_oe import build_model
-    cfg = yaml.safe_load((ROOT / "conf/model/pgnn_shared_ar.yaml").read_text())
-    lam = float(yaml.safe_load((ROOT / "conf/regularizer/orthogonal.yaml").read_text())["lam"])
+    from pipeline import schema
+    from pipeline.models import shared_ar
+    from stages.train import Orthogonal
+    # the option's parameter class holds the defaults, its YAML only what differs
+    cfg = {**schema.defaults(shared_ar.Params), **yaml.safe_load((ROOT / "conf/model/pgnn_shared_ar.yaml").read_text())}
+    lam = float({**schema.defaults(Orthogonal),
+                 **yaml.safe_load((ROOT / "conf/regularizer/orthogonal.yaml").read_text())}["lam"])
     plant, rs, fs = training_data()
     model = build_model(cfg, plant.Ts, rs, seed)
     with warnings.catch_warnings():

@@ -11,9 +11,11 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from pipeline import interrupts, resources, runner
+from pipeline import interrupts, resources, runner, schema
 from pipeline.tracking import VARYING_ENV
 from pipeline.runner import ConfigError, run_job, run_name_with_overrides
+
+schema.register()   # every key's default for Hydra (before it composes; a launcher's workers get the store)
 
 
 # an absolute path: the `pgnn-ff` console script imports this module from outside the package folder

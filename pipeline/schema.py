@@ -1,14 +1,24 @@
-"""The typed schema of the composed config: what every key may hold, checked before any work.
+"""The strict checker of the composed config: what every key may hold, checked before any work.
 
-One dataclass per config group option (``system`` by ``_target_``, ``data`` / ``identify`` /
-``invert`` by ``kind``, ``model`` by ``kind`` or layout, ``regularizer`` by ``name``) plus the
-top level (:class:`Config`: seed, experiment name, stages, paths, ``export``, ``report``). A field's
-annotation is its type (``bool``, ``int``, ``float``, ``str``, ``Literal[...]`` for an enumeration,
-``list[...]``, ``Optional[...]`` for null, a nested dataclass for a sub-node, ``Any`` for what a
-library checks itself, e.g. reference specs); its metadata (:func:`spec`) gives the range
+Each option owns its parameters: one strict dataclass (:data:`schema`) next to its code, named
+``Params``: a plant's in its module of pipeline/systems/ (found by ``system._target_``), a data /
+identify / invert option's in its stage implementation stages/<stage>/<kind>.py (found by ``kind``,
+as the runner finds the stage), a model's in its pipeline/models/ module (``KIND`` or the module's
+name), the regularizers' in stages/train/__init__.py (by ``name``), the export stage's in
+stages/export.py; sub-nodes next to the code using them (the controller's in
+pipeline/systems/controller.py). This module keeps the top level (:class:`Config`, ``paths``,
+``report``, ``evaluate``), the checker and the magnitude bounds; it imports no option module (they
+import it) and finds a class with importlib: no registry. A field's annotation is its type
+(``bool``, ``int``, ``float``, ``str``, ``Literal[...]`` for an enumeration, ``list[...]``,
+``Optional[...]`` for null, a nested dataclass for a sub-node, ``Any`` for what a library checks
+itself, e.g. reference specs); its metadata (:func:`spec`) gives the range
 (``gt``/``ge``/``lt``/``le``, on every item of a list), the unit, a list's shortest length, and
 the rule and example quoted in the message. Every ``float`` must be finite, and every physical
 quantity has an upper bound that rules out implausible magnitudes (``system.noise.std=1e300``).
+
+A key's default is stated once, in its class: :func:`register` gives Hydra every class's defaults
+before it composes (conf/config.yaml merges ``_params/<group>/<option>`` under each group), so the
+YAML files hold only values that differ and every key can still be set on the command line.
 
 :func:`check` validates the resolved config against these classes: an unknown key, a missing
 mandatory value (``???``), a value of the wrong type, outside its range or not one of its choices
@@ -17,20 +27,23 @@ and an example, e.g. ``model.hidden=[-3]: widths must be positive integers (e.g.
 model.hidden=[16])``. Types are strict: nothing is coerced (``true``/``false`` only for a bool, not
 ``maybe``, ``yes`` or 1; an integer for an int, not 1.5 or '3'); this is why the check walks the
 annotations itself instead of merging into ``OmegaConf.structured`` (which converts 'yes' and 1 to
-True and '3' to 3). Keys a config leaves out keep the stages' defaults. Checks across keys or
-against the plant (orders against the physics model, bounds lower < upper, references within the
-plant's limits) stay in the stages' ``validate`` / ``check`` functions, which run after this one.
+True and '3' to 3), and why Hydra gets the defaults as plain values, not as typed structured configs.
+Keys a config still leaves out are set to their defaults. Checks across keys or against the plant
+(orders against the physics model, bounds lower < upper, references within the plant's limits) stay
+in the stages' ``validate`` / ``check`` functions, which run after this one.
 
-Adding a plant or a method: add its dataclass here and to :data:`SYSTEMS`, :data:`DATA`,
-:data:`MODELS`, :data:`IDENTIFY`, :data:`REGULARIZERS` or :data:`INVERT` (tests/test_config_schema.py
-checks that every stage implementation has one).
+Adding a plant: its module pipeline/systems/<plant>.py (the System and its ``Params``) and
+conf/system/<plant>.yaml. Adding a method: stages/<stage>/<kind>.py (with its ``Params``) and its
+conf/<group>/<kind>.yaml (tests/test_config_schema.py checks that every implementation declares one).
 """
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import math
 import typing
 from dataclasses import MISSING, dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Literal, Optional, Union
 
 from omegaconf import OmegaConf, open_dict
@@ -40,19 +53,19 @@ from pipeline.errors import ORDER, SAFE_NAME, ConfigError
 #: every schema class: keyword-only fields, so a mandatory field may follow defaulted ones
 schema = dataclass(kw_only=True)
 
-__all__ = ["check", "spec", "Config", "SYSTEMS", "DATA", "MODELS", "IDENTIFY", "REGULARIZERS", "INVERT",
-           "Evaluate"]
+__all__ = ["check", "spec", "schema", "options", "option_class", "defaults", "register", "Config", "Evaluate"]
 
 
 def spec(default: Any = MISSING, *, gt: float | None = None, ge: float | None = None, lt: float | None = None,
          le: float | None = None, unit: str = "", rule: str | None = None, example: Any = MISSING,
-         min_len: int = 0, check: Callable[[Any], str | None] | None = None) -> Any:
+         min_len: int = 0, check: Callable[[Any], str | None] | None = None, fill: bool = True) -> Any:
     """A schema field: ``default`` (a list is copied per instance; MISSING: mandatory), the bounds
     of the value (of each item of a list), its unit, the shortest list, the rule and example the
     error message quotes (generated from type and bounds when not given), and ``check(value)``:
-    an extra rule, returning what is wrong (or None)."""
+    an extra rule, returning what is wrong (or None). ``fill=False``: a key only some settings take
+    (a controller kind's own gains), absent unless given (a null default is then never set)."""
     meta = dict(gt=gt, ge=ge, lt=lt, le=le, unit=unit, rule=rule, example=example, min_len=min_len,
-                check=check)
+                check=check, fill=fill)
     if isinstance(default, list):
         return field(default_factory=lambda: list(default), metadata=meta)
     return field(default=default, metadata=meta)
@@ -74,15 +87,7 @@ ITER_MAX = 10**7      # iteration caps
 COUNT_MAX = 10**4     # restarts, trials, seeds
 
 
-def _lam_rule(v) -> str | None:
-    """regularizer.lam of physics_l2: a number or a list (diag Λ) of numbers, finite, >= 0."""
-    vals = v if isinstance(v, list) else [v]
-    if not vals or not all(_is_number(x) and math.isfinite(x) and 0 <= x <= 1e12 for x in vals):
-        return "give a finite number >= 0 and <= 1e12, or a list of them (diag Λ)"
-    return None
-
-
-def _references_rule(v) -> str | None:
+def references_rule(v) -> str | None:
     """Reference specs: a list (or mapping by name) of mappings with a kind (pipeline.references)."""
     items = list(v.values()) if isinstance(v, dict) else v
     if not isinstance(items, list) or not all(isinstance(s, dict) for s in items):
@@ -121,57 +126,32 @@ class Paths:
     results: Optional[str] = None    # report output; null = <repo>/results
 
 
-def _prefix_rule(v) -> str | None:
-    from pipeline.export.package import check_prefix
-    return check_prefix(v)
-
-
-@schema
-class Limits:
-    """export.limits: the guard around an exported law (pipeline.export.guard)."""
-    u_min: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=-200.0)
-    u_max: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=200.0)
-    rate: Optional[float] = spec(None, gt=0, le=1e12, unit="N/s", example=1e5)
-    envelope_margin: float = spec(0.1, ge=0, le=100)
-    envelope_action: Literal["flag", "fallback"] = "flag"
-    fallback: Literal["hold", "physics", "ramp"] = "hold"
-    ramp_time: float = spec(0.1, gt=0, le=3600.0, unit="s")
-
-
-@schema
-class Export:
-    compile: bool = True
-    cc: str = "cc"
-    rtol: float = spec(1e-9, gt=0, lt=1)
-    timing_repeats: int = spec(21, ge=0, le=COUNT_MAX)
-    register: bool = False
-    prefix: Optional[str] = spec(None, check=_prefix_rule, example="axis1_ff")
-    precision: Literal["double", "single"] = "double"
-    single_rtol: float = spec(0.1, gt=0, le=10)
-    target_rate: Optional[float] = spec(None, gt=0, le=FREQ_MAX, unit="Hz", example=4000.0)
-    cppcheck: bool = True
-    limits: Limits = field(default_factory=Limits)
-
-
 @schema
 class Report:
-    experiments: list[str] = spec(["physics_baseline"], min_len=1)
+    # MLflow experiments summarised, in order
+    experiments: list[str] = spec(["physics_baseline", "b1_arx_bias", "b1_linear_motor", "b1_noise_sweep", "k_two_mass",
+                                   "b2_rot_trans", "emps"], min_len=1)
+    # true: rebuild only these experiments' sections, keep the rest of results/
     update: bool = False
 
 
 @schema
 class Config:
-    """The top level; each group (system, data, ...) is checked by its option's class below."""
+    """The top level; each group (system, data, ...) is checked by its option's own class."""
+    # seeds every random draw of the job (SPEC §0)
     seed: int = spec(0, ge=0)
+    # MLflow experiment (one per paper experiment)
     experiment_name: str = spec("default", check=_name_rule, example="my_study")
     run_name: str = "default"
     description: str = ""            # the experiment's MLflow note: what it compares, which tags/metrics to read
     compare_metrics: list[str] = spec(["evaluate/*/mae"])   # metric globs of the sweep's comparison (issue 23)
+    # subset of generate,baseline,train,invert,evaluate,export,report
     stages: list[str] = spec(["generate", "baseline", "train", "invert", "evaluate"], min_len=1,
                              check=_stages_rule, example=["generate", "baseline"],
                              rule=f"give a non-empty list of stages from {list(ORDER)}")
     paths: Paths = field(default_factory=Paths)
-    export: Export = field(default_factory=Export)
+    # the export stage (stages=[..., export]): C99 code + MLflow model of the feedforward
+    export: Any = None               # stages/export.py Params
     report: Report = field(default_factory=Report)
     system: Any = None
     data: Any = None
@@ -183,295 +163,13 @@ class Config:
 
 
 # ------------------------------------------------------------------------------------------------
-# system (by _target_)
-# ------------------------------------------------------------------------------------------------
-@schema
-class StdNoise:
-    std: float = spec(0.0, ge=0, lt=NOISE_MAX, unit="m")
-
-
-@schema
-class MotorNoise:
-    structure: Literal["equation", "output"] = "equation"
-    std: float = spec(1e-6, ge=0, lt=NOISE_MAX, unit="m")
-
-
-@schema
-class OutputNoise:
-    structure: Literal["output"] = "output"
-    std: float = spec(1e-6, ge=0, lt=NOISE_MAX, unit="m")
-
-
-@schema
-class ArxNoise:
-    structure: Literal["equation"] = "equation"
-    std: float = spec(0.1, ge=0, le=1e3, unit="(output units)")
-
-
-@schema
-class TwoMassStribeck:
-    _target_: str
-    name: str = "two_mass_stribeck"
-    m1: float = spec(1.0, gt=0, le=MASS_MAX, unit="kg")
-    m2: float = spec(2.0, gt=0, le=MASS_MAX, unit="kg")
-    k1: float = spec(1.0, ge=0, le=STIFF_MAX, unit="N/m")
-    k2: float = spec(15000.0, gt=0, le=STIFF_MAX, unit="N/m")
-    d2: float = spec(50.0, ge=0, le=DAMP_MAX, unit="N s/m")
-    c1: float = spec(1.0, ge=0, le=DAMP_MAX, unit="N s/m")
-    c2: float = spec(20.0, ge=0, le=DAMP_MAX, unit="N s/m")
-    alpha: float = spec(20.0, ge=0, le=1e9, unit="s/m")
-    Ts: float = spec(1e-3, gt=0, le=TS_MAX, unit="s")
-    noise: StdNoise = field(default_factory=StdNoise)
-
-
-@schema
-class LinearMotor:
-    _target_: str
-    name: str = "linear_motor"
-    Ts: float = spec(1e-3, gt=0, le=TS_MAX, unit="s")
-    m: float = spec(20.0, gt=0, le=MASS_MAX, unit="kg")
-    f_v: float = spec(50.0, ge=0, le=DAMP_MAX, unit="N s/m")
-    f_c: float = spec(10.0, ge=0, le=FORCE_MAX, unit="N")
-    f_s: float = spec(15.0, ge=0, le=FORCE_MAX, unit="N")
-    v_s: float = spec(0.01, gt=0, le=SPEED_MAX, unit="m/s")
-    eps_v: float = spec(1e-3, gt=0, le=SPEED_MAX, unit="m/s")
-    p: float = spec(0.025, gt=0, le=LENGTH_MAX, unit="m")
-    A1: float = spec(5.0, ge=-FORCE_MAX, le=FORCE_MAX, unit="N")
-    A2: float = spec(2.0, ge=-FORCE_MAX, le=FORCE_MAX, unit="N")
-    phi1: float = spec(0.3, ge=-2 * math.pi, le=2 * math.pi, unit="rad")
-    phi2: float = spec(1.1, ge=-2 * math.pi, le=2 * math.pi, unit="rad")
-    cogging: bool = True
-    friction: Literal["stribeck", "sign"] = "stribeck"
-    noise: MotorNoise = field(default_factory=MotorNoise)
-    substeps: int = spec(20, ge=1, le=10_000)
-    crossover_hz: float = spec(20.0, gt=0, le=FREQ_MAX, unit="Hz")
-    physics_input: Literal["auto", "direct", "averaged"] = "auto"
-    stroke: float = spec(0.2, gt=0, le=LENGTH_MAX, unit="m")
-    v_limit: float = spec(0.5, gt=0, le=SPEED_MAX, unit="m/s")
-
-
-@schema
-class RotTransNMP:
-    _target_: str
-    name: str = "rot_trans_nmp"
-    Ts: float = spec(0.01, gt=0, le=TS_MAX, unit="s")
-    m: float = spec(20.0, gt=0, le=MASS_MAX, unit="kg")
-    l_x: float = spec(1.0, gt=0, le=LENGTH_MAX, unit="m")
-    l_y: float = spec(1.0, ge=-LENGTH_MAX, le=LENGTH_MAX, unit="m")
-    J: float = spec(40.0 / 3.0, gt=0, le=MASS_MAX * LENGTH_MAX**2, unit="kg m^2")
-    f_v: float = spec(50.0, ge=0, le=DAMP_MAX, unit="kg/s")
-    k: float = spec(25e3 / 3.0, ge=0, le=STIFF_MAX, unit="kg/s^2")
-    d: float = spec(575.0 / 3.0, ge=0, le=DAMP_MAX, unit="kg/s")
-    l_m: float = spec(0.05, gt=0, le=LENGTH_MAX, unit="m")
-    c: float = spec(1.0, ge=-FORCE_MAX, le=FORCE_MAX, unit="N")
-    controller_gain: float = spec(5000.0, gt=0, le=STIFF_MAX, unit="N/m")
-    controller_zero: float = spec(4.0 * math.pi, gt=0, le=FREQ_MAX, unit="rad/s")
-    controller_pole: float = spec(20.0 * math.pi, gt=0, le=FREQ_MAX, unit="rad/s")
-    noise: OutputNoise = field(default_factory=OutputNoise)
-    substeps: int = spec(20, ge=1, le=10_000)
-    r_limit: float = spec(0.5, gt=0, le=LENGTH_MAX, unit="m")
-    v_limit: float = spec(1.0, gt=0, le=SPEED_MAX, unit="m/s")
-
-
-@schema
-class ArxBias:
-    _target_: str
-    name: str = "arx_bias"
-    a: list[float] = spec([1.5, -0.7], ge=-1e3, le=1e3)
-    b: list[float] = spec([1.0, 0.5], ge=-1e6, le=1e6, min_len=1)
-    noise: ArxNoise = field(default_factory=ArxNoise)
-    u_std: float = spec(1.0, ge=0, le=1e6)
-    Ts: float = spec(1.0, gt=0, le=3600.0, unit="s")   # a discrete system: Ts is only recorded
-
-
-@schema
-class Controller:
-    """system.controller (pipeline.systems.controller): kind cascade (kp, kv) or lti (num, den, num_r,
-    delay); which keys a kind takes is checked by LTIController.from_config."""
-    kind: Literal["cascade", "lti"] = "cascade"
-    kp: Optional[float] = spec(None, gt=0, le=1e6, unit="1/s", example=160.18)
-    kv: Optional[float] = spec(None, gt=0, le=1e9, unit="controller units per m/s", example=243.45)
-    num: Optional[list[float]] = spec(None, ge=-1e15, le=1e15, min_len=1, example=[4.279e6, -8.212e6, 3.939e6])
-    den: Optional[list[float]] = spec(None, ge=-1e15, le=1e15, min_len=1, example=[1.0, -1.4361, 0.4361])
-    num_r: Optional[list[float]] = spec(None, ge=-1e15, le=1e15, min_len=1, example=[4.279e6, -8.212e6, 3.939e6])
-    delay: Optional[int] = spec(None, ge=0, le=100, unit="samples", example=1)
-    gtau: float = spec(1.0, gt=0, le=1e6, unit="N per controller unit")
-    v_sat: float = spec(1e9, gt=0, le=1e12, unit="controller units")
-
-
-def _terms_rule(v) -> str | None:
-    from pipeline.systems.force_terms import TERMS
-    bad = [t for t in v if t not in TERMS]
-    return f"unknown term(s) {bad}; choose from {list(TERMS)} (the mass is always in)" if bad else None
-
-
-@schema
-class ForceTermsCfg:
-    """system.force_terms of a measured system (pipeline.systems.force_terms)."""
-    terms: list[str] = spec(["viscous", "coulomb", "offset"], check=_terms_rule,
-                            example=["viscous", "coulomb", "cogging"])
-    coulomb_width: Optional[float] = spec(None, gt=0, le=SPEED_MAX, unit="m/s", example=0.002)
-    stribeck_velocity: float = spec(0.01, gt=0, le=SPEED_MAX, unit="m/s")
-    cogging_period: Optional[float] = spec(None, gt=0, le=LENGTH_MAX, unit="m", example=0.03)
-    cogging_harmonics: int = spec(1, ge=1, le=20)
-
-
-@schema
-class Published:
-    M: float = spec(gt=0, le=MASS_MAX, unit="kg", example=95.1)
-    F_v: float = spec(ge=-DAMP_MAX, le=DAMP_MAX, unit="N s/m", example=203.5)
-    F_c: float = spec(ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=20.4)
-    OF: float = spec(ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=-3.2)
-
-
-@schema
-class Idim:
-    cutoff_hz: float = spec(50.0, gt=0, le=FREQ_MAX, unit="Hz")
-    order: int = spec(4, ge=1, le=20)
-    decimation: int = spec(10, ge=1, le=10_000)
-    trim: int = spec(50, ge=0, le=10**8)
-
-
-@schema
-class Recording:
-    _target_: str
-    name: str = "measured"
-    Ts: float = spec(1e-3, gt=0, le=TS_MAX, unit="s")
-    controller: Controller = spec(example="{kp:160.18,kv:243.45}")
-    physics_input: Literal["averaged", "direct"] = "averaged"
-    force_terms: ForceTermsCfg = field(default_factory=lambda: ForceTermsCfg())
-    disturbance: Optional[str] = None
-    published: Optional[Published] = None
-    idim: Idim = field(default_factory=Idim)
-
-
-SYSTEMS: dict[str, type] = {
-    "pipeline.systems.two_mass_stribeck.TwoMassStribeck": TwoMassStribeck,
-    "pipeline.systems.linear_motor.LinearMotor": LinearMotor,
-    "pipeline.systems.rot_trans_nmp.RotTransNMP": RotTransNMP,
-    "pipeline.systems.arx_bias.ArxBias": ArxBias,
-    "pipeline.systems.measured.Recording": Recording,
-}
-
-
-# ------------------------------------------------------------------------------------------------
 # data (by kind; stages/generate/<kind>.py)
 # ------------------------------------------------------------------------------------------------
-@schema
-class Excitation:
-    std: float = spec(0.0, ge=0, le=FORCE_MAX, unit="N")
-    t_start: Optional[float] = spec(None, ge=0, le=1e7, unit="s", example=10.0)
-    t_stop: Optional[float] = spec(None, ge=0, le=1e7, unit="s", example=40.0)
-
-
-@schema
-class ClosedLoopData:
-    kind: Literal["closed_loop"]
-    name: str = "closed_loop"
-    references: Any = spec([], check=_references_rule, example="[{name:move,kind:b2_R}]")
-    feedforward: Literal["none", "exact"] = "none"
-    excitation: Excitation = field(default_factory=Excitation)
-
-
-@schema
-class IlcParams:
-    trials: int = spec(30, ge=1, le=COUNT_MAX)
-    gain: float = spec(1.0, gt=0, lt=2, rule="the learning gain must be in (0, 2)")
-    w_rel: float = spec(0.0, ge=0, le=1e6)
-    w_delta_rel: float = spec(0.0, ge=0, le=1e6)
-    tol: float = spec(0.0, ge=0, lt=NOISE_MAX, unit="m")
-    backend: Literal["auto", "lifted", "matrix_free"] = "auto"
-    noise: bool = True
-
-
-@schema
-class IlcData(ClosedLoopData):
-    kind: Literal["ilc"]
-    name: str = "ilc"
-    ilc: IlcParams = field(default_factory=IlcParams)
-
-
-@schema
-class WhiteNoiseData:
-    kind: Literal["white_noise"]
-    name: str = "white_noise"
-    n_samples: int = spec(10000, ge=10, le=10**7, rule="give an integer >= 10 and <= 10^7 (shorter is too short to "
-                          "identify from; longer takes more than 80 MB per signal)")
-    u_std: float = spec(1.0, ge=0, le=FORCE_MAX, unit="input units")
-
-
-@schema
-class MeasuredData:
-    kind: Literal["measured"]
-    name: str = "measured"
-    path: str = spec(example="../shared/data/emps")
-    format: Literal["table", "emps"] = "table"     # = stages.generate.measured.FORMATS
-    file: Optional[str] = None
-    files: Optional[list[str]] = spec(None, min_len=1, example=["run1.csv", "run2.csv"])   # several records
-
-
-DATA: dict[str, type] = {"closed_loop": ClosedLoopData, "ilc": IlcData, "white_noise": WhiteNoiseData,
-                         "measured": MeasuredData}
 
 
 # ------------------------------------------------------------------------------------------------
 # model (by kind; pgnn when it has a structure, else the physics model)
 # ------------------------------------------------------------------------------------------------
-_WIDTHS = "widths must be positive integers"
-
-
-@schema
-class PhysicsModel:
-    name: str = "physics"
-
-
-@schema
-class Pgnn:
-    name: str = "pgnn-forward"
-    structure: Literal["forward", "inverse", "invertible"] = "forward"
-    n_a: int = spec(2, ge=0, le=1000)
-    n_b: int = spec(1, ge=1, le=1000)
-    n_k: int = spec(0, ge=0, le=1000)
-    hidden: list[int] = spec([16], ge=1, le=100_000, rule=_WIDTHS)
-    activation: Literal["tanh", "sigmoid", "relu", "softplus", "elu", "gelu", "identity"] = "tanh"
-    use_physics: bool = True
-    use_nn: bool = True
-    input_transform: Literal["raw", "delta"] = "raw"
-    out_init: Literal["mirrored", "scaled"] = "mirrored"
-    out_init_scale: float = spec(1.0, ge=0, le=1e6)
-    mirror_jitter: float = spec(0.0, ge=0, le=10)
-    nn_inputs: Literal["all", "outputs"] = "all"
-
-
-@schema
-class Rational:
-    kind: Literal["rational"]
-    name: str = "rational"
-    n_a: int = spec(10, ge=1, le=1000)
-    n_b: int = spec(9, ge=0, le=1000)
-    basis: Literal["delta", "shift"] = "delta"
-
-
-@schema
-class PgnnSharedAr:
-    kind: Literal["pgnn_shared_ar"]
-    name: str = "pgnn_shared_ar"
-    n_a: int = spec(5, ge=1, le=1000)
-    n_b: int = spec(2, ge=0, le=1000)
-    basis: Literal["delta", "shift"] = "delta"
-    approximator: Literal["mlp", "residual"] = "mlp"
-    hidden: list[int] = spec([10, 10], ge=1, le=100_000, rule=_WIDTHS)
-    width: int = spec(10, ge=1, le=100_000)
-    n_blocks: int = spec(2, ge=1, le=1000)
-    activation: Literal["tanh", "relu", "sigmoid", "softplus"] = "tanh"
-    out_bias: bool = False
-    out_init_scale: float = spec(1.0, ge=0, le=1e6)
-    window: int = spec(4, ge=0, le=10_000)
-    window_basis: Literal["delta", "shift"] = "delta"
-
-
-MODELS: dict[str, type] = {"physics": PhysicsModel, "pgnn": Pgnn, "rational": Rational,
-                           "pgnn_shared_ar": PgnnSharedAr}
 
 
 def _model_option(node: dict) -> str:
@@ -484,180 +182,16 @@ def _model_option(node: dict) -> str:
 # ------------------------------------------------------------------------------------------------
 # identify (by kind; stages/train/<kind>.py)
 # ------------------------------------------------------------------------------------------------
-@schema
-class IdentifyNone:
-    kind: Literal["none"]
-    name: str = "none"
-
-
-@schema
-class Narx:
-    kind: Literal["narx"]
-    name: str = "narx"
-    n_restarts: int = spec(10, ge=1, le=COUNT_MAX)
-    max_iter: int = spec(2000, ge=0, le=ITER_MAX)
-    screen_iter: int = spec(50, ge=0, le=ITER_MAX)
-    ftol: float = spec(1e-10, ge=0, lt=1)
-    gtol: float = spec(1e-10, ge=0, lt=1)
-    mu0: float = spec(1e-3, gt=0, le=1e12)
-    val_fraction: float = spec(0.2, ge=0, lt=1)
-    patience: int = spec(20, ge=1, le=ITER_MAX)
-    geodesic: bool = False
-    stat_window: int = spec(10, ge=0, le=ITER_MAX)
-    stat_tol: float = spec(0.1, ge=0, le=100)
-    stat_frac: float = spec(0.0, ge=0, lt=1)
-
-
-@schema
-class SimError:
-    kind: Literal["sim_error"]
-    name: str = "sim_error"
-    theta_star: Literal["arx", "sim_error", "oracle"] = "sim_error"
-    linear_max_iter: int = spec(500, ge=0, le=ITER_MAX)
-    n_restarts: int = spec(3, ge=1, le=COUNT_MAX)
-    max_iter: int = spec(8000, ge=0, le=ITER_MAX)
-    screen_iter: int = spec(300, ge=0, le=ITER_MAX)
-    ftol: float = spec(1e-10, ge=0, lt=1)
-    gtol: float = spec(1e-10, ge=0, lt=1)
-    mu0: float = spec(1e-3, gt=0, le=1e12)
-    val_fraction: float = spec(0.0, ge=0, lt=0.5)
-    patience: int = spec(5, ge=1, le=ITER_MAX)
-    geodesic: bool = True
-    stat_window: int = spec(10, ge=0, le=ITER_MAX)
-    stat_tol: float = spec(1.0, ge=0, le=100)
-    stat_frac: float = spec(0.3, ge=0, lt=1)
-
-
-@schema
-class SkOe:
-    kind: Literal["sk_oe"]
-    name: str = "sk_oe"
-    max_iter: int = spec(30, ge=1, le=ITER_MAX)
-    tol: float = spec(1e-6, gt=0, lt=1)
-    lm_max_iter: int = spec(3000, ge=1, le=ITER_MAX)
-    lm_ftol: float = spec(1e-9, ge=0, lt=1)
-    lm_gtol: float = spec(1e-10, ge=0, lt=1)
-    column_scale: bool = True
-    screen_max_iter: int = spec(4, ge=0, le=ITER_MAX)
-    screen_lm_max_iter: int = spec(30, ge=0, le=ITER_MAX)
-    n_restarts: int = spec(5, ge=1, le=COUNT_MAX)
-    n_jobs: int = spec(5, ge=1, le=1024)
-    oe_check_iter: int = spec(3000, ge=1, le=ITER_MAX)
-    geodesic: bool = True
-    cost_tol: float = spec(1e-7, ge=0, lt=1)
-    stall_window: int = spec(10, ge=0, le=ITER_MAX)
-    stall_tol: float = spec(1e-3, ge=0, lt=1)
-    output_tol: float = spec(0.0, ge=0, lt=1)
-
-
-@schema
-class InverseBias:
-    kind: Literal["inverse_bias"]
-    name: str = "inverse_bias"
-    sample_sizes: list[int] = spec([1000, 10000, 100000], ge=10, le=10**8, min_len=2,
-                                   rule="give at least two sizes >= 10 (and <= 1e8)")
-    n_seeds: int = spec(20, ge=2, le=COUNT_MAX)
-
-
-IDENTIFY: dict[str, type] = {"none": IdentifyNone, "narx": Narx, "sim_error": SimError, "sk_oe": SkOe,
-                             "inverse_bias": InverseBias}
 
 
 # ------------------------------------------------------------------------------------------------
 # regularizer (by name)
 # ------------------------------------------------------------------------------------------------
-@schema
-class RegularizerNone:
-    name: Literal["none"]
-
-
-@schema
-class PhysicsL2:
-    name: Literal["physics_l2"]
-    lam: Any = spec(0.01, check=_lam_rule)
-
-
-@schema
-class Orthogonal:
-    name: Literal["orthogonal"]
-    lam: float = spec(1.0, ge=0, le=1e12)
-
-
-REGULARIZERS: dict[str, type] = {"none": RegularizerNone, "physics_l2": PhysicsL2, "orthogonal": Orthogonal}
 
 
 # ------------------------------------------------------------------------------------------------
 # invert (by kind; stages/invert/<kind>.py)
 # ------------------------------------------------------------------------------------------------
-_Structure = Literal["forward", "inverse", "invertible"]
-
-
-@schema
-class InvertPlain:   # physics, zpetc, exact, none, rational_filter: nothing to set
-    kind: str
-    name: str = ""
-
-
-@schema
-class Direct:
-    kind: Literal["direct"]
-    name: str = "direct"
-    model_structure: _Structure = "inverse"
-
-
-@schema
-class Analytic:
-    kind: Literal["analytic"]
-    name: str = "analytic"
-    model_structure: _Structure = "invertible"
-
-
-@schema
-class Newton:
-    kind: Literal["newton"]
-    name: str = "newton"
-    model_structure: _Structure = "forward"
-    k: int = spec(5, ge=0, le=1000)
-    u_min: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=-100.0)
-    u_max: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=100.0)
-
-
-@schema
-class Bounds:
-    lower: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=-100.0)
-    upper: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=100.0)
-
-
-@schema
-class Fhofc:
-    kind: Literal["fhofc"]
-    name: str = "fhofc"
-    model_structure: _Structure = "forward"
-    gamma: float = spec(1e-6, ge=0, le=1.0, unit="m/N")
-    horizon: Optional[int] = spec(None, ge=1, le=10**6, example=50)
-    uff_bounds: Bounds = field(default_factory=Bounds)
-    u_bounds: Bounds = field(default_factory=Bounds)
-    max_iter: int = spec(50, ge=1, le=ITER_MAX)
-    ftol: float = spec(1e-10, ge=0, lt=1)
-    check_range: bool = True
-    range_margin: float = spec(0.1, ge=0, le=100.0)
-
-
-@schema
-class IlFhofc(Fhofc):
-    kind: Literal["il_fhofc"]
-    name: str = "il_fhofc"
-    gamma: float = spec(1e-8, ge=0, le=1.0, unit="m/N")
-    alpha: float = spec(1.0, gt=0, le=1, rule="the learning gain must be in (0, 1]")
-    n_trials: int = spec(7, ge=1, le=COUNT_MAX)
-    trial_noise: bool = False
-    ideal_w_rel: float = spec(1e-10, ge=0, le=1.0)
-    ideal_trials: int = spec(12, ge=1, le=COUNT_MAX)
-
-
-INVERT: dict[str, type] = {"physics": InvertPlain, "zpetc": InvertPlain, "exact": InvertPlain,
-                           "none": InvertPlain, "rational_filter": InvertPlain, "direct": Direct,
-                           "analytic": Analytic, "newton": Newton, "fhofc": Fhofc, "il_fhofc": IlFhofc}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -665,27 +199,171 @@ INVERT: dict[str, type] = {"physics": InvertPlain, "zpetc": InvertPlain, "exact"
 # ------------------------------------------------------------------------------------------------
 @schema
 class Evaluate:
-    references: Any = spec([], check=_references_rule, example="[{name:R,kind:b2_R}]")
+    # reference specs (pipeline.references.from_spec), scored one by one
+    references: Any = spec([], check=references_rule, example="[{name:R,kind:b2_R}]")
+    # (evaluate/default.yaml) false: noise-free evaluation runs; true: the plant's noise model (seeded)
+    # (evaluate/k_heldout.yaml) the two-mass plant is noise-free
+    # (evaluate/measured.yaml) measured data carry their own noise; nothing is added
     noise: bool = False
+    # a model identified on measured data (data=measured) is scored on a simulator only if true (the run is tagged
+    # evaluated_on): it says nothing about the machine the data came from
     allow_simulator: bool = False
+    # data: as recorded (default) | published: the EMPS authors' script (one more sample of delay on the controller
+    # output, time base t(10) - t(9)); both are logged, this one is plotted
     convention: Literal["data", "published"] = "data"   # = pipeline.identify.measured_loop.CONVENTIONS
+    # last share of a record scored separately (training file: the held-out block)
     validation_tail: float = spec(0.2, ge=0, lt=1)
+
+
+# ------------------------------------------------------------------------------------------------
+# where an option's class lives (found like the runner finds a stage implementation: no registry)
+# ------------------------------------------------------------------------------------------------
+#: group -> the key choosing its option
+CHOOSER = {"system": "_target_", "data": "kind", "model": "kind", "identify": "kind", "regularizer": "name",
+           "invert": "kind"}
+#: group -> the stage whose ``stages/<stage>/<kind>.py`` implements (and declares the ``Params`` of) an option
+STAGE = {"data": "generate", "identify": "train", "invert": "invert"}
+#: top-level nodes a stage owns: their class is that stage module's ``Params``
+OWNED = {"export": "stages.export"}
+_ROOT = Path(__file__).resolve().parent.parent
+
+
+def owned_class(key: str) -> type:
+    """The class of a top-level node a stage owns (``export``: stages/export.py ``Params``)."""
+    return importlib.import_module(OWNED[key]).Params
+
+
+def _modules(package: str) -> list[str]:
+    """The public modules of a package folder (``stages.train`` -> its ``<kind>.py``)."""
+    folder = _ROOT.joinpath(*package.split("."))
+    return sorted(p.stem for p in folder.glob("*.py") if not p.stem.startswith("_"))
+
+
+def _model_option(node: dict) -> str:
+    """model.kind where given; else the physics model (model=physics) or a NARX PGNN (model=pgnn)."""
+    if "kind" in node:
+        return node["kind"]
+    return "physics" if node.get("name") == "physics" else "pgnn"
+
+
+def _literal(cls: type, key: str) -> Any:
+    args = typing.get_args(typing.get_type_hints(cls).get(key, Any))
+    return args[0] if len(args) == 1 else None
+
+
+def options(group: str) -> dict[str, type]:
+    """Every option of ``group`` and its class, found where the options live: a system module's
+    ``Params`` (pipeline/systems/<plant>.py), a stage implementation's ``Params``
+    (stages/<stage>/<kind>.py), a model module's ``Params`` (pipeline/models/<module>.py, option
+    ``KIND`` or the module's name), the regularizer classes of the train stage (stages/train/__init__.py,
+    option their ``name``)."""
+    if group == "system":
+        out = {}
+        for stem in _modules("pipeline.systems"):
+            mod = importlib.import_module(f"pipeline.systems.{stem}")
+            if hasattr(mod, "Params"):
+                base = importlib.import_module("pipeline.systems.base").System
+                for obj in vars(mod).values():
+                    if isinstance(obj, type) and issubclass(obj, base) and obj.__module__ == mod.__name__:
+                        out[f"{mod.__name__}.{obj.__name__}"] = mod.Params
+        return out
+    if group in STAGE:
+        pkg = f"stages.{STAGE[group]}"
+        return {k: importlib.import_module(f"{pkg}.{k}").Params for k in _modules(pkg)}
+    if group == "model":
+        out = {}
+        for stem in _modules("pipeline.models"):
+            mod = importlib.import_module(f"pipeline.models.{stem}")
+            if hasattr(mod, "Params"):
+                out[getattr(mod, "KIND", stem)] = mod.Params
+        return out
+    if group == "regularizer":
+        mod = importlib.import_module("stages.train")
+        return {_literal(c, "name"): c for c in vars(mod).values()
+                if dataclasses.is_dataclass(c) and isinstance(c, type) and _literal(c, "name")}
+    raise KeyError(group)
+
+
+def option_class(group: str, node: dict) -> tuple[str, type]:
+    """(the option, its class) of a group's node; ConfigError naming the choices for an unknown one."""
+    by = CHOOSER[group]
+    option = _model_option(node) if group == "model" else node.get(by)
+    cls = None
+    if group == "system" and isinstance(option, str) and "." in option:
+        try:   # the plant's own module (any importable module, not only pipeline/systems/)
+            cls = getattr(importlib.import_module(option.rsplit(".", 1)[0]), "Params", None)
+        except ImportError:
+            cls = None
+    elif group in STAGE and isinstance(option, str) and option in _modules(f"stages.{STAGE[group]}"):
+        cls = importlib.import_module(f"stages.{STAGE[group]}.{option}").Params
+    elif group not in ("system",) and group not in STAGE:
+        cls = options(group).get(option)
+    if cls is None:
+        where = f"no '{STAGE[group]}' implementation" if group in STAGE else "no parameter class"
+        hint = (" (a new plant is its module, e.g. pipeline/systems/<plant>.py, with a `Params` dataclass "
+                "next to the System class its _target_ names)") if group == "system" else ""
+        choices = sorted(options(group))
+        raise ConfigError(f"{group}.{by}={_show(option)}: {where} for {by} {option!r}; choose one of "
+                          f"{choices}{hint}")
+    return option, cls
+
+
+def defaults(cls: type) -> dict:
+    """The class's defaults as a config node (a mandatory value: ``???``)."""
+    out = {}
+    for f in dataclasses.fields(cls):
+        if not f.metadata.get("fill", True):
+            continue
+        if f.default is MISSING and f.default_factory is MISSING:
+            tp, _ = _optional(typing.get_type_hints(cls)[f.name])
+            out[f.name] = defaults(tp) if dataclasses.is_dataclass(tp) else "???"
+        else:
+            out[f.name] = _default(f)
+    return out
+
+
+def _selector(folder: Path, stem: str, seen: tuple = ()) -> dict:
+    """The keys choosing an option file's class (kind, _target_, name), following its ``defaults``
+    within its group (conf/data/inverse.yaml -> closed_loop.yaml)."""
+    path = folder / f"{stem}.yaml"
+    if not path.exists() or stem in seen:
+        return {}
+    node = OmegaConf.to_container(OmegaConf.load(path), resolve=False) or {}
+    out = {}
+    for d in node.get("defaults") or []:
+        if isinstance(d, str) and d != "_self_" and "/" not in d:
+            out.update(_selector(folder, d, (*seen, stem)))
+    out.update({k: node[k] for k in ("kind", "_target_", "name") if k in node})
+    return out
+
+
+def register(conf: Path | None = None) -> None:
+    """Give Hydra every key's default before it composes, so that any key can be overridden on the
+    command line (``identify.patience=0``) while conf/ holds only the values that differ: for every
+    option file conf/<group>/<option>.yaml the defaults of its class as ``_params/<group>/<option>``
+    (conf/config.yaml puts ``_params/<group>@<group>: ${<group>}`` before the group), and the top
+    level's as ``_params_config``. Call before composing (pipeline/__main__.py, tests/conftest.py)."""
+    from hydra.core.config_store import ConfigStore
+    conf = Path(conf or _ROOT / "conf")
+    store = ConfigStore.instance()
+    top = {k: v for k, v in defaults(Config).items() if k not in CHOOSER and k != "evaluate"}
+    for key in OWNED:
+        top[key] = defaults(owned_class(key))
+    store.store(name="_params_config", node=top)
+    for group in (*CHOOSER, "evaluate"):
+        for path in sorted((conf / group).glob("*.yaml")):
+            node = {}
+            try:
+                cls = Evaluate if group == "evaluate" else option_class(group, _selector(path.parent, path.stem))[1]
+                node = defaults(cls)
+            except ConfigError:   # an option without a class: schema.check names the choices
+                pass
+            store.store(group=f"_params/{group}", name=path.stem, node=node)
 
 
 # ------------------------------------------------------------------------------------------------
 # the check
 # ------------------------------------------------------------------------------------------------
-#: group -> (options, the key choosing one, the stage implementing them)
-GROUPS: dict[str, tuple[dict[str, type], str, str]] = {
-    "system": (SYSTEMS, "_target_", ""),
-    "data": (DATA, "kind", "generate"),
-    "model": (MODELS, "kind", ""),
-    "identify": (IDENTIFY, "kind", "train"),
-    "regularizer": (REGULARIZERS, "name", ""),
-    "invert": (INVERT, "kind", "invert"),
-}
-
-
 def check(cfg) -> list[str]:
     """Validate the composed config against the schema; ConfigError (one line) on the first problem.
     Then every key left out is set to its schema default in ``cfg`` (the one place a default is
@@ -715,21 +393,19 @@ def _default(f: dataclasses.Field) -> Any:
 
 def _check_nodes(raw: dict) -> None:
     _check_node(Config, raw, "", "the config")
-    for group, (options, by, stage) in GROUPS.items():
+    for key in OWNED:
+        node = raw.get(key)
+        _check_node(owned_class(key), {} if node is None else node, key, key)
+    for group in CHOOSER:
         node = raw.get(group)
         if node is None:
             continue
         if not isinstance(node, dict):
             raise ConfigError(f"{group}={_show(node)} is not a config group: choose an option, e.g. "
                               f"{group}=<name of a file in conf/{group}/>")
-        option = _model_option(node) if group == "model" else node.get(by)
-        if option not in options:
-            where = f"no '{stage}' implementation" if stage else "no schema"
-            raise ConfigError(f"{group}.{by}={_show(option)}: {where} for {by} {option!r}; choose one of "
-                              f"{sorted(options)}" + (" (a new plant needs its dataclass in pipeline/schema.py "
-                                                      "SYSTEMS)" if group == "system" else ""))
+        option, cls = option_class(group, node)
         label = f"{group} {option!r}" if group != "system" else f"system '{node.get('name', option)}'"
-        _check_node(options[option], node, group, label)
+        _check_node(cls, node, group, label)
     if raw.get("evaluate") is not None:
         _check_node(Evaluate, raw["evaluate"], "evaluate", "evaluate")
 
@@ -769,7 +445,7 @@ def _optional(tp) -> tuple[Any, bool]:
     return tp, False
 
 
-def _is_number(x) -> bool:
+def is_number(x) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
@@ -782,7 +458,7 @@ def _is(tp, x) -> bool:
     if tp is int:
         return isinstance(x, int) and not isinstance(x, bool)
     if tp is float:
-        return _is_number(x)
+        return is_number(x)
     if tp is str:
         return isinstance(x, str)
     if typing.get_origin(tp) is Literal:
@@ -866,7 +542,7 @@ def _in_range(meta, x) -> bool:
 def _why(meta, items) -> str:
     """'not finite; ' or 'implausible magnitude; ' (above the key's upper bound) where that is the
     problem, else ''."""
-    nums = [x for x in items if _is_number(x)]
+    nums = [x for x in items if is_number(x)]
     if not all(math.isfinite(x) for x in nums):
         return "not finite; "
     upper = {k: meta.get(k) for k in ("lt", "le")}
@@ -898,7 +574,7 @@ def _check_value(tp, value, f, key: str, label: str) -> None:
     bad = is_list and len(value) < meta.get("min_len", 0)
     if item is float and not all(math.isfinite(x) for x in items):
         bad = True
-    if _is_number(items[0] if items else 0) and not all(_in_range(meta, x) for x in items):
+    if is_number(items[0] if items else 0) and not all(_in_range(meta, x) for x in items):
         bad = True
     if bad:
         raise ConfigError(f"{key}={_show(value)}: {_why(meta, items)}{_rule(tp, f)} (e.g. {key}={_example(f)})")

@@ -35,14 +35,64 @@ from pipeline import tracking
 from pipeline.export import law as laws
 from pipeline.export.c_code import c_name
 from pipeline.export.misra import find_cppcheck
-from pipeline.export.package import find_compiler, reference_file_clash, write_package
+from pipeline.export.package import check_prefix, find_compiler, reference_file_clash, write_package
 from pipeline.errors import ConfigError
 from stages._common import reference_specs
+from dataclasses import field
+from typing import Literal, Optional
+from pipeline.schema import schema, spec, FORCE_MAX, FREQ_MAX, COUNT_MAX
+
+
+@schema
+class Limits:
+    """export.limits: the guard around an exported law (pipeline.export.guard)."""
+    # actuator force saturation [N]
+    u_min: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=-200.0)
+    u_max: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=200.0)
+    # slew limit [N/s]
+    rate: Optional[float] = spec(None, gt=0, le=1e12, unit="N/s", example=1e5)
+    # training envelope of r, dr/dt, d2r/dt2 (the identification data's y) widened by this x its range
+    envelope_margin: float = spec(0.1, ge=0, le=100)
+    # flag: OUT_OF_RANGE only | fallback: also the fallback
+    envelope_action: Literal["flag", "fallback"] = "flag"
+    # on NaN/inf input (and out of range with envelope_action=fallback): hold | physics | ramp
+    fallback: Literal["hold", "physics", "ramp"] = "hold"
+    # [s] ramp: the last valid output to 0 over this time
+    ramp_time: float = spec(0.1, gt=0, le=3600.0, unit="s")
+
+
+@schema
+class Params:
+    # compile the C (cc -std=c99 -O2 -Wall -Wextra -Werror) and verify it against the study
+    compile: bool = True
+    # the C compiler; when it is missing the stage says so and writes the source only
+    cc: str = "cc"
+    # max |Δu| / max |u| the package must reach on every evaluation reference (C and Python)
+    rtol: float = spec(1e-9, gt=0, lt=1)
+    # runs of the longest reference for the C ns per sample (median; 0 = no timing)
+    timing_repeats: int = spec(21, ge=0, le=COUNT_MAX)
+    # also register the MLflow model in the Model Registry as <experiment>-<package>
+    register: bool = False
+    # C symbol prefix (<prefix>_init, <prefix>_step); null = <package>_<8 hex of the law's hash>
+    prefix: Optional[str] = spec(None, check=check_prefix, example="axis1_ff")
+    # double | single: the C law in float, its max |Δu|/max|u| against the double study in the manifest
+    precision: Literal["double", "single"] = "double"
+    # the largest max |Δu|/max|u| a float law may reach against the double study
+    single_rtol: float = spec(0.1, gt=0, le=10)
+    # loop rate [Hz]; null = the law's own; an integer multiple adds a zero-order-hold wrapper
+    target_rate: Optional[float] = spec(None, gt=0, le=FREQ_MAX, unit="Hz", example=4000.0)
+    # run cppcheck and its MISRA C:2012 addon when installed (findings: manifest, package README)
+    cppcheck: bool = True
+    # the guard around the law (README: Deploy the feedforward); null = no limit
+    limits: Limits = field(default_factory=Limits)
+
 
 UPSTREAM = ("generate", "baseline", "train", "invert")
 DEPENDS = ("invert", "export.compile", "export.cc", "export.rtol", "export.timing_repeats",
            "export.prefix", "export.precision", "export.single_rtol", "export.target_rate", "export.cppcheck",
            "export.limits", "evaluate.references")
+
+
 VERSION = 3      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22)
 
 

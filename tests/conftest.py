@@ -10,6 +10,10 @@ from hydra.core.global_hydra import GlobalHydra
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
 
+from pipeline import schema  # noqa: E402
+
+schema.register()   # every key's default for Hydra's compose (as pipeline/__main__.py does)
+
 #: a short two-mass training set: one [K] out-and-back move (~0.9 s)
 SHORT_TWO_MASS = [
     "experiment=physics_two_mass",

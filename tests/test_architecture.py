@@ -109,8 +109,9 @@ def test_the_inline_default_finder_finds_one():
 
 
 def test_no_stage_reads_a_config_key_with_a_default_of_its_own():
-    """Issue 21 item 1 (part): a key's default is stated once, in pipeline/schema.py, which sets every
-    key left out before any stage runs (schema.check); stages read keys without a default."""
+    """Issue 21 item 1 (part): a key's default is stated once, in its option's parameter class, which
+    Hydra composes in (schema.register) and schema.check sets if still left out, before any stage runs;
+    stages read keys without a default."""
     files = [f for f in sorted((ROOT / "stages").rglob("*.py")) if "report" not in f.parts]  # report: run metrics
     found = {str(f.relative_to(ROOT)): hits for f in files if (hits := _inline_defaults(ast.parse(f.read_text())))}
     assert found == {}

@@ -1,7 +1,8 @@
 """The config schema (pipeline.schema): a bad value of any key fails before any work (no MLflow run,
 no cache entry) with one line naming the key, the value, what is allowed and an example; every
-experiment and every group option of conf/ still passes; the schema covers every stage
-implementation and agrees with the libraries' own lists of choices."""
+experiment and every group option of conf/ still passes; every option declares its parameter class
+next to its code (found by its kind, as the runner finds the stage) and it agrees with the
+libraries' own lists of choices."""
 from __future__ import annotations
 
 import os
@@ -174,7 +175,8 @@ def test_measured_format_is_one_the_loader_reads(store, cfg_of, tmp_path):
     with pytest.raises(runner.ConfigError, match=r"^data\.path is not set"):
         runner.run_job(cfg_of("experiment=physics_two_mass", "data=measured", "stages=[generate]"))
     _nothing_written(store)
-    assert typing.get_args(typing.get_type_hints(schema.MeasuredData)["format"]) == FORMATS
+    from stages.generate.measured import Params
+    assert typing.get_args(typing.get_type_hints(Params)["format"]) == FORMATS
 
 
 @pytest.mark.parametrize("name", ["rec.parquet", "rec.csv"])
@@ -227,25 +229,58 @@ def test_every_group_option_passes(cfg_of, option):
     schema.check(cfg_of(option, *NEEDS.get(option, [])))
 
 
-def test_schema_covers_every_implementation_and_the_libraries_choices():
-    from pipeline.identify.measured_loop import CONVENTIONS
-    from pipeline.models.pgnn import _ACTIVATIONS, _STRUCTURES
-    from stages.train.sim_error import THETA_STAR
+def test_every_option_declares_its_parameter_class_next_to_its_code():
+    """Issue 21 item 1: each stage implementation (stages/<stage>/<kind>.py) and each plant module
+    (pipeline/systems/<plant>.py with a System) declares its ``Params`` dataclass; the schema finds it
+    by the option's kind (no registry), and every option file of conf/ resolves to one."""
+    import dataclasses
+    import importlib
 
-    def impl(stage):
-        return {p.stem for p in (ROOT / "stages" / stage).glob("*.py") if not p.stem.startswith("_")}
-    assert set(schema.DATA) == impl("generate")
-    assert set(schema.IDENTIFY) == impl("train")
-    assert set(schema.INVERT) == impl("invert")
-    assert {f"pipeline.systems.{p.stem}" for p in (ROOT / "pipeline" / "systems").glob("*.py")} >= \
-        {t.rsplit(".", 1)[0] for t in schema.SYSTEMS}
+    from pipeline.systems.base import System
+    for group, stage in schema.STAGE.items():
+        kinds = {p.stem for p in (ROOT / "stages" / stage).glob("*.py") if not p.stem.startswith("_")}
+        assert kinds and set(schema.options(group)) == kinds
+        for kind in kinds:
+            cls = importlib.import_module(f"stages.{stage}.{kind}").Params
+            assert dataclasses.is_dataclass(cls)
+            assert typing.get_args(typing.get_type_hints(cls)["kind"]) in ((kind,), ()), (stage, kind)
+    plants = []
+    for p in sorted((ROOT / "pipeline" / "systems").glob("*.py")):
+        mod = importlib.import_module(f"pipeline.systems.{p.stem}")
+        if any(isinstance(o, type) and issubclass(o, System) and o is not System and o.__module__ == mod.__name__
+               for o in vars(mod).values()):
+            assert dataclasses.is_dataclass(getattr(mod, "Params", None)), p.name
+            plants.append(p.stem)
+    assert {t.split(".")[2] for t in schema.options("system")} == set(plants)
+    assert set(schema.options("model")) == {"physics", "pgnn", "rational", "pgnn_shared_ar"}
+    assert set(schema.options("regularizer")) == {"none", "physics_l2", "orthogonal"}
+    for group in schema.CHOOSER:
+        for p in sorted((CONF / group).glob("*.yaml")):
+            schema.option_class(group, schema._selector(p.parent, p.stem))
+
+
+def test_the_parameter_classes_agree_with_the_libraries_choices():
+    from pipeline.identify.measured_loop import CONVENTIONS
+    from pipeline.models import pgnn
+    from pipeline.models.pgnn import _ACTIVATIONS, _STRUCTURES
+    from stages.train import sim_error
+    from stages.train.sim_error import THETA_STAR
 
     def choices(cls, key):
         return typing.get_args(typing.get_type_hints(cls)[key])
     assert choices(schema.Evaluate, "convention") == CONVENTIONS
-    assert choices(schema.Pgnn, "structure") == _STRUCTURES
-    assert set(choices(schema.Pgnn, "activation")) == set(_ACTIVATIONS)
-    assert choices(schema.SimError, "theta_star") == THETA_STAR
+    assert choices(pgnn.Params, "structure") == _STRUCTURES
+    assert set(choices(pgnn.Params, "activation")) == set(_ACTIVATIONS)
+    assert choices(sim_error.Params, "theta_star") == THETA_STAR
+
+
+def test_an_unknown_option_names_the_choices_and_where_a_class_goes(cfg_of):
+    cfg = cfg_of(*TWO_MASS)
+    cfg.system._target_ = "pipeline.systems.nowhere.Plant"
+    with pytest.raises(runner.ConfigError) as err:
+        schema.check(cfg)
+    msg = str(err.value)
+    assert "pipeline.systems.linear_motor.LinearMotor" in msg and "`Params` dataclass" in msg, msg
 
 
 def test_the_schema_sets_every_key_left_out_to_its_default(cfg_of):

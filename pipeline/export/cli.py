@@ -22,7 +22,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline import owned
+from pipeline import owned, schema
 from pipeline.cache import UntrustedCache, _read_signed, cache_dir
 from pipeline.export.law import LAWS, ExportError
 from pipeline.export.package import replace_dir
@@ -81,7 +81,7 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
     if kind not in LAWS:
         raise ConfigError(f"run {run_id} has invert.kind={kind!r}, which has no feedforward law to ship; "
                           f"export covers {list(LAWS)}")
-    default = OmegaConf.load(runner.ROOT / "conf" / "config.yaml").export
+    default = OmegaConf.create(schema.defaults(schema.owned_class("export")))   # stages/export.py Params
     if "export" not in cfg:   # a run made before the export stage existed
         cfg.export = default
     stored, cfg.export.cc = str(cfg.export.get("cc")), str(cc or default.cc)

@@ -41,6 +41,47 @@ from scipy.linalg.blas import dsyrk as _dsyrk
 from torch import nn
 
 from pipeline.models.physics_maps import PhysicsFeatures
+from typing import Literal
+from pipeline.schema import schema, spec
+
+
+_WIDTHS = "widths must be positive integers"
+
+
+@schema
+class Params:
+    name: str = "pgnn-forward"
+    structure: Literal["forward", "inverse", "invertible"] = "forward"
+    # output lags in φ (SPEC §2.2: n_a = 2 for [B1] (32))
+    n_a: int = spec(2, ge=0, le=1000)
+    # input lags in φ (u(t-n_k-1) .. u(t-n_k-n_b))
+    n_b: int = spec(1, ge=1, le=1000)
+    n_k: int = spec(0, ge=0, le=1000)
+    # hidden-layer widths; [B1] §VI: one layer of 16 tanh neurons
+    hidden: list[int] = spec([16], ge=1, le=100_000, rule=_WIDTHS)
+    # tanh | sigmoid | relu | softplus | elu | gelu | identity
+    activation: Literal["tanh", "sigmoid", "relu", "softplus", "elu", "gelu", "identity"] = "tanh"
+    # false: black-box NN ([B1] Remark 2.2)
+    use_physics: bool = True
+    # false: physics-only model, closed-form LS [B1] (7)
+    use_nn: bool = True
+    # NN input basis: raw φ ([B1] (11): f_NN(θ_NN, φ)) | delta (y, Δy, Δ²y, …: the same model class, but on the linear
+    # motor the NN then leans on velocity, fits the position ripple worse and extrapolates badly above the 0.05 m/s
+    # training speed: Newton MAE 1.1e-5 vs 3.4e-6 m with raw at 0.05 m/s, physics 1.3e-5)
+    input_transform: Literal["raw", "delta"] = "raw"
+    # mirrored: paired hidden units with opposite output weights, initial PGNN = physics model (SPEC §3) with live
+    # hidden units | scaled: output weights = Glorot × out_init_scale (1e-3 leaves LM stuck on the linear motor: R² of
+    # the NN vs the true unmodelled part 0.10, mirrored 0.29)
+    out_init: Literal["mirrored", "scaled"] = "mirrored"
+    # output-layer weight scale at initialisation (× Glorot)
+    out_init_scale: float = spec(1.0, ge=0, le=1e6)
+    # mirrored: each twin's input weights + this × a Glorot draw (0: exact twins, which start on the overlap
+    # singularity and part only by rounding; pipeline/models/pgnn.py)
+    mirror_jitter: float = spec(0.0, ge=0, le=10)
+    # all: the NN sees φ (as selected by the structure) | outputs: the output window only (a position-dependent
+    # nonlinearity; no input-to-output path of its own)
+    nn_inputs: Literal["all", "outputs"] = "all"
+
 
 __all__ = ["PGNN", "Prepared", "blas_syrk_lower", "blas_gemv_n"]
 

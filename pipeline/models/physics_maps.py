@@ -11,6 +11,16 @@ from __future__ import annotations
 import numpy as np
 import torch
 from torch import nn
+from pipeline.schema import schema
+
+
+KIND = "physics"   # the model option (model.kind, or model=physics) this module's Params checks
+
+
+@schema
+class Params:
+    name: str = "physics"
+
 
 __all__ = ["PhysicsFeatures", "LinearFeatures", "RigidBodyForward", "RigidBodyInverse", "PhysicsModelFeatures",
            "physics_features_for"]

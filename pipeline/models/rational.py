@@ -29,6 +29,22 @@ import scipy.linalg
 import scipy.signal
 import torch
 from torch import nn
+from typing import Literal
+from pipeline.schema import schema, spec
+
+
+@schema
+class Params:
+    kind: Literal["rational"]
+    name: str = "rational"
+    # coefficients a_i of A = Σ a_i ψ_{i-1} r ([K] VI-B: 10, "10th-order rational TF")
+    n_a: int = spec(10, ge=1, le=1000)
+    # AR coefficients b_i of B = ψ_0 + Σ b_i ψ_i ([K] VI-B: 9)
+    n_b: int = spec(9, ge=0, le=1000)
+    # ψ_i = δ^i (delta) | q^-i (shift, the paper's). Same model class; at Ts = 1 ms the shift basis makes W M
+    # numerically singular after weighting by 1/B (σ_min/σ_max ~ 4e-16)
+    basis: Literal["delta", "shift"] = "delta"
+
 
 __all__ = ["BASES", "Segments", "basis_matrix", "basis_columns", "ar_polynomial",
            "basis_coefficients", "reflect_unstable_roots", "filter_segments", "RecursiveFilter",

@@ -21,6 +21,45 @@ from torch import nn
 
 from pipeline.models.pgnn import blas_syrk_lower
 from pipeline.models.rational import BASES, RationalFeedforward, Segments, basis_columns
+from typing import Literal
+from pipeline.schema import schema, spec
+
+
+KIND = "pgnn_shared_ar"   # the model option (model.kind, or model=physics) this module's Params checks
+
+
+_WIDTHS = "widths must be positive integers"
+
+
+@schema
+class Params:
+    kind: Literal["pgnn_shared_ar"]
+    name: str = "pgnn_shared_ar"
+    # coefficients of A = Σ a_i ψ_{i-1} r ([K] VI-B: 5, contains the plant's A(δ))
+    n_a: int = spec(5, ge=1, le=1000)
+    # AR coefficients of B ([K] VI-B: 2, contains the plant's B(δ))
+    n_b: int = spec(2, ge=0, le=1000)
+    # ψ_i = δ^i (delta, as the plant (31)) | q^-i (shift)
+    basis: Literal["delta", "shift"] = "delta"
+    # g_φ: mlp ([K] (4)) | residual (ResNet blocks h + tanh(W h + c): the slot is generic)
+    approximator: Literal["mlp", "residual"] = "mlp"
+    # hidden widths of the mlp ([K] VI-B: 5-10-10-1)
+    hidden: list[int] = spec([10, 10], ge=1, le=100_000, rule=_WIDTHS)
+    # residual only: block width
+    width: int = spec(10, ge=1, le=100_000)
+    # residual only: number of blocks
+    n_blocks: int = spec(2, ge=1, le=1000)
+    # hidden activation ([K] VI-B: tanh)
+    activation: Literal["tanh", "relu", "sigmoid", "softplus"] = "tanh"
+    # bias in the output layer ([K] (4): none)
+    out_bias: bool = False
+    # output weights = Glorot × this ([K] Alg. 5: φ^0 by Glorot)
+    out_init_scale: float = spec(1.0, ge=0, le=1e6)
+    # q: g_φ sees r(k) … r(k-q) ([K] VI-B: the last 5 samples)
+    window: int = spec(4, ge=0, le=10_000)
+    # input transform (r, δr, …, δ^q r), normalised by training statistics (SPEC §3 item 6) | shift (raw window)
+    window_basis: Literal["delta", "shift"] = "delta"
+
 
 __all__ = ["ReferenceWindow", "MLP", "ResidualMLP", "SharedARPGNN", "make_approximator",
            "per_sample_jacobian"]

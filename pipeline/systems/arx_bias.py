@@ -21,6 +21,32 @@ import numpy as np
 
 from pipeline.identify.least_squares import solve_scaled as least_squares
 from pipeline.systems.base import PhysicsModel, SimResult, System, check_signal, lfilter
+from dataclasses import field
+from typing import Literal
+from pipeline.schema import schema, spec
+
+
+@schema
+class Noise:
+    # white equation noise v(t) (ARX), the only structure here
+    structure: Literal["equation"] = "equation"
+    # std of v [-]
+    std: float = spec(0.1, ge=0, le=1e3, unit="(output units)")
+
+
+@schema
+class Params:
+    _target_: str
+    name: str = "arx_bias"
+    # AR coefficients a1, a2 [-]
+    a: list[float] = spec([1.5, -0.7], ge=-1e3, le=1e3)
+    # input coefficients b1, b2 [-] (n_k = 0)
+    b: list[float] = spec([1.0, 0.5], ge=-1e6, le=1e6, min_len=1)
+    noise: Noise = field(default_factory=Noise)
+    # std of the white input u ~ N(0, u_std^2) used by ArxBias.generate [-]
+    u_std: float = spec(1.0, ge=0, le=1e6)
+    # sample time [s] (discrete system; only recorded)
+    Ts: float = spec(1.0, gt=0, le=3600.0, unit="s")   # a discrete system: Ts is only recorded
 
 
 def lagged(x: np.ndarray, lags) -> np.ndarray:

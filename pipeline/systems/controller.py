@@ -30,6 +30,29 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from typing import Literal, Optional
+from pipeline.schema import schema, spec
+
+
+@schema
+class Params:
+    """system.controller (pipeline.systems.controller): kind cascade (kp, kv) or lti (num, den, num_r,
+    delay); which keys a kind takes is checked by LTIController.from_config."""
+    # the position/velocity cascade (a 2-DOF LTI controller, pipeline/systems/controller.py)
+    kind: Literal["cascade", "lti"] = "cascade"
+    kp: Optional[float] = spec(None, fill=False, gt=0, le=1e6, unit="1/s", example=160.18)
+    kv: Optional[float] = spec(None, fill=False, gt=0, le=1e9, unit="controller units per m/s", example=243.45)
+    num: Optional[list[float]] = spec(None, fill=False, ge=-1e15, le=1e15, min_len=1,
+                                     example=[4.279e6, -8.212e6, 3.939e6])
+    den: Optional[list[float]] = spec(None, fill=False, ge=-1e15, le=1e15, min_len=1, example=[1.0, -1.4361, 0.4361])
+    num_r: Optional[list[float]] = spec(None, fill=False, ge=-1e15, le=1e15, min_len=1,
+                                       example=[4.279e6, -8.212e6, 3.939e6])
+    delay: Optional[int] = spec(None, fill=False, ge=0, le=100, unit="samples", example=1)
+    # force per controller unit [N/unit]; 1 if the controller outputs newtons
+    gtau: float = spec(1.0, gt=0, le=1e6, unit="N per controller unit")
+    # controller output limit [units]; large = no saturation
+    v_sat: float = spec(1e9, gt=0, le=1e12, unit="controller units")
+
 
 KINDS = ("cascade", "lti")
 

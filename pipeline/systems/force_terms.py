@@ -27,6 +27,30 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from typing import Optional
+from pipeline.schema import schema, spec, LENGTH_MAX, SPEED_MAX
+
+
+def _terms_rule(v) -> str | None:
+    bad = [t for t in v if t not in TERMS]
+    return f"unknown term(s) {bad}; choose from {list(TERMS)} (the mass is always in)" if bad else None
+
+
+@schema
+class Params:
+    """system.force_terms of a measured system (pipeline.systems.force_terms)."""
+    # (or tanh(q̇/coulomb_width)), stribeck, offset OF, cogging (cos/sin of 2π h q/P)
+    terms: list[str] = spec(["viscous", "coulomb", "offset"], check=_terms_rule,
+                            example=["viscous", "coulomb", "cogging"])
+    # [m/s] null = sign(q̇); a width = the smooth tanh(q̇/width)
+    coulomb_width: Optional[float] = spec(None, gt=0, le=SPEED_MAX, unit="m/s", example=0.002)
+    # [m/s] v_s of the stribeck term F_s sign(q̇) exp(-(q̇/v_s)²)
+    stribeck_velocity: float = spec(0.01, gt=0, le=SPEED_MAX, unit="m/s")
+    # [m] position period P of the cogging force (the pole pitch); needed by the cogging term
+    cogging_period: Optional[float] = spec(None, gt=0, le=LENGTH_MAX, unit="m", example=0.03)
+    # H: cos and sin of 2π h q/P for h = 1..H
+    cogging_harmonics: int = spec(1, ge=1, le=20)
+
 
 #: the configurable terms (the mass is always in)
 TERMS = ("viscous", "coulomb", "stribeck", "offset", "cogging")

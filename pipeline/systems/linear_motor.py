@@ -42,6 +42,61 @@ from pipeline.identify.least_squares import solve_scaled as least_squares
 from pipeline.systems._statespace import ss_step
 from pipeline.systems.arx_bias import _noise_options
 from pipeline.systems.base import PhysicsModel, SimResult, System, check_limits, check_signal, loop_signals
+from dataclasses import field
+from typing import Literal
+from pipeline.schema import (schema, spec, TS_MAX, MASS_MAX, DAMP_MAX,
+                             FORCE_MAX, LENGTH_MAX, SPEED_MAX, NOISE_MAX, FREQ_MAX)
+
+
+@schema
+class Noise:
+    # equation: exact NARX discrete plant, [B1] (1) | output: continuous plant + measurement noise
+    structure: Literal["equation", "output"] = "equation"
+    # noise std sigma_v (equation) or sigma_y (output) [m]
+    std: float = spec(1e-6, ge=0, lt=NOISE_MAX, unit="m")
+
+
+@schema
+class Params:
+    _target_: str
+    name: str = "linear_motor"
+    # sample time [s] (1 kHz)
+    Ts: float = spec(1e-3, gt=0, le=TS_MAX, unit="s")
+    m: float = spec(20.0, gt=0, le=MASS_MAX, unit="kg")
+    f_v: float = spec(50.0, ge=0, le=DAMP_MAX, unit="N s/m")
+    # Coulomb friction [N]
+    f_c: float = spec(10.0, ge=0, le=FORCE_MAX, unit="N")
+    # static (Stribeck peak) friction [N]; only used with friction=stribeck
+    f_s: float = spec(15.0, ge=0, le=FORCE_MAX, unit="N")
+    v_s: float = spec(0.01, gt=0, le=SPEED_MAX, unit="m/s")
+    # smooth-sign width of tanh(v/eps_v) [m/s]; smaller destabilises RK4 near v = 0
+    eps_v: float = spec(1e-3, gt=0, le=SPEED_MAX, unit="m/s")
+    # cogging period (magnet pitch) [m]
+    p: float = spec(0.025, gt=0, le=LENGTH_MAX, unit="m")
+    # cogging amplitude, first harmonic [N]
+    A1: float = spec(5.0, ge=-FORCE_MAX, le=FORCE_MAX, unit="N")
+    # cogging amplitude, second harmonic [N]
+    A2: float = spec(2.0, ge=-FORCE_MAX, le=FORCE_MAX, unit="N")
+    # cogging phase, first harmonic [rad]
+    phi1: float = spec(0.3, ge=-2 * math.pi, le=2 * math.pi, unit="rad")
+    # cogging phase, second harmonic [rad]
+    phi2: float = spec(1.1, ge=-2 * math.pi, le=2 * math.pi, unit="rad")
+    # include F_cog(y) (position-dependent parasitic, unmodelled by [B1] (32))
+    cogging: bool = True
+    # stribeck (smooth Stribeck curve) | sign (f_c sign(v): the [B1] (32) form)
+    friction: Literal["stribeck", "sign"] = "stribeck"
+    noise: Noise = field(default_factory=Noise)
+    # RK4 steps per sample for the continuous plant (SPEC: >= 20)
+    substeps: int = spec(20, ge=1, le=10_000)
+    # feedback crossover [Hz]; C(s) lead-lag+integrator+low-pass, Tustin (SPEC §2.2)
+    crossover_hz: float = spec(20.0, gt=0, le=FREQ_MAX, unit="Hz")
+    # physics-model input: direct u(t-1) | averaged (u(t-1)+u(t-2))/2 | auto (direct for equation, averaged for
+    # output)
+    physics_input: Literal["auto", "direct", "averaged"] = "auto"
+    # reference limit |r| <= stroke [m]
+    stroke: float = spec(0.2, gt=0, le=LENGTH_MAX, unit="m")
+    # reference limit |dr/dt| <= v_limit [m/s]
+    v_limit: float = spec(0.5, gt=0, le=SPEED_MAX, unit="m/s")
 
 
 # --------------------------------------------------------------------------- controller

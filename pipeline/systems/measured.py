@@ -26,6 +26,55 @@ from pipeline.systems.base import System, check_signal
 from pipeline.systems.controller import LTIController
 from pipeline.systems.force_terms import ForceTerms
 from pipeline.systems.linear_motor import LinearMotorPhysics
+from dataclasses import field
+from typing import Literal, Optional
+from pipeline.schema import schema, spec, TS_MAX, MASS_MAX, DAMP_MAX, FORCE_MAX, FREQ_MAX
+from pipeline.systems.controller import Params as ControllerParams
+from pipeline.systems.force_terms import Params as ForceTermsParams
+
+
+@schema
+class Published:
+    M: float = spec(gt=0, le=MASS_MAX, unit="kg", example=95.1)
+    F_v: float = spec(ge=-DAMP_MAX, le=DAMP_MAX, unit="N s/m", example=203.5)
+    F_c: float = spec(ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=20.4)
+    OF: float = spec(ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=-3.2)
+
+
+@schema
+class Idim:
+    # (system/emps.yaml) Butterworth low-pass of q before differentiating [Hz] (~2.5x the 20 Hz loop bandwidth)
+    # (system/measured.yaml) low-pass before differentiating [Hz]: a few times the loop bandwidth
+    cutoff_hz: float = spec(50.0, gt=0, le=FREQ_MAX, unit="Hz")
+    # Butterworth order (filtfilt: zero phase, effective order 8)
+    order: int = spec(4, ge=1, le=20)
+    # parallel decimation of τ and the regressors (scipy.signal.decimate, zero phase)
+    decimation: int = spec(10, ge=1, le=10_000)
+    # samples dropped at each end (filter transients)
+    trim: int = spec(50, ge=0, le=10**8)
+
+
+@schema
+class Params:
+    _target_: str
+    name: str = "measured"
+    # (system/emps.yaml) sample time [s]; the data's own t must step this (checked before any work)
+    # (system/measured.yaml) sample time [s]; must equal the data's own (t column or sidecar Ts)
+    Ts: float = spec(1e-3, gt=0, le=TS_MAX, unit="s")
+    controller: ControllerParams = spec(example="{kp:160.18,kv:243.45}")
+    # (system/emps.yaml) one-step physics input: averaged ū(t-1) (exact ZOH of a mass, SPEC §2.2) | direct u(t-1) (the
+    # benchmark authors' semi-implicit Euler); the published model is always replayed direct
+    # (system/measured.yaml) averaged ū(t-1) (exact ZOH) | direct u(t-1)
+    physics_input: Literal["averaged", "direct"] = "averaged"
+    # M q̈ = τ - Σ terms (pipeline/systems/force_terms.py): viscous F_v q̇, coulomb F_c sign(q̇)
+    force_terms: ForceTermsParams = field(default_factory=lambda: ForceTermsParams())
+    # name of the measured disturbance column in your files (loaded as d), or null
+    disturbance: Optional[str] = None
+    # {M, F_v, F_c, OF} from a datasheet or an earlier identification, or null
+    published: Optional[Published] = None
+    # (system/emps.yaml) filtered inverse-model LS (the benchmark's method), scipy.signal
+    # (system/measured.yaml) filtered inverse-model least squares of the physics baseline
+    idim: Idim = field(default_factory=Idim)
 
 
 # --------------------------------------------------------------------------- physics model

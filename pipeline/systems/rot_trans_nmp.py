@@ -37,6 +37,56 @@ from numba import njit
 from pipeline.systems._statespace import ss_step
 from pipeline.systems.arx_bias import ARXPhysics, _noise_options
 from pipeline.systems.base import SimResult, System, check_limits, check_signal, loop_signals, lfilter
+from dataclasses import field
+from typing import Literal
+from pipeline.schema import (schema, spec, TS_MAX, MASS_MAX, STIFF_MAX,
+                             DAMP_MAX, FORCE_MAX, LENGTH_MAX, SPEED_MAX, NOISE_MAX, FREQ_MAX)
+
+
+@schema
+class Noise:
+    # measurement noise on y (data and controller), [B2] §VI
+    structure: Literal["output"] = "output"
+    # noise std [m]; 0 switches it off
+    std: float = spec(1e-6, ge=0, lt=NOISE_MAX, unit="m")
+
+
+@schema
+class Params:
+    _target_: str
+    name: str = "rot_trans_nmp"
+    # sample time [s] (100 Hz)
+    Ts: float = spec(0.01, gt=0, le=TS_MAX, unit="s")
+    # mass [kg], [B2] Table I
+    m: float = spec(20.0, gt=0, le=MASS_MAX, unit="kg")
+    # half width [m]
+    l_x: float = spec(1.0, gt=0, le=LENGTH_MAX, unit="m")
+    # half height [m] (actuator/sensor offset from the centre of mass)
+    l_y: float = spec(1.0, ge=-LENGTH_MAX, le=LENGTH_MAX, unit="m")
+    # inertia [kg m^2] = 40/3
+    J: float = spec(40.0 / 3.0, gt=0, le=MASS_MAX * LENGTH_MAX**2, unit="kg m^2")
+    f_v: float = spec(50.0, ge=0, le=DAMP_MAX, unit="kg/s")
+    # rotational spring [kg/s^2] = 25e3/3
+    k: float = spec(25e3 / 3.0, ge=0, le=STIFF_MAX, unit="kg/s^2")
+    # rotational damper [kg/s] = 575/3
+    d: float = spec(575.0 / 3.0, ge=0, le=DAMP_MAX, unit="kg/s")
+    # magnet pole pitch [m], [B2] (28)
+    l_m: float = spec(0.05, gt=0, le=LENGTH_MAX, unit="m")
+    # cogging magnitude [N], [B2] (28); 0 = linear plant
+    c: float = spec(1.0, ge=-FORCE_MAX, le=FORCE_MAX, unit="N")
+    # C(s) = gain (s + zero)/(s + pole) [N/m], [B2] (29), ZOH at Ts
+    controller_gain: float = spec(5000.0, gt=0, le=STIFF_MAX, unit="N/m")
+    # [rad/s] = 4 pi
+    controller_zero: float = spec(4.0 * math.pi, gt=0, le=FREQ_MAX, unit="rad/s")
+    # [rad/s] = 20 pi
+    controller_pole: float = spec(20.0 * math.pi, gt=0, le=FREQ_MAX, unit="rad/s")
+    noise: Noise = field(default_factory=Noise)
+    # RK4 steps per sample (SPEC: >= 20)
+    substeps: int = spec(20, ge=1, le=10_000)
+    # reference limit |r| <= r_limit [m]
+    r_limit: float = spec(0.5, gt=0, le=LENGTH_MAX, unit="m")
+    # reference limit |dr/dt| <= v_limit [m/s]
+    v_limit: float = spec(1.0, gt=0, le=SPEED_MAX, unit="m/s")
 
 
 # --------------------------------------------------------------------------- numba kernel

@@ -37,6 +37,40 @@ import numpy as np
 from numba import njit
 
 from pipeline.systems.base import PhysicsModel, SimResult, System, check_signal, lfilter
+from dataclasses import field
+from pipeline.schema import schema, spec, TS_MAX, MASS_MAX, STIFF_MAX, DAMP_MAX, NOISE_MAX
+
+
+@schema
+class Noise:
+    # [m] std of white measurement noise on y; 0 = noise-free (SPEC §2.1 default)
+    std: float = spec(0.0, ge=0, lt=NOISE_MAX, unit="m")
+
+
+@schema
+class Params:
+    _target_: str
+    name: str = "two_mass_stribeck"
+    # [kg] mass carrying the force f and the sensor y (collocated), [K] §VI
+    m1: float = spec(1.0, gt=0, le=MASS_MAX, unit="kg")
+    # [kg] second mass, tied to m1 by k2 and d2, [K] §VI
+    m2: float = spec(2.0, gt=0, le=MASS_MAX, unit="kg")
+    # [N/m] spring from m1 to the world, [K] §VI
+    k1: float = spec(1.0, ge=0, le=STIFF_MAX, unit="N/m")
+    # [N/m] stiff spring m1-m2 (flexible mode ~150 rad/s), [K] §VI
+    k2: float = spec(15000.0, gt=0, le=STIFF_MAX, unit="N/m")
+    # [N s/m] damper m1-m2, [K] §VI
+    d2: float = spec(50.0, ge=0, le=DAMP_MAX, unit="N s/m")
+    # [N s/m] damping of d_NL away from standstill (viscous region), [K] (32)
+    c1: float = spec(1.0, ge=0, le=DAMP_MAX, unit="N s/m")
+    # [N s/m] damping of d_NL at standstill (Stribeck region), [K] (32)
+    c2: float = spec(20.0, ge=0, le=DAMP_MAX, unit="N s/m")
+    # [s/m] Stribeck velocity scale: d_NL = c1 v + (c2 - c1) sech(alpha v) v, [K] (32)
+    alpha: float = spec(20.0, ge=0, le=1e9, unit="s/m")
+    # [s] sample time of the δ-operator model, SPEC §2.1
+    Ts: float = spec(1e-3, gt=0, le=TS_MAX, unit="s")
+    noise: Noise = field(default_factory=Noise)
+
 
 #: min over x of sech(x) (1 - x tanh x): the most negative slope of v ↦ sech(αv) v, per unit
 _MIN_SECH_SLOPE = -0.2511478713708375

@@ -11,6 +11,31 @@ import numpy as np
 from pipeline.data import Dataset
 from pipeline.errors import ConfigError
 from stages._common import check_references, reference_specs
+from dataclasses import field
+from typing import Any, Literal, Optional
+from pipeline.schema import schema, spec, FORCE_MAX, references_rule
+
+
+@schema
+class Excitation:
+    # [N] standard deviation
+    std: float = spec(0.0, ge=0, le=FORCE_MAX, unit="N")
+    # [s] excitation window start (null = from 0)
+    t_start: Optional[float] = spec(None, ge=0, le=1e7, unit="s", example=10.0)
+    # [s] excitation window end (null = to the end)
+    t_stop: Optional[float] = spec(None, ge=0, le=1e7, unit="s", example=40.0)
+
+
+@schema
+class Params:
+    kind: Literal["closed_loop"]
+    name: str = "closed_loop"
+    # reference specs (pipeline.references.from_spec), one data segment each
+    references: Any = spec([], check=references_rule, example="[{name:move,kind:b2_R}]")
+    # u_ff during the experiment: none | exact (the simulator's exact inverse)
+    feedforward: Literal["none", "exact"] = "none"
+    # white input excitation Δu added to the control input
+    excitation: Excitation = field(default_factory=Excitation)
 
 
 def check(cfg, system) -> None:

@@ -15,6 +15,35 @@ from pipeline.invert.ilc import make_update, norm_optimal_ilc, system_trial
 from pipeline.errors import ConfigError
 from stages._common import check_references, reference_specs
 from stages.generate.closed_loop import check as check_closed_loop
+from dataclasses import field
+from typing import Literal
+from pipeline.schema import schema, spec, NOISE_MAX, COUNT_MAX
+from stages.generate.closed_loop import Params as ClosedLoopParams
+
+
+@schema
+class Ilc:
+    # maximum number of trials (runs of the true plant)
+    trials: int = spec(30, ge=1, le=COUNT_MAX)
+    # learning gain L in (0, 2): f_{j+1} = f_j + L Δf
+    gain: float = spec(1.0, gt=0, lt=2, rule="the learning gain must be in (0, 2)")
+    # weight of ‖f‖², relative to σ_max(G)² (SPEC §2.3)
+    w_rel: float = spec(0.0, ge=0, le=1e6)
+    # weight of ‖f_{j+1} − f_j‖², relative to σ_max(G)² (SPEC §2.3: ≤ 1e-10)
+    w_delta_rel: float = spec(0.0, ge=0, le=1e6)
+    # [m] stop at this rms tracking error
+    tol: float = spec(0.0, ge=0, lt=NOISE_MAX, unit="m")
+    # lifted (dense, short references) | matrix_free (CG on filters) | auto
+    backend: Literal["auto", "lifted", "matrix_free"] = "auto"
+    # trials see the plant's noise model (seeded)
+    noise: bool = True
+
+
+@schema
+class Params(ClosedLoopParams):
+    kind: Literal["ilc"]
+    name: str = "ilc"
+    ilc: Ilc = field(default_factory=Ilc)
 
 
 def check(cfg, system) -> None:

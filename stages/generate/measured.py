@@ -20,6 +20,24 @@ from omegaconf import OmegaConf
 
 from pipeline import data
 from pipeline.runner import ROOT, ConfigError
+from typing import Literal, Optional
+from pipeline.schema import schema, spec
+
+
+@schema
+class Params:
+    kind: Literal["measured"]
+    name: str = "measured"
+    # a file (Parquet/CSV) or a folder holding `file`; absolute or relative to the repo
+    path: str = spec(example="../shared/data/emps")
+    # table: Parquet/CSV with t [s], r [m], u [N], y [m] (+ optional d, sidecar Ts) | emps: .mat
+    format: Literal["table", "emps"] = "table"     # = stages.generate.measured.FORMATS
+    # the training record inside `path` (emps: DATA_EMPS); null = `path` is the file
+    file: Optional[str] = None
+    # several training records inside `path` instead of `file`, e.g. [run1.csv, run2.csv]: each is its own segment
+    # (filtered, regressed and simulated on its own, no seam)
+    files: Optional[list[str]] = spec(None, min_len=1, example=["run1.csv", "run2.csv"])   # several records
+
 
 FORMATS = ("table", "emps")
 #: relative rms of (recorded force - controller law on the recorded position) above which the

@@ -7,6 +7,19 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.data import Dataset
+from typing import Literal
+from pipeline.schema import schema, spec, FORCE_MAX
+
+
+@schema
+class Params:
+    kind: Literal["white_noise"]
+    name: str = "white_noise"
+    # N, number of samples
+    n_samples: int = spec(10000, ge=10, le=10**7, rule="give an integer >= 10 and <= 10^7 (shorter is too short to "
+                          "identify from; longer takes more than 80 MB per signal)")
+    # [input unit] standard deviation of u
+    u_std: float = spec(1.0, ge=0, le=FORCE_MAX, unit="input units")
 
 
 def make(cfg, system, ctx) -> Dataset:

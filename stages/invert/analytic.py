@@ -3,6 +3,17 @@ from __future__ import annotations
 
 from pipeline.invert.analytic import analytic_feedforward, analytic_step
 from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
+from typing import Literal
+from pipeline.schema import schema
+
+
+@schema
+class Params:
+    kind: Literal["analytic"]
+    name: str = "analytic"
+    # the model this inversion needs (fills model.structure)
+    model_structure: Literal["forward", "inverse", "invertible"] = "invertible"
+
 
 VERSION = 2   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
 

@@ -2,6 +2,14 @@
 import numpy as np
 
 from pipeline.errors import ConfigError
+from typing import Literal
+from pipeline.schema import schema
+
+
+@schema
+class Params:   # nothing to set
+    kind: Literal["exact"]
+    name: str = ""
 
 
 def check(cfg, system) -> None:

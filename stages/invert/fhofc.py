@@ -21,6 +21,42 @@ from pipeline.models.closed_loop import DiscreteController
 from pipeline.invert.fhofc import fhofc, fhofc_receding
 from pipeline.metrics_bound import bound_terms
 from pipeline.errors import ConfigError
+from dataclasses import field
+from typing import Literal, Optional
+from pipeline.schema import schema, spec, FORCE_MAX, ITER_MAX
+
+
+@schema
+class Bounds:
+    lower: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=-100.0)
+    upper: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=100.0)
+
+
+@schema
+class Params:
+    kind: Literal["fhofc"]
+    name: str = "fhofc"
+    # the closed-loop model simulation needs the forward PGNN
+    model_structure: Literal["forward", "inverse", "invertible"] = "forward"
+    # γ [m/N] of Γ = γΔ ([B2] §VI: 1e-6 and 5e-5)
+    gamma: float = spec(1e-6, ge=0, le=1.0, unit="m/N")
+    # (invert/fhofc.yaml) null: whole reference (N_k x N_k Gauss-Newton); h: receding horizon [B2] (18)
+    # (invert/il_fhofc.yaml) IL-FHOFC uses the full-horizon FHOFC
+    horizon: Optional[int] = spec(None, ge=1, le=10**6, example=50)
+    # box bounds on U_ff [N] (null = unbounded side)
+    uff_bounds: Bounds = field(default_factory=Bounds)
+    # box bounds on the model input Û = C(R - Ŷ) + U_ff [N]
+    u_bounds: Bounds = field(default_factory=Bounds)
+    # (invert/fhofc.yaml) Gauss-Newton/LM iterations (per window for the receding horizon)
+    # (invert/il_fhofc.yaml) Gauss-Newton/LM iterations per FHOFC solve
+    max_iter: int = spec(50, ge=1, le=ITER_MAX)
+    # stop when a step lowers the cost by less than ftol x cost
+    ftol: float = spec(1e-10, ge=0, lt=1)
+    # refuse references outside the identification data's output range
+    check_range: bool = True
+    # margin of that range, relative to its width
+    range_margin: float = spec(0.1, ge=0, le=100.0)
+
 
 VERSION = 2   # 2: the FHOFC solve is timed warm (the first solve of a process compiles numba kernels)
 

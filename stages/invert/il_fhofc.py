@@ -19,6 +19,27 @@ from pipeline.models.closed_loop import DiscreteController
 from pipeline.invert.fhofc import il_fhofc
 from pipeline.errors import ConfigError
 from stages.invert.fhofc import check as check_fhofc
+from typing import Literal
+from pipeline.schema import schema, spec, COUNT_MAX
+from stages.invert.fhofc import Params as FhofcParams
+
+
+@schema
+class Params(FhofcParams):
+    kind: Literal["il_fhofc"]
+    name: str = "il_fhofc"
+    # γ [m/N] of Γ = γΔ ([B2] Fig. 5: 1e-8)
+    gamma: float = spec(1e-8, ge=0, le=1.0, unit="m/N")
+    # learning gain α in (0, 1] ([B2] Fig. 5: 1)
+    alpha: float = spec(1.0, gt=0, le=1, rule="the learning gain must be in (0, 1]")
+    # plant runs, trial 0 = FHOFC of the identified model (B2c: i = 0..6)
+    n_trials: int = spec(7, ge=1, le=COUNT_MAX)
+    # measurement noise of the plant in every trial (false: v = 0)
+    trial_noise: bool = False
+    # noise floor: norm-optimal ILC input weight / σ_max(G)² (SPEC §2.3: <= 1e-10)
+    ideal_w_rel: float = spec(1e-10, ge=0, le=1.0)
+    # ILC trials for the ideal feedforward (noise-free plant)
+    ideal_trials: int = spec(12, ge=1, le=COUNT_MAX)
 
 
 def check(cfg, system) -> None:

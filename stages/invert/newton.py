@@ -11,6 +11,23 @@ import math
 from pipeline.invert.newton import newton_feedforward, newton_step
 from pipeline.errors import ConfigError
 from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
+from typing import Literal, Optional
+from pipeline.schema import schema, spec, FORCE_MAX
+
+
+@schema
+class Params:
+    kind: Literal["newton"]
+    name: str = "newton"
+    # the model this inversion needs (fills model.structure)
+    model_structure: Literal["forward", "inverse", "invertible"] = "forward"
+    # Newton updates per sample ([B1] §VI: 5)
+    k: int = spec(5, ge=0, le=1000)
+    # [N] lower bound of the search (null = none); leaving it is reported
+    u_min: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=-100.0)
+    # [N] upper bound of the search (null = none)
+    u_max: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=100.0)
+
 
 VERSION = 2   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
 

@@ -1,4 +1,13 @@
 """invert.kind=physics: the analytic inverse of the identified physics model (SPEC §6)."""
+from typing import Literal
+from pipeline.schema import schema
+
+
+@schema
+class Params:   # nothing to set
+    kind: Literal["physics"]
+    name: str = ""
+
 
 VERSION = 2   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
 

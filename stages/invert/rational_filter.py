@@ -13,6 +13,14 @@ import torch
 from pipeline.identify.orthogonal import spread_over_inits
 from pipeline.invert.rational_filter import rational_feedforward
 from pipeline.errors import ConfigError
+from typing import Literal
+from pipeline.schema import schema
+
+
+@schema
+class Params:   # nothing to set
+    kind: Literal["rational_filter"]
+    name: str = ""
 
 
 def check(cfg, system) -> None:

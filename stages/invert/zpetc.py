@@ -3,6 +3,14 @@ a stable approximate inverse for nonminimum-phase models (rot_trans_nmp, SPEC §
 from pipeline.errors import ConfigError
 from pipeline.systems.rot_trans_nmp import zpetc_feedforward
 from pipeline.systems.arx_bias import ARXPhysics
+from typing import Literal
+from pipeline.schema import schema
+
+
+@schema
+class Params:   # nothing to set
+    kind: Literal["zpetc"]
+    name: str = ""
 
 
 def check(cfg, system) -> None:

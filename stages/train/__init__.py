@@ -6,7 +6,40 @@ baseline is the model.
 """
 from __future__ import annotations
 
+import math
 from pipeline.runner import implementation
+from typing import Any, Literal
+from pipeline.schema import schema, spec, is_number
+
+
+@schema
+class RegularizerNone:
+    name: Literal["none"]
+
+
+def _lam_rule(v) -> str | None:
+    """regularizer.lam of physics_l2: a number or a list (diag Λ) of numbers, finite, >= 0."""
+    vals = v if isinstance(v, list) else [v]
+    if not vals or not all(is_number(x) and math.isfinite(x) and 0 <= x <= 1e12 for x in vals):
+        return "give a finite number >= 0 and <= 1e12, or a list of them (diag Λ)"
+    return None
+
+
+@schema
+class PhysicsL2:
+    name: Literal["physics_l2"]
+    # Λ = lam · I ([B1] §VI: 0.01); a list gives diag(Λ)
+    lam: Any = spec(0.01, check=_lam_rule)
+
+
+@schema
+class Orthogonal:
+    name: Literal["orthogonal"]
+    # λ, dimensionless: with column scaling R is the energy [N²] of the model contributions g_φ would take over ([K]
+    # (20)), so λ = 1 prices it like misfit energy. A sweep (1e-3 … 1, REPORT k_two_mass) trades J_OE (~1e-3 → ~1.5
+    # N²) for the share of W g_φ in im(W M) (~0.057 → ~0.02)
+    lam: float = spec(1.0, ge=0, le=1e12)
+
 
 UPSTREAM = ("generate", "baseline")
 DEPENDS = ("model", "identify", "regularizer", "seed")

@@ -18,9 +18,24 @@ from omegaconf import OmegaConf
 
 from pipeline.identify.narx import (arx_inverse_asymptotics, forward_regressor,
                                     inverse_regressor, physics_least_squares)
+
+
 from pipeline.models.pgnn import PGNN
 from pipeline.models.physics_maps import LinearFeatures
 from pipeline.errors import ConfigError
+from typing import Literal
+from pipeline.schema import schema, spec, COUNT_MAX
+
+
+@schema
+class Params:
+    kind: Literal["inverse_bias"]
+    name: str = "inverse_bias"
+    # N [samples] per data set
+    sample_sizes: list[int] = spec([1000, 10000, 100000], ge=10, le=10**8, min_len=2,
+                                   rule="give at least two sizes >= 10 (and <= 1e8)")
+    # data sets per N (SPEC: >= 20)
+    n_seeds: int = spec(20, ge=2, le=COUNT_MAX)
 
 
 def check(cfg, system) -> None:

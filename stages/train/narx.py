@@ -26,6 +26,41 @@ from pipeline.models.pgnn import PGNN
 from pipeline.models.physics_maps import physics_features_for
 from pipeline.errors import ConfigError
 from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
+from typing import Literal
+from pipeline.schema import schema, spec, ITER_MAX, COUNT_MAX
+
+
+@schema
+class Params:
+    kind: Literal["narx"]
+    name: str = "narx"
+    # random NN initialisations, lowest training cost kept ([B1] §VI: 10)
+    n_restarts: int = spec(10, ge=1, le=COUNT_MAX)
+    # safety cap on LM damped solves of the kept restart: fits stop on ftol/gtol/stat
+    max_iter: int = spec(2000, ge=0, le=ITER_MAX)
+    # every restart runs 50 LM steps, only the best continues to its stop (0: all run to their stop)
+    screen_iter: int = spec(50, ge=0, le=ITER_MAX)
+    # stop on relative cost change below this
+    ftol: float = spec(1e-10, ge=0, lt=1)
+    # stop on scaled gradient (cosine) below this
+    gtol: float = spec(1e-10, ge=0, lt=1)
+    # initial LM damping, relative to the scaled JᵀJ diagonal
+    mu0: float = spec(1e-3, gt=0, le=1e12)
+    # contiguous validation block at the end of the record (early stopping); 0 = off
+    val_fraction: float = spec(0.2, ge=0, lt=1)
+    # accepted LM steps without validation improvement before stopping (the validation MSE moves in its 4th digit per
+    # step on noisy data: a short patience stops on noise)
+    patience: int = spec(20, ge=1, le=ITER_MAX)
+    # geodesic acceleration (Transtrum & Sethna) in the LM: off here, measured (issue 19) on the b1 noise sweep at
+    # sigma=1e-7 it cost 1.4x the CPU of plain LM (42.7 vs 30.0 s) to the same stop
+    geodesic: bool = False
+    # statistical stop: the cost fell by <= stat_tol·sqrt(2/N)·C over the last stat_window accepted
+    stat_window: int = spec(10, ge=0, le=ITER_MAX)
+    # steps (below the cost's sampling fluctuation: converged on noisy data); 0 = off
+    stat_tol: float = spec(0.1, ge=0, le=100)
+    # window of the statistical stop grows with the run (0: fixed; see conf/identify/sim_error.yaml)
+    stat_frac: float = spec(0.0, ge=0, lt=1)
+
 
 VERSION = 2   # 2: the statistical window spans a continued restart's screening steps (issue 19)
 

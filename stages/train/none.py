@@ -1,4 +1,12 @@
 """identify.kind=none: no training; downstream stages use the physics baseline."""
+from typing import Literal
+from pipeline.schema import schema
+
+
+@schema
+class Params:
+    kind: Literal["none"]
+    name: str = "none"
 
 
 def fit(ctx) -> dict:

@@ -29,6 +29,51 @@ from pipeline.models.physics_maps import LinearFeatures
 from pipeline.errors import ConfigError
 from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
 from pipeline.systems.arx_bias import ARXPhysics
+from typing import Literal
+from pipeline.schema import schema, spec, ITER_MAX, COUNT_MAX
+
+
+@schema
+class Params:
+    kind: Literal["sim_error"]
+    name: str = "sim_error"
+    # θ*_phy, the linear model identified first: arx (one-step LS, [B1] (7)) | sim_error (that, refined by closed-loop
+    # output error: consistent under output noise) | oracle (the plant's true linear part: an oracle, simulation
+    # only). The linear model (hidden=[]) is θ*_phy itself
+    theta_star: Literal["arx", "sim_error", "oracle"] = "sim_error"
+    # cap of the sim_error refinement of θ*_phy (a safety net: it stops on ftol after ~10 steps)
+    linear_max_iter: int = spec(500, ge=0, le=ITER_MAX)
+    # random NN initialisations, lowest training cost kept (SPEC §5; 3 fits the 10-min budget)
+    n_restarts: int = spec(3, ge=1, le=COUNT_MAX)
+    # safety cap on LM damped solves per restart: fits stop on the statistical rule below. Measured with the growing
+    # window: n1 = 32 still falls 4 % (2x the sampling fluctuation) over its solves 3000-5000 (6.9e-10 -> 6.7e-10,
+    # noise floor ~6.5e-10, fitting the noise down toward its minimum, ~p/N below the floor); n1 = 24 leaves a plateau
+    # (3e-7) at ~2500
+    max_iter: int = spec(8000, ge=0, le=ITER_MAX)
+    # every restart runs 300 LM steps, only the best continues to convergence (the others are screened out, not
+    # results; 0: every restart runs to its stop)
+    screen_iter: int = spec(300, ge=0, le=ITER_MAX)
+    # stop on relative cost change below this
+    ftol: float = spec(1e-10, ge=0, lt=1)
+    # stop on scaled gradient (cosine) below this
+    gtol: float = spec(1e-10, ge=0, lt=1)
+    # initial LM damping, relative to the scaled JᵀJ diagonal
+    mu0: float = spec(1e-3, gt=0, le=1e12)
+    # contiguous validation tail for early stopping (0 = off; [B2] uses none)
+    val_fraction: float = spec(0.0, ge=0, lt=0.5)
+    # accepted LM steps without validation improvement before stopping
+    patience: int = spec(5, ge=1, le=ITER_MAX)
+    # geodesic acceleration (Transtrum & Sethna) in the LM: the [B2] fit is curvature-limited
+    geodesic: bool = True
+    # statistical stop: the cost fell by <= stat_tol·sqrt(2/N)·C (its sampling standard deviation)
+    stat_window: int = spec(10, ge=0, le=ITER_MAX)
+    # over the last max(stat_window, stat_frac·k) of its k accepted steps, and the Gauss–Newton
+    stat_tol: float = spec(1.0, ge=0, le=100)
+    # decrement agrees (pipeline/identify/lm.py): the last 30 % of the run gained less than the data resolve. A fixed
+    # 10-step window (stat_frac 0) stopped the [B2] n1 = 32 fit at 5.8x its final cost (6x the noise floor); this one
+    # within ~1 % of it (measured: n1 = 8, 16, 20, 32)
+    stat_frac: float = spec(0.3, ge=0, lt=1)
+
 
 THETA_STAR = ("arx", "sim_error", "oracle")   # oracle: the plant's true linear part (an oracle, simulation only)
 VERSION = 4   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zeros logged;

@@ -16,11 +16,11 @@ from __future__ import annotations
 import numpy as np
 from omegaconf import OmegaConf
 
-from pipeline.identify.narx import (arx_inverse_asymptotics, forward_regressor,
-                                    inverse_regressor, physics_least_squares)
+from pipeline.errors import ConfigError
+from pipeline.identify.narx import arx_inverse_asymptotics, forward_regressor, inverse_regressor, physics_least_squares
 from pipeline.models.pgnn import PGNN
 from pipeline.models.physics_maps import LinearFeatures
-from pipeline.errors import ConfigError
+from pipeline.plots import pyplot
 
 
 def check(cfg, system) -> None:
@@ -72,9 +72,7 @@ def fit(ctx) -> dict:
 
 
 def _figure(sizes, err_f, err_i, bias_norm):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(5, 3.5))
     ax.loglog(sizes, [err_f[n] for n in sizes], "o-", label="forward ‖θ̂ - θ0‖ ([B1] (7))")
     ax.loglog(sizes, [err_i[n] for n in sizes], "s-", label="direct inverse ‖θ̂' - θ0'‖ ([B1] (17))")

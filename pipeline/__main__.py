@@ -9,11 +9,12 @@ import time
 from pathlib import Path
 
 import hydra
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from pipeline import interrupts, resources, runner, schema
-from pipeline.tracking import VARYING_ENV
 from pipeline.runner import ConfigError, run_job, run_name_with_overrides
+from pipeline.tracking import VARYING_ENV
 
 schema.register()   # every key's default for Hydra (before it composes; a launcher's workers get the store)
 
@@ -22,7 +23,6 @@ schema.register()   # every key's default for Hydra (before it composes; a launc
 @hydra.main(version_base="1.3", config_path=str(Path(__file__).resolve().parent.parent / "conf"), config_name="config")
 def _main(cfg: DictConfig) -> dict:
     try:
-        from hydra.core.hydra_config import HydraConfig
         hc = HydraConfig.get()
         cfg.run_name = run_name_with_overrides(cfg, hc.overrides.task, hc.sweeper.get("params"))
         t0 = time.perf_counter()
@@ -47,7 +47,7 @@ def main() -> None:
     interrupts.install()
     try:
         if len(sys.argv) > 1 and sys.argv[1] == "export":   # pgnn-ff export RUN_ID [--out DIR]
-            from pipeline.export.cli import main as export_main
+            from pipeline.export.cli import main as export_main  # lazy: saves 0.1 s of start-up (pipeline.export)
             sys.exit(export_main(sys.argv[2:]))
         _main()
     except KeyboardInterrupt as exc:

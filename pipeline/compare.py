@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.plots import pyplot
+
 #: candidate factors: (column, label), in the order they group the table
 FACTORS = (("tags.invert", "inversion"), ("tags.model", "structure"), ("tags.regularizer", "regulariser"),
            ("params.system.noise.structure", "noise"), ("params.system.noise.std", "σ [m]"),
@@ -169,8 +171,7 @@ def markdown(table: pd.DataFrame, findings: list[str]) -> str:
 def figure(table: pd.DataFrame, path: Path, title: str = "") -> Path | None:
     """One panel per metric: a horizontal bar per run (labelled by its name, the varying part first),
     on a log scale where the values span more than a decade."""
-    from pipeline.plots import _plt
-    plt = _plt()
+    plt = pyplot()
     metrics = [c for c in table.columns if pd.api.types.is_float_dtype(table[c])]
     if not metrics or table.empty:
         return None

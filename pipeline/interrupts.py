@@ -18,9 +18,11 @@ holds the GIL (a numba kernel) runs until it returns: no Python thread can run m
 """
 from __future__ import annotations
 
+import atexit
 import os
 import select
 import signal
+import sys
 import threading
 import time
 from typing import Callable
@@ -168,8 +170,6 @@ def _watchdog(read_fd: int, generation: int) -> None:
 def exit_now(code: int) -> None:
     """End the process with ``code`` after the ``atexit`` hooks (the sweep's parent run), skipping
     the interpreter's teardown of every loaded module (1.5-2 s with torch, numba and MLflow loaded)."""
-    import atexit
-    import sys
     try:
         atexit._run_exitfuncs()
     finally:

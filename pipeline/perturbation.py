@@ -19,6 +19,8 @@ how many moved by more than ``rtol``, and the claim verdicts that changed).  Tim
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
 import os
 from pathlib import Path
 
@@ -203,7 +205,6 @@ def markdown(summary: pd.DataFrame, rtol: float, check: str, setting: str) -> st
 def summary_digest(path: Path) -> str:
     """sha256 of a summary.csv's content (rows sorted by key, values as text, timings left out as
     in :func:`compare`), not of its bytes: a rerun with the same results keeps the digest."""
-    import hashlib
     t = pd.read_csv(path, dtype=str, keep_default_na=False)
     t = t[~t["metric"].map(_is_timing)]
     t = t.sort_values([c for c in KEY if c in t.columns], kind="stable").reset_index(drop=True)
@@ -235,7 +236,6 @@ def main(argv=None) -> int:
     md = markdown(summary, args.rtol, args.check, args.setting)
     _atomic_write(out / f"check-{args.check}.csv", keys.to_csv(index=False))
     _atomic_write(out / f"check-{args.check}.md", md)
-    import json
     _atomic_write(out / f"check-{args.check}.json", json.dumps({   # the report shows the check of this summary only
         "reference_sha256": summary_digest(Path(args.reference)),
         "setting": args.setting, "rtol": args.rtol,

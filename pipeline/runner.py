@@ -36,14 +36,31 @@ from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
+import pandas as pd
 from hydra.core.hydra_config import HydraConfig
+from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+from tqdm.auto import tqdm
 
-from pipeline import interrupts, owned, tracking
-from pipeline.cache import (HOST, BadKey, ShortKey, UntrustedCache, _load_trusted, _locked, _signing_key,  # noqa: F401
-                            _tmp_name, _write_signed, cache_dir, cache_key_file, pid_alive,
-                            remove_stale_temporaries)
+from pipeline import data, interrupts, naming, owned, schema, tracking
+from pipeline.cache import (  # noqa: F401
+    HOST,
+    BadKey,
+    ShortKey,
+    UntrustedCache,
+    _load_trusted,
+    _locked,
+    _signing_key,
+    _tmp_name,
+    _write_signed,
+    cache_dir,
+    cache_key_file,
+    pid_alive,
+    remove_stale_temporaries,
+)
+from pipeline.compare import display_metrics
 from pipeline.errors import ORDER, SAFE_NAME, ConfigError  # noqa: F401  (re-exported)
+from pipeline.plots import pyplot
 
 ROOT = tracking.ROOT
 #: config groups whose chosen option is a run tag (DESIGN, Tracking)
@@ -52,7 +69,6 @@ TAG_GROUPS = ("system", "data", "model", "identify", "regularizer", "invert")
 
 def make_system(cfg: DictConfig):
     """Instantiate ``cfg.system`` (its ``name`` key is metadata, not a constructor argument)."""
-    from hydra.utils import instantiate
     sys_cfg = OmegaConf.to_container(cfg.system, resolve=True)
     name = sys_cfg.pop("name", None)
     try:
@@ -117,11 +133,10 @@ class StageContext:
         self.tags[key] = str(value)
 
     def figure(self, fig, filename: str) -> Path:
-        import matplotlib.pyplot as plt
         path = self.workdir / "figures" / filename
         path.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(path, dpi=110, bbox_inches="tight")
-        plt.close(fig)
+        pyplot().close(fig)      # the figure was drawn with it: no import here
         self.figures.append(filename)
         return path
 
@@ -138,7 +153,6 @@ class StageContext:
 
     def dataset(self, ds, name: str, context: str = "training") -> Path:
         """Save a :class:`pipeline.data.Dataset` (Parquet + sidecar) and log it as an input."""
-        from pipeline import data
         path = data.save(ds, self.workdir / "data" / name)
         self.datasets.append([f"data/{path.name}", name, context])
         return path
@@ -168,7 +182,6 @@ class StageContext:
     def progress(self, iterable: Iterable | None, desc: str = "", total: int | None = None):
         """A tqdm bar over ``iterable`` (None: a manual bar, advanced with ``update``) on stderr when
         it is a terminal or ``PIPELINE_PROGRESS`` is set (quiet in tests and logs)."""
-        from tqdm.auto import tqdm
         return tqdm(iterable, desc=f"{self.name}: {desc}", total=total, leave=False,
                     disable=not sys.stderr.isatty() and not os.environ.get("PIPELINE_PROGRESS"))
 
@@ -267,7 +280,6 @@ def selected_stages(cfg: DictConfig) -> list[str]:
 
 def validate(cfg: DictConfig) -> tuple[list[str], Any, dict]:
     """Everything that can be checked before work starts (DESIGN: validate configs early)."""
-    from pipeline import schema   # every key's type, range and choices, unknown keys, interpolations
     schema.check(cfg)
     names = selected_stages(cfg)
     system = make_system(cfg) if "system" in cfg and cfg.system is not None else None
@@ -334,7 +346,6 @@ WAITED = 0.0
 def display(cfg: DictConfig, varying: list[str] | None) -> tuple[str, str]:
     """The run's display name and note (:mod:`pipeline.naming`): what ``varying`` (the keys its sweep
     or command line varies) are for this job first, then the fixed settings."""
-    from pipeline import naming
     values = {k: (choice(cfg, k) if k in TAG_GROUPS else _select(cfg, k)) for k in varying or []}
     system = str(OmegaConf.select(cfg, "system.name", default="") or "")
     name = naming.display_name(values, list(varying or []), system, int(cfg.seed), str(cfg.run_name),
@@ -451,14 +462,13 @@ def _compute(cfg, name, mod, key, keys, results, system, store, cacheable, run_i
 
 
 def _seed_everything(seed: int, stage: str) -> None:
-    import torch
+    import torch  # lazy: saves 2.6 s of start-up (torch: a cached job never seeds)
     s = (seed * 1_000_003 + zlib.crc32(stage.encode())) % 2**31
     np.random.seed(s)
     torch.manual_seed(s)
 
 
 def _log_stage(run, name: str, record: dict, stage_dir: Path, hit: bool, cfg=None) -> None:
-    from pipeline.compare import display_metrics
     metrics = [tuple(m) for m in record["metrics"]]
     metrics.append((f"time/{name}_s", record["seconds"], None))
     system = str(OmegaConf.select(cfg, "system.name", default="") or "") if cfg is not None else ""
@@ -471,7 +481,6 @@ def _log_stage(run, name: str, record: dict, stage_dir: Path, hit: bool, cfg=Non
         parent = Path(rel).parent
         run.log_artifact(stage_dir / "artifacts" / rel, name if parent == Path(".") else f"{name}/{parent.as_posix()}")
     for rel, ds_name, context in record.get("datasets", []):
-        import pandas as pd
         path = stage_dir / rel
         run.log_dataset(pd.read_parquet(path), ds_name, str(path), context)
     register = bool(OmegaConf.select(cfg, "export.register", default=False)) if cfg is not None else False

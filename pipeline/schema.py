@@ -46,6 +46,7 @@ from dataclasses import MISSING, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Literal, Optional, Union
 
+from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf, open_dict
 
 from pipeline.errors import ORDER, SAFE_NAME, ConfigError
@@ -343,7 +344,6 @@ def register(conf: Path | None = None) -> None:
     option file conf/<group>/<option>.yaml the defaults of its class as ``_params/<group>/<option>``
     (conf/config.yaml puts ``_params/<group>@<group>: ${<group>}`` before the group), and the top
     level's as ``_params_config``. Call before composing (pipeline/__main__.py, tests/conftest.py)."""
-    from hydra.core.config_store import ConfigStore
     conf = Path(conf or _ROOT / "conf")
     store = ConfigStore.instance()
     top = {k: v for k, v in defaults(Config).items() if k not in CHOOSER and k != "evaluate"}

@@ -39,11 +39,14 @@ which tags the run ``evaluated_on``.
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from pipeline import plots
-from pipeline.metrics import phase_ff_errors, phase_peaks, tracking_metrics
 from pipeline.errors import ConfigError
+from pipeline.metrics import phase_ff_errors, phase_peaks, tracking_metrics
+from stages._common import reference_specs
 
 UPSTREAM = ("invert",)
 DEPENDS = ("system", "evaluate", "seed")
@@ -61,7 +64,6 @@ def optimal_input(system, r):
 
 
 def validate(cfg, system) -> None:
-    from stages._common import reference_specs
     measured_data = str(cfg.data.get("kind")) == "measured"
     if system is not None and system.measured:   # evaluate.convention's choices: pipeline.schema
         bad = [s["name"] for s in reference_specs(cfg.evaluate.references) if s.get("kind") != "measured"]
@@ -114,10 +116,9 @@ def run(ctx) -> dict:
 # measured systems: replay in the recorded loop
 # ------------------------------------------------------------------------------------------
 def _run_measured(ctx) -> dict:
-    from pipeline.identify.measured_loop import (CONVENTIONS, N_INIT, LoopModel, LoopSignals, benchmark_scores,
-                                                 loop_errors, simulate_loop, simulate_open_loop)
-    from stages._common import reference_specs
-    from stages.generate.measured import reference
+    from pipeline.identify.measured_loop import (  # lazy: saves 1.0 s of start-up (numba kernels, measured systems)
+        CONVENTIONS, N_INIT, LoopModel, LoopSignals, benchmark_scores, loop_errors, simulate_loop, simulate_open_loop)
+    from stages.generate.measured import reference  # lazy: saves 3.7 s of start-up (mlflow, via pipeline.runner)
     inv, system, cfg = ctx.inputs["invert"], ctx.system, ctx.cfg
     loop, ctrl = inv["loop"], system.ctrl
     tail = float(cfg.evaluate.validation_tail)
@@ -187,8 +188,10 @@ def _integrator_check(inv, system, sig, y, tau) -> dict[str, float]:
     """The one integrator against the continuous-time model it discretises (physics models only:
     the PGNN is a discrete-time model): the data-timing force error of the physics model (and of
     the published one) replayed with RK4 sub-steps (pipeline.identify.continuous_replay)."""
-    from pipeline.identify.continuous_replay import SUBSTEPS, replay_rk4
-    from pipeline.identify.measured_loop import N_INIT, loop_errors
+    from pipeline.identify.continuous_replay import (  # lazy: saves 0.8 s of start-up (numba kernels, measured systems)
+        SUBSTEPS, replay_rk4)
+    from pipeline.identify.measured_loop import (  # lazy: saves 1.0 s of start-up (numba kernels, measured systems)
+        N_INIT, loop_errors)
     models = {"published_model/": system.published_theta()}
     if inv["loop"].n1 == 0:
         models[""] = inv["loop"].theta_phy
@@ -210,7 +213,6 @@ FAR_TRACKING = 10.0
 
 
 def _warn_far_from_record(ctx, name: str, m: dict) -> None:
-    import warnings
     fe = m.get("data/force_rel_error")
     mb, rec = m.get("model_based/mae"), m.get("recorded/mae")
     msgs = []

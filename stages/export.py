@@ -28,19 +28,20 @@ from __future__ import annotations
 
 import math
 import sys
+from dataclasses import asdict, field
+from typing import Literal, Optional
 
 from omegaconf import OmegaConf
 
 from pipeline import tracking
+from pipeline.errors import ConfigError
 from pipeline.export import law as laws
 from pipeline.export.c_code import c_name
+from pipeline.export.guard import Guard, envelope_of
 from pipeline.export.misra import find_cppcheck
 from pipeline.export.package import check_prefix, find_compiler, reference_file_clash, write_package
-from pipeline.errors import ConfigError
+from pipeline.schema import COUNT_MAX, FORCE_MAX, FREQ_MAX, schema, spec
 from stages._common import reference_specs
-from dataclasses import field
-from typing import Literal, Optional
-from pipeline.schema import schema, spec, FORCE_MAX, FREQ_MAX, COUNT_MAX
 
 
 @schema
@@ -171,9 +172,6 @@ def physics_coefficients(system, theta) -> list | None:
 def guard_of(ctx) -> dict:
     """The guard of every law of the job from export.limits, the identification data's envelope and
     the physics fallback's coefficients (pipeline.export.guard.Guard)."""
-    from dataclasses import asdict
-
-    from pipeline.export.guard import Guard, envelope_of
     lim = ctx.cfg.export.limits          # every key set by pipeline.schema (null: no limit)
     bound = lambda k, none: none if lim.get(k) is None else float(lim.get(k))   # noqa: E731
     ds = ctx.inputs["generate"]["dataset"]

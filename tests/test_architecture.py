@@ -1,6 +1,7 @@
 """The plumbing stays acyclic (issue 21): no import cycle among the modules of pipeline/ and stages/,
 counting imports inside functions too (they hide cycles as well as they hide start-up cost)."""
 import ast
+import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -130,3 +131,34 @@ def test_stages_ask_the_objects_not_their_class_names():
                     (isinstance(node, ast.Compare) and "__name__" in text and "type(" in text):
                 hits.append(f"{f.relative_to(ROOT)}: {text}")
     assert hits == []
+
+
+def _function_imports() -> list[tuple[str, int, str]]:
+    """(file, line, source line) of every import inside a function in pipeline/ and stages/."""
+    out = []
+    for base in ("pipeline", "stages"):
+        for f in sorted((ROOT / base).rglob("*.py")):
+            src = f.read_text()
+            lines = src.splitlines()
+            seen = set()
+            for node in ast.walk(ast.parse(src)):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    for sub in ast.walk(node):
+                        if isinstance(sub, (ast.Import, ast.ImportFrom)) and sub.lineno not in seen:
+                            seen.add(sub.lineno)
+                            out.append((str(f.relative_to(ROOT)), sub.lineno, lines[sub.lineno - 1].strip()))
+    return out
+
+
+def test_every_import_inside_a_function_says_why_it_is_lazy():
+    """Issue 21 item 5: imports at module top, unless deliberately lazy: a measured start-up saving
+    (``# lazy: saves N.N s of start-up (<what>)``) or, kept only for a large restructuring, a cycle
+    it would close (``# lazy: would close the cycle a -> b -> a``). A new hidden import is refused."""
+    found = _function_imports()
+    assert any(f == "pipeline/plots.py" for f, _, _ in found)       # the walk sees function bodies
+    bare = [f"{f}:{n}: {line}" for f, n, line in found if "# lazy: " not in line]
+    assert bare == []
+    for f, n, line in found:
+        why = line.split("# lazy: ", 1)[1]
+        assert re.match(r"saves \d+\.\d+ s of start-up \(.+\)|would close the cycle \S+( -> \S+)+", why), \
+            f"{f}:{n}: {line}"

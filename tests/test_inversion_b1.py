@@ -313,7 +313,7 @@ def test_noise_sweep_report_section(store, tmp_path, monkeypatch):
     head = pd.DataFrame([{"tags.mlflow.runName": "linear_motor-equation-newton-s0", "tags.invert": "newton",
                           "params.system.noise.structure": "equation", "params.system.noise.std": "1e-06",
                           "params.identify.n_restarts": "10", "metrics.evaluate/v0.15/mae": 1.6e-6}])
-    monkeypatch.setattr("stages.report.latest_runs", lambda name: (head, []))
+    monkeypatch.setattr("stages.report._runs.latest_runs", lambda name: (head, []))
     _, md = claims_b1.section("b1_noise_sweep", pd.DataFrame(recs), tmp_path)
     assert "σ = 1e-06, this sweep vs the `b1_linear_motor` headline (best of 10): equation/newton 2e-06 " \
            "vs 1.6e-06. They differ by up to 25%" in md

@@ -178,7 +178,7 @@ def test_champion_is_registered_once_and_moves_to_a_better_run(store):
 
 
 def test_report_keys_runs_by_run_key_and_reads_stores_made_before_it():
-    from stages.report import _identity
+    from stages.report._runs import _identity
     old = pd.DataFrame({"tags.mlflow.runName": ["linear_motor-equation-newton-s0"], "run_id": ["a"]})
     assert _identity(old).equals(old)                       # no run_key tag: the name is the key
     new = pd.DataFrame({"tags.mlflow.runName": ["newton·fwd·eq·L2 | linear_motor s0", "b1_linear_motor-sweep"],

@@ -20,9 +20,10 @@ import sys
 import tempfile
 from pathlib import Path
 
+import mlflow
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline import owned, schema
+from pipeline import owned, runner, schema, tracking
 from pipeline.cache import UntrustedCache, _read_signed, cache_dir
 from pipeline.export.law import LAWS, ExportError
 from pipeline.export.package import replace_dir
@@ -45,9 +46,6 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
                cc: str | None = None) -> dict:
     """Export the feedforward of run ``run_id`` to ``out``; returns {package: manifest}.  ``cc``:
     the C compiler (None: the default of conf/config.yaml, never the one stored with the run)."""
-    import mlflow
-
-    from pipeline import runner, tracking
     out = Path(out)
     _writable(out)
     client = tracking.client()
@@ -121,7 +119,6 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
         man = packages[name]
         c = f"C max|Δu|/max|u| = {man['c_max_rel_diff']:.2g}, {man['c_ns_per_sample']:.0f} ns/sample" \
             if man["compiled"] else "C not compiled (no compiler)"
-        from pipeline import tracking
         model = tracking.JobRun.resume(run_id).model_name(name)
         print(f"{final}: {man['law']} ({c}); MLflow model runs:/{run_id}/{model}")
     return packages

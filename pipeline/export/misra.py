@@ -14,6 +14,8 @@ import subprocess
 from collections import Counter
 from pathlib import Path
 
+from pipeline.export.guard import FLAGS
+
 __all__ = ["DEVIATIONS", "cppcheck_report", "readme", "find_cppcheck"]
 
 #: MISRA C:2012 rules the generated C deviates from, and why (a deviation record per rule)
@@ -84,7 +86,6 @@ def cppcheck_report(folder: Path, name: str, exe: str | None = None) -> dict:
 
 def readme(law, name: str, man: dict) -> str:
     """The package's README.md: API, guard, flags, vectors, checks."""
-    from pipeline.export.guard import FLAGS
     p = man["prefix"]
     P = p.upper()
     lim = man["limits"]

@@ -10,6 +10,7 @@ compiler the source is still written and the manifest says it was not compiled.
 """
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
 import subprocess
@@ -35,7 +36,6 @@ _IDENT = __import__("re").compile(r"[A-Za-z][A-Za-z0-9_]{0,39}")
 
 def law_hash(law: Law) -> str:
     """sha256 of the law's data (law.json fields and arrays): two different laws, two hashes."""
-    import hashlib
     h = hashlib.sha256(strict_json({k: v for k, v in law.__dict__.items() if k != "arrays"}).encode())
     for k in sorted(law.arrays):
         h.update(k.encode())

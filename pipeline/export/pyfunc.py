@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
+from mlflow.models import ModelSignature
+from mlflow.types import ColSpec, Schema
 
 from pipeline.export.law import ExportError, Law, guarded
 
@@ -35,8 +37,6 @@ class FeedforwardModel:
 
 def signature(law: Law, r_example: np.ndarray):
     """Input/output signature and example of the model (the first samples of a reference)."""
-    from mlflow.models import ModelSignature
-    from mlflow.types import ColSpec, Schema
     ex = pd.DataFrame({"r": np.asarray(r_example, dtype=np.float64)})
     # stated, not inferred: flags are a bit field (int64), never missing (inference warns about that)
     sig = ModelSignature(inputs=Schema([ColSpec("double", "r")]),

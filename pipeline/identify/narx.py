@@ -29,6 +29,7 @@ from typing import Callable
 
 import numpy as np
 import torch
+from scipy.linalg import solve_discrete_lyapunov
 
 from pipeline.identify.lm import LMResult, levenberg_marquardt, normal_equations_from_blocks
 from pipeline.models.pgnn import PGNN, Prepared
@@ -530,8 +531,6 @@ def arx_inverse_asymptotics(a, b, sigma_u: float, sigma_v: float):
     M : ndarray [n_a + n_b, n_a + n_b]
         E[φ'φ'ᵀ].
     """
-    from scipy.linalg import solve_discrete_lyapunov
-
     a = np.atleast_1d(np.asarray(a, dtype=float))
     b = np.atleast_1d(np.asarray(b, dtype=float))
     n_a, n_b = a.size, b.size

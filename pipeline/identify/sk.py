@@ -618,7 +618,7 @@ def sk_restarts(models, r, f_hat, *, n_jobs: int = 1, progress: Callable | None 
     else:
         # joblib's loky processes (never fork a process that holds torch threads); inside a worker of
         # Hydra's joblib launcher joblib itself decides how far to nest; results in order as they end
-        from joblib import Parallel, delayed
+        from joblib import Parallel, delayed  # lazy: saves 0.1 s of start-up (joblib: parallel restarts only)
         out = Parallel(n_jobs=min(int(n_jobs), len(jobs)), backend="loky",
                        return_as="generator")(delayed(_sk_restart)(j) for j in jobs)
     return list(progress(out, len(jobs)) if progress is not None else out)

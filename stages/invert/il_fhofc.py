@@ -15,9 +15,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.models.closed_loop import DiscreteController
-from pipeline.invert.fhofc import il_fhofc
 from pipeline.errors import ConfigError
+from pipeline.invert.fhofc import il_fhofc
+from pipeline.invert.ilc import norm_optimal_ilc, system_trial
+from pipeline.models.closed_loop import DiscreteController
+from pipeline.plots import pyplot
 from stages.invert.fhofc import check as check_fhofc
 from typing import Literal
 from pipeline.schema import schema, spec, COUNT_MAX
@@ -52,7 +54,6 @@ def check(cfg, system) -> None:
 def ideal_feedforward(ctx, r) -> tuple[np.ndarray, float]:
     """The optimal input of r on the noise-free plant by norm-optimal ILC (pipeline.invert.ilc)
     and the rms error of its last trial [m] (how ideal it is)."""
-    from pipeline.invert.ilc import norm_optimal_ilc, system_trial
     inv = ctx.cfg.invert
     res = norm_optimal_ilc(system_trial(ctx.system, r), ctx.system.learning_model(), r.size,
                            w_delta=0.0, w_rel=float(inv.ideal_w_rel), n_trials=int(inv.ideal_trials),
@@ -101,9 +102,7 @@ def feedforward(ctx, name, r):
 
 
 def _figure(e_rms, name):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(5, 3.2))
     ax.semilogy(np.arange(e_rms.size), e_rms, "o-")
     ax.set_xlabel("trial i")

@@ -18,6 +18,7 @@ EXPERIMENTS=...`` uses it); the header says which sections were rebuilt.
 """
 from __future__ import annotations
 
+import ast
 import importlib
 import json
 import os
@@ -26,13 +27,16 @@ import shutil
 import tempfile
 from pathlib import Path
 
+import mlflow
 import pandas as pd
 
-from pipeline import owned, tracking
+from pipeline import compare, owned, tracking
 from pipeline.export.law import strict_json
+from pipeline.perturbation import EXPLAIN, summarise, summary_digest, table_lines
+from pipeline.runner import ROOT
 from stages.report import claims
 from stages.report._rows import row, run_metrics
-from pipeline.runner import ROOT
+from stages.report._runs import latest_runs, split_side
 
 UPSTREAM = ()
 DEPENDS = ()
@@ -61,47 +65,6 @@ def providers() -> dict[str, object]:
         for e in getattr(mod, "EXPERIMENTS", ()):
             out[e] = mod
     return out
-
-
-def latest_runs(experiment: str) -> tuple[pd.DataFrame, list[str]]:
-    """Latest finished run per run name (sweep parents excluded), and the run names whose
-    finished runs carry more than one config hash (the report uses the latest; say so)."""
-    df = _identity(tracking.search_runs(experiment))
-    if df.empty:
-        return df, []
-    if "tags.sweep" in df:
-        df = df[df["tags.sweep"] != "parent"]
-    mixed = []
-    if "tags.config_hash" in df:
-        n = df.groupby("tags.mlflow.runName")["tags.config_hash"].nunique()
-        mixed = sorted(n[n > 1].index)
-    return df.drop_duplicates("tags.mlflow.runName", keep="first").reset_index(drop=True), mixed
-
-
-def _identity(df: pd.DataFrame) -> pd.DataFrame:
-    """Runs keyed by their ``run_key`` tag (the stable name; issue 23), their MLflow run name kept as
-    ``tags.display_name``: the sections and summary.csv keys read ``tags.mlflow.runName`` as before.
-    Runs made before the tag keep their MLflow name as key."""
-    if df.empty or "tags.run_key" not in df:
-        return df
-    df = df.copy()
-    df["tags.display_name"] = df["tags.mlflow.runName"]
-    df["tags.mlflow.runName"] = df["tags.run_key"].where(df["tags.run_key"].notna(), df["tags.mlflow.runName"])
-    return df
-
-
-#: side studies inside an experiment, reported beside its claims but not in them (their own rows):
-#: experiment -> (column, value) of the side runs
-SIDE = {"b1_linear_motor": ("tags.regularizer", "none")}
-
-
-def split_side(experiment: str, runs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """(headline runs, side-study runs) of an experiment (:data:`SIDE`)."""
-    col, val = SIDE.get(experiment, (None, None))
-    if col is None or runs.empty or col not in runs:
-        return runs, runs.iloc[0:0]
-    side = runs[col].astype(object) == val
-    return runs[~side].reset_index(drop=True), runs[side].reset_index(drop=True)
 
 
 def _fmt_holds(v) -> str:
@@ -140,8 +103,6 @@ def run(ctx) -> dict:
 def _with_checks(text: str, results: Path) -> str:
     """REPORT.md with a section per reproduce-check (pipeline/perturbation.py) made against this very
     summary.csv (its sha256 in check-<check>.json); a check of another summary is named stale."""
-    import json
-    from pipeline.perturbation import EXPLAIN, summarise, summary_digest, table_lines
     digest = summary_digest(results / "summary.csv")
     out = []
     for check, title in (("perturb", "a second machine, emulated"), ("tighten", "tolerances tightened 10x")):
@@ -260,7 +221,6 @@ def _exports(experiment: str, runs: pd.DataFrame):
 def _ship(dest: Path, which: tuple[str, tuple[str, str], str]) -> None:
     """Copy the export packages of the runs of experiment ``which[0]`` whose param ``which[1][0]`` is
     ``which[1][1]`` into ``dest/<package>/`` (swapped in whole), with the CSVs of reference ``which[2]``."""
-    import mlflow
     runs, _ = latest_runs(which[0])
     col = "metrics.export/max_rel_diff"
     if runs.empty or col not in runs:
@@ -314,7 +274,6 @@ def _with_champions(text: str, champions: list) -> str:
 
 def _champion_or_warn(experiment: str):
     """:func:`champion`, or None with a warning when the registry refuses (the report is written anyway)."""
-    import mlflow
     try:
         return champion(experiment)
     except mlflow.exceptions.MlflowException as exc:
@@ -326,7 +285,6 @@ def champion(experiment: str) -> tuple[str, str] | None:
     """Register the experiment's chosen feedforward (issue 23): among its headline runs with a logged
     model, the lowest value of the first metric of its ``compare_metrics``; the model whose name holds
     the run's inversion (else its first). Alias ``champion``; the run's metrics as version tags."""
-    from pipeline import compare
     runs, _ = split_side(experiment, latest_runs(experiment)[0])
     models = tracking.logged_models(experiment)
     runs = runs[runs["run_id"].isin(models)] if not runs.empty else runs
@@ -351,7 +309,6 @@ def champion(experiment: str) -> tuple[str, str] | None:
 
 def compare_patterns(runs: pd.DataFrame) -> list[str]:
     """The experiment's ``compare_metrics`` as its runs logged them (a param), else every ``evaluate/*/mae``."""
-    import ast
     col = "params.compare_metrics"
     vals = runs[col].dropna() if col in runs else []
     for v in vals:
@@ -367,7 +324,6 @@ def compare_patterns(runs: pd.DataFrame) -> list[str]:
 def _comparison(experiment: str, runs: pd.DataFrame, figdir: Path):
     """summary rows (none) and a REPORT.md part: the sweep's runs side by side by the factors they vary,
     the sweep parents' ``compare/`` artifacts computed again from the runs reported here (issue 23)."""
-    from pipeline import compare
     if runs.empty or "tags.mlflow.parentRunId" not in runs or runs["tags.mlflow.parentRunId"].isna().all():
         return None
     swept = runs[runs["tags.mlflow.parentRunId"].notna()].copy()

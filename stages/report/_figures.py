@@ -11,6 +11,7 @@ from pathlib import Path
 os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
 
 import mlflow  # noqa: E402
+import numpy as np
 
 from pipeline import tracking  # noqa: E402
 
@@ -41,7 +42,6 @@ def copy_figures(run_id: str, figdir: Path, prefix: str, only: tuple[str, ...] =
 def load_errors(run_id: str) -> dict | None:
     """The run's ``evaluate/errors.npz`` (Ts, and ``<ref>/r``, ``<ref>/e``) as a dict of arrays, or
     None if the run has none (runs made before the evaluate stage logged it)."""
-    import numpy as np
     with tempfile.TemporaryDirectory() as tmp:
         try:
             local = mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path="evaluate/errors.npz",

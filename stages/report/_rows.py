@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import pandas as pd
 
+from pipeline.perturbation import FIT_METRIC
+
 
 def row(experiment, variant, metric, value, *, paper=None) -> dict:
     """One summary.csv row, without a verdict: the claim table (stages/report/claims.py, ``judge``)
@@ -20,6 +22,5 @@ def run_metrics(run: pd.Series) -> dict[str, float]:
 def fit_cost_row(experiment, variant, metrics: dict, key: str = "train/cost") -> list[dict]:
     """The ``fit_cost`` row of a trained model (its training cost; [] if the run has none): the
     reproduce checks (pipeline/perturbation.py) tell from it whether a fit landed elsewhere."""
-    from pipeline.perturbation import FIT_METRIC
     v = metrics.get(key)
     return [] if v is None else [row(experiment, variant, FIT_METRIC, v)]

@@ -2,12 +2,15 @@
 (claims B1b, B1c), SPEC §8, and the ``b1_noise_sweep`` noise study (issue 3)."""
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from stages.report import claims
+from pipeline.metrics import motion_phases
+from pipeline.plots import pyplot
+from stages.report import _runs, claims
 from stages.report._figures import copy_figures, load_errors
 from stages.report._rows import fit_cost_row, row, run_metrics
 
@@ -200,7 +203,6 @@ def side_section(experiment, runs, side, figdir):
     """Regularised vs not (issue 23): the headline runs (physics-L2 Λ, [B1] §VI) against the same jobs
     with ``regularizer=none``: MAE per reference and the PGNN's mass side by side, and the B1b
     conditions evaluated on the unregularised PGNNs (rows ``regularizer=none/...``, no claim)."""
-    import tempfile
     head = {(_variant(r)): run_metrics(r) for _, r in runs.iterrows()}
     free = {(_variant(r)): run_metrics(r) for _, r in side.iterrows()}
     with tempfile.TemporaryDirectory() as tmp:     # its figures are not shown: the headline's are
@@ -353,7 +355,6 @@ def _peak_diagnosis(table, rows, experiment, failing=("newton", "analytic"), m_t
 def _peak_lags(ids, ref: str = "v0.15") -> dict[str, float]:
     """{method: seconds from the end of the last acceleration phase before |e|'s peak to the peak}
     (0 when the peak is inside an acceleration phase), from the runs' evaluate/errors.npz."""
-    from pipeline.metrics import motion_phases
     out = {}
     for mt in METHODS:
         z = load_errors(ids[("equation", mt)]) if ("equation", mt) in ids else None
@@ -370,11 +371,8 @@ def _peak_lags(ids, ref: str = "v0.15") -> dict[str, float]:
 def _fig3(ids, path: Path, ref: str = "v0.15"):
     """[B1] Fig. 3: the tracking error of every method at 0.15 m/s in one plot, accelerating
     phases shaded (from each run's evaluate/errors.npz artifact)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
-    from pipeline.metrics import motion_phases
     sig = {mt: load_errors(ids[("equation", mt)]) for mt in METHODS if ("equation", mt) in ids}
     sig = {mt: z for mt, z in sig.items() if z is not None and f"{ref}/e" in z}
     if not sig:
@@ -397,9 +395,7 @@ def _fig3(ids, path: Path, ref: str = "v0.15"):
 
 
 def _mae_figure(table, noise, refs, path: Path):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     v = [float(r.lstrip("v")) for r in refs]
     fig, ax = plt.subplots(figsize=(5, 3.5))
     drawn = False
@@ -541,8 +537,7 @@ def _sweep_findings(table, sigmas, structures, m_true) -> list[str]:
 def _headline_check(table) -> list[str]:
     """This sweep at the headline's noise level against the b1_linear_motor headline runs (their
     noise level and restart count read from their params): how much the best-of-N training spreads."""
-    from stages.report import latest_runs, split_side  # late: stages.report imports this module
-    head, _ = split_side("b1_linear_motor", latest_runs("b1_linear_motor")[0])
+    head, _ = _runs.split_side("b1_linear_motor", _runs.latest_runs("b1_linear_motor")[0])
     if head.empty:
         return []
     out, rel, sig, nr = [], [], set(), set()
@@ -567,9 +562,7 @@ def _headline_check(table) -> list[str]:
 
 
 def _sweep_figure(table, sigmas, structures, refs, m_true, path: Path):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     if not table or not structures:
         return None
     x = np.arange(len(sigmas))

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.plots import pyplot
 from stages.report import claims
 from stages.report._figures import load_errors
 from stages.report._rows import fit_cost_row, row, run_metrics
@@ -216,7 +217,7 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
 
 def _integrator_table(E, pm: dict, rows: list) -> list[str]:
     """The one integrator against the continuous-time physics it discretises (RK4 sub-steps)."""
-    from pipeline.identify.continuous_replay import SUBSTEPS
+    from pipeline.identify.continuous_replay import SUBSTEPS  # lazy: saves 0.3 s of start-up (numba kernels)
     out = []
     for f in ("train", "test"):
         for label, pre, one in (("published", "published_model/", f"evaluate/{f}/published_model/data/force_rel_error"),
@@ -241,9 +242,7 @@ def _integrator_table(E, pm: dict, rows: list) -> list[str]:
 
 
 def _figure(phys, best, path: Path) -> bool:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     a, b = load_errors(phys["id"]), load_errors(best["id"])
     if a is None or b is None or "test/force_error" not in a or "test/force_error" not in b:
         return False

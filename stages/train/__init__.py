@@ -7,9 +7,12 @@ baseline is the model.
 from __future__ import annotations
 
 import math
-from pipeline.runner import implementation
 from typing import Any, Literal
-from pipeline.schema import schema, spec, is_number
+
+from omegaconf import OmegaConf
+
+from pipeline.runner import implementation
+from pipeline.schema import is_number, schema, spec
 
 
 @schema
@@ -60,7 +63,6 @@ def run(ctx) -> dict:
 def l2_lam(cfg):
     """Λ of the physics-L2 regulariser ([B1] (12), [B2] (16)): ``regularizer.lam``, a number or a
     list (diag Λ); regularizer=none has no λ: 0, no regularisation."""
-    from omegaconf import OmegaConf
     lam = cfg.regularizer.get("lam")
     if lam is None:
         return 0.0

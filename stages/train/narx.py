@@ -21,10 +21,11 @@ from __future__ import annotations
 import numpy as np
 from omegaconf import OmegaConf
 
+from pipeline.errors import ConfigError
 from pipeline.identify.narx import identify_pgnn
 from pipeline.models.pgnn import PGNN
 from pipeline.models.physics_maps import physics_features_for
-from pipeline.errors import ConfigError
+from pipeline.plots import pyplot
 from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
 from typing import Literal
 from pipeline.schema import schema, spec, ITER_MAX, COUNT_MAX
@@ -149,9 +150,7 @@ def fit(ctx) -> dict:
 
 
 def _loss_figure(fit_):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 3.5))
     for i, rr in enumerate(fit_.restarts):
         lw = 2.0 if i == fit_.best else 0.8

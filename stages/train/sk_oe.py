@@ -33,11 +33,12 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
+from pipeline.errors import ConfigError
 from pipeline.identify.orthogonal import interpretability, spread_over_inits
 from pipeline.identify.sk import output_error_lm, sk_restarts
 from pipeline.models.rational import RationalFeedforward, basis_coefficients, basis_matrix
 from pipeline.models.shared_ar import ReferenceWindow, SharedARPGNN, make_approximator
-from pipeline.errors import ConfigError
+from pipeline.plots import pyplot
 from pipeline.resources import job_cores
 from typing import Literal
 from pipeline.schema import schema, spec, ITER_MAX, COUNT_MAX
@@ -352,9 +353,7 @@ def _f_M(model, rs) -> list[np.ndarray]:
 def _sk_figure(results, best):
     """J_OE ([K] (7)) and the relative parameter change per SK iteration, every restart (open
     markers: the inner LM of that step stopped on its cap, not on its tolerance)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     fig, (ax, ax2) = plt.subplots(2, 1, figsize=(6.5, 5.5), sharex=True)
     for i, r in enumerate(results):
         j = np.array([it.j for it in r.iterates])
@@ -384,9 +383,7 @@ def _fig6(model, models, rs, fs, names, reg):
     """[K] Fig. 6: f̂, f = f_M + f_C, f_M, f_C of the kept restart on the training reference with
     the smallest velocity (Stribeck region); below, every restart's f_M minus their mean (the
     (non-)uniqueness of θ, SPEC §8 K2)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     j = int(np.argmin([np.max(np.abs(np.diff(r))) for r in rs]))
     t = np.arange(rs[j].size) * model.Ts
     with torch.no_grad():

@@ -244,9 +244,11 @@ class JobRun:
 
         from pipeline.export.law import Law  # lazy: saves 0.1 s of start-up (pipeline.export, export jobs only)
         from pipeline.export.package import (  # lazy: saves 0.1 s of start-up (pipeline.export, export jobs only)
-            read_column)
+            read_column,
+        )
         from pipeline.export.pyfunc import (  # lazy: saves 0.1 s of start-up (pipeline.export, export jobs only)
-            signature)
+            signature,
+        )
         law = Law.load(law_dir)
         r = read_column(example_csv)
         sig, example = signature(law, r if law.family == "table" else r[:200])

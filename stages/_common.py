@@ -43,7 +43,8 @@ def check_references(specs: list[dict], system, cfg=None) -> dict[str, np.ndarra
                 raise ConfigError(f"reference '{s['name']}' is of kind 'measured' (a recorded file): it needs "
                                   "data=measured with data.path pointing at the records")
             from stages.generate.measured import (  # lazy: saves 2.3 s of start-up (mlflow, via pipeline.runner)
-                reference)
+                reference,
+            )
             r = reference(cfg, s, system)["r"]
         else:
             r = build_reference(s, system.Ts)

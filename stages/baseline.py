@@ -16,8 +16,8 @@ import warnings
 
 import numpy as np
 
-from pipeline.identify.least_squares import fit_physics
 from pipeline.errors import ConfigError
+from pipeline.identify.least_squares import fit_physics
 
 UPSTREAM = ("generate",)
 DEPENDS = ("system",)

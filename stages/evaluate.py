@@ -117,7 +117,15 @@ def run(ctx) -> dict:
 # ------------------------------------------------------------------------------------------
 def _run_measured(ctx) -> dict:
     from pipeline.identify.measured_loop import (  # lazy: saves 1.0 s of start-up (numba kernels, measured systems)
-        CONVENTIONS, N_INIT, LoopModel, LoopSignals, benchmark_scores, loop_errors, simulate_loop, simulate_open_loop)
+        CONVENTIONS,
+        N_INIT,
+        LoopModel,
+        LoopSignals,
+        benchmark_scores,
+        loop_errors,
+        simulate_loop,
+        simulate_open_loop,
+    )
     from stages.generate.measured import reference  # lazy: saves 3.7 s of start-up (mlflow, via pipeline.runner)
     inv, system, cfg = ctx.inputs["invert"], ctx.system, ctx.cfg
     loop, ctrl = inv["loop"], system.ctrl
@@ -189,9 +197,13 @@ def _integrator_check(inv, system, sig, y, tau) -> dict[str, float]:
     the PGNN is a discrete-time model): the data-timing force error of the physics model (and of
     the published one) replayed with RK4 sub-steps (pipeline.identify.continuous_replay)."""
     from pipeline.identify.continuous_replay import (  # lazy: saves 0.8 s of start-up (numba kernels, measured systems)
-        SUBSTEPS, replay_rk4)
+        SUBSTEPS,
+        replay_rk4,
+    )
     from pipeline.identify.measured_loop import (  # lazy: saves 1.0 s of start-up (numba kernels, measured systems)
-        N_INIT, loop_errors)
+        N_INIT,
+        loop_errors,
+    )
     models = {"published_model/": system.published_theta()}
     if inv["loop"].n1 == 0:
         models[""] = inv["loop"].theta_phy

@@ -40,7 +40,7 @@ from pipeline.export.c_code import c_name
 from pipeline.export.guard import Guard, envelope_of
 from pipeline.export.misra import find_cppcheck
 from pipeline.export.package import check_prefix, find_compiler, reference_file_clash, write_package
-from pipeline.schema import COUNT_MAX, FORCE_MAX, FREQ_MAX, schema, spec
+from pipeline.params import COUNT_MAX, FORCE_MAX, FREQ_MAX, schema, spec
 from stages._common import reference_specs
 
 

@@ -162,3 +162,40 @@ def test_every_import_inside_a_function_says_why_it_is_lazy():
         why = line.split("# lazy: ", 1)[1]
         assert re.match(r"saves \d+\.\d+ s of start-up \(.+\)|would close the cycle \S+( -> \S+)+", why), \
             f"{f}:{n}: {line}"
+
+
+#: the numerical library: what a user scripts against without Hydra, OmegaConf or MLflow
+_LIBRARY = ("pipeline.systems", "pipeline.models", "pipeline.identify", "pipeline.invert", "pipeline.metrics",
+            "pipeline.metrics_bound", "pipeline.references", "pipeline.params")
+
+
+def _external(module: str) -> set[str]:
+    """Top-level names of the packages outside pipeline/ and stages/ a module imports (anywhere in it)."""
+    parts = module.split(".")
+    f = ROOT.joinpath(*parts).with_suffix(".py")
+    if not f.exists():
+        f = ROOT.joinpath(*parts, "__init__.py")
+    out = set()
+    for node in ast.walk(ast.parse(f.read_text())):
+        if isinstance(node, ast.Import):
+            out |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.add(node.module.split(".")[0])
+    return out - {"pipeline", "stages"}
+
+
+def test_the_numerical_library_imports_no_config_or_tracking_machinery():
+    """Issue 21 item 2: the library modules (plants with their parameter classes, models, identification,
+    inversion, metrics) reach neither Hydra, OmegaConf nor MLflow, also through the pipeline modules they
+    import: their parameter classes are written with pipeline.params, which imports none of them."""
+    graph = _graph()
+    lib = [m for m in graph if m.startswith(_LIBRARY)]
+    assert "pipeline.systems.linear_motor" in lib and "pipeline.models.pgnn" in lib
+    seen, todo = set(), list(lib)
+    while todo:
+        m = todo.pop()
+        if m not in seen:
+            seen.add(m)
+            todo += sorted(graph[m])
+    bad = {m: sorted(_external(m) & {"hydra", "omegaconf", "mlflow"}) for m in sorted(seen)}
+    assert {m: v for m, v in bad.items() if v} == {}

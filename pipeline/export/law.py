@@ -361,7 +361,8 @@ def _core(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if law.family in ("k_filter", "rigid_body"):
         if law.family == "k_filter":
             from pipeline.invert.rational_filter import (  # lazy: saves 3.4 s of start-up (torch, scipy.signal)
-                rational_feedforward)
+                rational_feedforward,
+            )
             u = rational_feedforward(_k_model(law), r).f
         else:
             physics, ctrl = _rigid_body(law)
@@ -379,8 +380,10 @@ def _core(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _pgnn_run(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(w, flags): the numba kernels' w(t) (Newton's per-sample flags; the other laws raise none here)."""
     from pipeline.invert.analytic import _run  # lazy: saves 2.8 s of start-up (torch, numba kernels)
-    from pipeline.invert.direct import (_direct_run,  # lazy: saves 2.5 s of start-up (torch, numba kernels)
-                                        initial_state)
+    from pipeline.invert.direct import (  # lazy: saves 2.5 s of start-up (torch, numba kernels)
+        _direct_run,
+        initial_state,
+    )
     from pipeline.invert.newton import _newton_run  # lazy: saves 3.6 s of start-up (torch, numba kernels)
     from pipeline.models.fast_pgnn import FastPGNN  # lazy: saves 3.1 s of start-up (torch, numba kernels)
     m = law.ints
@@ -420,8 +423,11 @@ def _k_model(law: Law):
     import torch  # lazy: saves 2.0 s of start-up (torch)
 
     from pipeline.models.rational import RationalFeedforward  # lazy: saves 2.6 s of start-up (torch, scipy.signal)
-    from pipeline.models.shared_ar import (MLP, ReferenceWindow,  # lazy: saves 3.8 s of start-up (torch, scipy.signal)
-                                           SharedARPGNN)
+    from pipeline.models.shared_ar import (  # lazy: saves 3.8 s of start-up (torch, scipy.signal)
+        MLP,
+        ReferenceWindow,
+        SharedARPGNN,
+    )
     i, a = law.ints, law.arrays
     basis, b = law.strings["basis"], a["b"]
     if not i["has_g"]:

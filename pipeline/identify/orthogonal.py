@@ -210,8 +210,10 @@ def interpretability(model, r, f_hat, theta_true=None, *, column_scale: bool = T
         (‖f_C‖/‖f_M‖), ``corr_M_C`` (Pearson correlation of f_M and f_C), ``theta``,
         and with ``theta_true`` the relative error per coefficient ``theta_rel_err``.
     """
-    from pipeline.models.rational import (Segments,  # lazy: saves 2.1 s of start-up (torch, scipy.signal)
-                                          filter_segments)
+    from pipeline.models.rational import (  # lazy: saves 2.1 s of start-up (torch, scipy.signal)
+        Segments,
+        filter_segments,
+    )
     r_cat, seg = Segments.concat(r, "reference")
     f_cat, seg_f = Segments.concat(f_hat, "optimal input")
     if seg_f != seg:

@@ -16,8 +16,15 @@ from typing import Callable
 import numpy as np
 
 # the loop's record kernels (the trajectory kept for the Jacobian at the same θ)
-from pipeline.models.closed_loop import (ArxPGNN, DiscreteController, LoopState, _cl_sens_theta, _cl_simulate_record,
-                                         _prep, simulate_closed_loop)
+from pipeline.models.closed_loop import (
+    ArxPGNN,
+    DiscreteController,
+    LoopState,
+    _cl_sens_theta,
+    _cl_simulate_record,
+    _prep,
+    simulate_closed_loop,
+)
 
 __all__ = ["SimErrorFit", "sim_error_criterion", "closed_loop_exogenous", "identify_sim_error"]
 
@@ -221,8 +228,11 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
     import torch  # lazy: saves 2.0 s of start-up (torch)
 
     from pipeline.identify.lm import levenberg_marquardt  # lazy: saves 2.2 s of start-up (torch)
-    from pipeline.identify.narx import (best_of_restarts, forward_regressor,  # lazy: saves 2.5 s of start-up (torch)
-                                        physics_least_squares)
+    from pipeline.identify.narx import (  # lazy: saves 2.5 s of start-up (torch)
+        best_of_restarts,
+        forward_regressor,
+        physics_least_squares,
+    )
 
     y = np.asarray(y, float)
     r = np.asarray(r, float)

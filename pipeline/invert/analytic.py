@@ -18,8 +18,15 @@ import numpy as np
 import torch
 
 from pipeline.invert.direct import initial_state, reference_regressor, resolve_fast
-from pipeline.models.fast_pgnn import (fast_build_phi, fast_nn_affine, fast_physics_affine, fast_physics_value,
-                                       fast_push_input, fast_push_reference, padded_reference)
+from pipeline.models.fast_pgnn import (
+    fast_build_phi,
+    fast_nn_affine,
+    fast_physics_affine,
+    fast_physics_value,
+    fast_push_input,
+    fast_push_reference,
+    padded_reference,
+)
 from pipeline.models.pgnn import PGNN
 
 __all__ = ["analytic_feedforward", "physics_feedforward", "analytic_step", "physics_step",

@@ -17,8 +17,16 @@ import numba
 import numpy as np
 import torch
 
-from pipeline.models.fast_pgnn import (FastPGNN, fast_build_phi, fast_pgnn, fast_predict, fast_push_input,
-                                       fast_push_reference, fast_state, padded_reference)
+from pipeline.models.fast_pgnn import (
+    FastPGNN,
+    fast_build_phi,
+    fast_pgnn,
+    fast_predict,
+    fast_push_input,
+    fast_push_reference,
+    fast_state,
+    padded_reference,
+)
 from pipeline.models.pgnn import PGNN
 
 __all__ = ["direct_feedforward", "direct_step", "reference_regressor", "resolve_fast",

@@ -25,8 +25,14 @@ from typing import Callable
 import numpy as np
 import scipy.linalg as sla
 
-from pipeline.models.closed_loop import (ArxPGNN, DiscreteController, LoopState, as_arx, jacobian_uff,
-                                         simulate_closed_loop)
+from pipeline.models.closed_loop import (
+    ArxPGNN,
+    DiscreteController,
+    LoopState,
+    as_arx,
+    jacobian_uff,
+    simulate_closed_loop,
+)
 
 __all__ = ["FHOFCResult", "ILResult", "difference_matrix", "fhofc", "fhofc_receding", "il_fhofc",
            "linear_ilc", "check_validity", "inverse_model_feedforward", "lemma_5_1_gap", "lemma_5_2_gap"]

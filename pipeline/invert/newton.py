@@ -29,8 +29,14 @@ import torch
 
 from pipeline.invert.analytic import analytic_solve
 from pipeline.invert.direct import initial_state, reference_regressor, resolve_fast
-from pipeline.models.fast_pgnn import (fast_build_phi, fast_nn_affine, fast_physics_affine, fast_push_input,
-                                       fast_push_reference, padded_reference)
+from pipeline.models.fast_pgnn import (
+    fast_build_phi,
+    fast_nn_affine,
+    fast_physics_affine,
+    fast_push_input,
+    fast_push_reference,
+    padded_reference,
+)
 from pipeline.models.pgnn import PGNN
 
 __all__ = ["NewtonResult", "newton_feedforward", "newton_step", "newton_solve",

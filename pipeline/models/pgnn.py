@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import llvmlite.binding as _llvm
 import numba
@@ -41,9 +42,7 @@ from scipy.linalg.blas import dsyrk as _dsyrk
 from torch import nn
 
 from pipeline.models.physics_maps import PhysicsFeatures
-from typing import Literal
-from pipeline.schema import schema, spec
-
+from pipeline.params import schema, spec
 
 _WIDTHS = "widths must be positive integers"
 

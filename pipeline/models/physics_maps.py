@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 from torch import nn
-from pipeline.schema import schema
 
+from pipeline.params import schema
 
 KIND = "physics"   # the model option (model.kind, or model=physics) this module's Params checks
 

@@ -24,13 +24,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from math import comb
+from typing import Literal
+
 import numpy as np
 import scipy.linalg
 import scipy.signal
 import torch
 from torch import nn
-from typing import Literal
-from pipeline.schema import schema, spec
+
+from pipeline.params import schema, spec
 
 
 @schema

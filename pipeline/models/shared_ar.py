@@ -12,7 +12,7 @@ that are stored in the model.  Defaults follow [K] VI-B: MLP 5-10-10-1, tanh, Gl
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Literal, Sequence
 
 import numba
 import numpy as np
@@ -21,9 +21,7 @@ from torch import nn
 
 from pipeline.models.pgnn import blas_syrk_lower
 from pipeline.models.rational import BASES, RationalFeedforward, Segments, basis_columns
-from typing import Literal
-from pipeline.schema import schema, spec
-
+from pipeline.params import schema, spec
 
 KIND = "pgnn_shared_ar"   # the model option (model.kind, or model=physics) this module's Params checks
 

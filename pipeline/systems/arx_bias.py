@@ -16,14 +16,14 @@ n_a = n_b = 4.  :func:`least_squares` (column-scaled linear LS) is shared by the
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import field
+from typing import Literal
 
 import numpy as np
 
 from pipeline.identify.least_squares import solve_scaled as least_squares
+from pipeline.params import schema, spec
 from pipeline.systems.base import PhysicsModel, SimResult, System, check_signal, lfilter
-from dataclasses import field
-from typing import Literal
-from pipeline.schema import schema, spec
 
 
 @schema

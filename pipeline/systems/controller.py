@@ -28,10 +28,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal, Optional
 
 import numpy as np
-from typing import Literal, Optional
-from pipeline.schema import schema, spec
+
+from pipeline.params import schema, spec
 
 
 @schema

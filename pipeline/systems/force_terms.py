@@ -24,11 +24,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 import numba
 import numpy as np
-from typing import Optional
-from pipeline.schema import schema, spec, LENGTH_MAX, SPEED_MAX
+
+from pipeline.params import LENGTH_MAX, SPEED_MAX, schema, spec
 
 
 def _terms_rule(v) -> str | None:

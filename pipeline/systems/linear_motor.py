@@ -34,18 +34,28 @@ if TYPE_CHECKING:   # annotations only; imported where used (start-up, issue 19)
     import control as ct
 
 import math
+from dataclasses import field
+from typing import Literal
 
 import numpy as np
 from numba import njit
 
 from pipeline.identify.least_squares import solve_scaled as least_squares
+from pipeline.params import (
+    DAMP_MAX,
+    FORCE_MAX,
+    FREQ_MAX,
+    LENGTH_MAX,
+    MASS_MAX,
+    NOISE_MAX,
+    SPEED_MAX,
+    TS_MAX,
+    schema,
+    spec,
+)
 from pipeline.systems._statespace import ss_step
 from pipeline.systems.arx_bias import _noise_options
 from pipeline.systems.base import PhysicsModel, SimResult, System, check_limits, check_signal, loop_signals
-from dataclasses import field
-from typing import Literal
-from pipeline.schema import (schema, spec, TS_MAX, MASS_MAX, DAMP_MAX,
-                             FORCE_MAX, LENGTH_MAX, SPEED_MAX, NOISE_MAX, FREQ_MAX)
 
 
 @schema

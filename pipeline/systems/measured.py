@@ -19,20 +19,20 @@ the known controller (``pipeline.identify.measured_loop``) and compares with the
 from __future__ import annotations
 
 import math
+from dataclasses import field
+from typing import Literal, Optional
 
 import numpy as np
 from scipy import signal
 
 from pipeline.identify.least_squares import solve_scaled
+from pipeline.params import DAMP_MAX, FORCE_MAX, FREQ_MAX, MASS_MAX, TS_MAX, schema, spec
 from pipeline.systems.base import System, check_signal
 from pipeline.systems.controller import LTIController
-from pipeline.systems.force_terms import ForceTerms
-from pipeline.systems.linear_motor import LinearMotorPhysics
-from dataclasses import field
-from typing import Literal, Optional
-from pipeline.schema import schema, spec, TS_MAX, MASS_MAX, DAMP_MAX, FORCE_MAX, FREQ_MAX
 from pipeline.systems.controller import Params as ControllerParams
+from pipeline.systems.force_terms import ForceTerms
 from pipeline.systems.force_terms import Params as ForceTermsParams
+from pipeline.systems.linear_motor import LinearMotorPhysics
 
 
 @schema

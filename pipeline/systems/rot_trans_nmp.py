@@ -36,7 +36,7 @@ from typing import Literal
 import numpy as np
 from numba import njit
 
-from pipeline.schema import (
+from pipeline.params import (
     DAMP_MAX,
     FORCE_MAX,
     FREQ_MAX,

@@ -32,13 +32,13 @@ if TYPE_CHECKING:   # annotations only; imported where used (start-up, issue 19)
     import control
 
 from collections.abc import Mapping
+from dataclasses import field
 
 import numpy as np
 from numba import njit
 
+from pipeline.params import DAMP_MAX, MASS_MAX, NOISE_MAX, STIFF_MAX, TS_MAX, schema, spec
 from pipeline.systems.base import PhysicsModel, SimResult, System, check_signal, lfilter
-from dataclasses import field
-from pipeline.schema import schema, spec, TS_MAX, MASS_MAX, STIFF_MAX, DAMP_MAX, NOISE_MAX
 
 
 @schema

@@ -6,14 +6,15 @@
 """
 from __future__ import annotations
 
+from dataclasses import field
+from typing import Any, Literal, Optional
+
 import numpy as np
 
 from pipeline.data import Dataset
 from pipeline.errors import ConfigError
+from pipeline.params import FORCE_MAX, references_rule, schema, spec
 from stages._common import check_references, reference_specs
-from dataclasses import field
-from typing import Any, Literal, Optional
-from pipeline.schema import schema, spec, FORCE_MAX, references_rule
 
 
 @schema

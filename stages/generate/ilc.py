@@ -7,18 +7,19 @@ trial) and drawn.
 """
 from __future__ import annotations
 
+from dataclasses import field
+from typing import Literal
+
 import numpy as np
 
 from pipeline import plots
 from pipeline.data import Dataset
-from pipeline.invert.ilc import make_update, norm_optimal_ilc, system_trial
 from pipeline.errors import ConfigError
+from pipeline.invert.ilc import make_update, norm_optimal_ilc, system_trial
+from pipeline.params import COUNT_MAX, NOISE_MAX, schema, spec
 from stages._common import check_references, reference_specs
-from stages.generate.closed_loop import check as check_closed_loop
-from dataclasses import field
-from typing import Literal
-from pipeline.schema import schema, spec, NOISE_MAX, COUNT_MAX
 from stages.generate.closed_loop import Params as ClosedLoopParams
+from stages.generate.closed_loop import check as check_closed_loop
 
 
 @schema

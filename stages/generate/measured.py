@@ -14,14 +14,14 @@ from __future__ import annotations
 import hashlib
 import warnings
 from pathlib import Path
+from typing import Literal, Optional
 
 import numpy as np
 from omegaconf import OmegaConf
 
 from pipeline import data
+from pipeline.params import schema, spec
 from pipeline.runner import ROOT, ConfigError
-from typing import Literal, Optional
-from pipeline.schema import schema, spec
 
 
 @schema

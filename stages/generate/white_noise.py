@@ -4,11 +4,12 @@ u ~ N(0, ``data.u_std``²) for ``data.n_samples`` samples, r = 0; the plant's no
 """
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 
 from pipeline.data import Dataset
-from typing import Literal
-from pipeline.schema import schema, spec, FORCE_MAX
+from pipeline.params import FORCE_MAX, schema, spec
 
 
 @schema

@@ -56,7 +56,8 @@ def loop_model(ctx):
     """The identified model of a measured system as a loop model: the trained PGNN (simulation
     error or a forward/invertible NARX PGNN) or, without one, the physics baseline."""
     from pipeline.identify.measured_loop import (  # lazy: saves 0.9 s of start-up (numba kernels, measured systems)
-        LoopModel)
+        LoopModel,
+    )
     train = ctx.inputs["train"]
     if train.get("loop") is not None:
         return train["loop"]

@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from pipeline.errors import ConfigError
 from pipeline.identify.narx import build_regression
 from pipeline.invert.direct import nyquist_fraction, per_sample_seconds
 from pipeline.models.fast_pgnn import fast_pgnn
-from pipeline.errors import ConfigError
 
 
 def check_structure(cfg, kind: str, allowed: tuple[str, ...]) -> None:

@@ -1,10 +1,11 @@
 """invert.kind=analytic: analytic inversion of the invertible PGNN, [B1] (26)-(27) (SPEC §6)."""
 from __future__ import annotations
 
-from pipeline.invert.analytic import analytic_feedforward, analytic_step
-from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
 from typing import Literal
-from pipeline.schema import schema
+
+from pipeline.invert.analytic import analytic_feedforward, analytic_step
+from pipeline.params import schema
+from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
 
 
 @schema

@@ -1,10 +1,11 @@
 """invert.kind=direct: the direct-inverse PGNN [B1] (13) evaluated on the reference (SPEC §6)."""
 from __future__ import annotations
 
-from pipeline.invert.direct import direct_feedforward, direct_step
-from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
 from typing import Literal
-from pipeline.schema import schema
+
+from pipeline.invert.direct import direct_feedforward, direct_step
+from pipeline.params import schema
+from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
 
 
 @schema

@@ -1,9 +1,10 @@
 """invert.kind=exact: the simulator's exact optimal input (only where the plant knows it)."""
+from typing import Literal
+
 import numpy as np
 
 from pipeline.errors import ConfigError
-from typing import Literal
-from pipeline.schema import schema
+from pipeline.params import schema
 
 
 @schema

@@ -15,15 +15,16 @@ stopped without converging.
 """
 from __future__ import annotations
 
-import numpy as np
-
-from pipeline.models.closed_loop import DiscreteController
-from pipeline.invert.fhofc import fhofc, fhofc_receding
-from pipeline.metrics_bound import bound_terms
-from pipeline.errors import ConfigError
 from dataclasses import field
 from typing import Literal, Optional
-from pipeline.schema import schema, spec, FORCE_MAX, ITER_MAX
+
+import numpy as np
+
+from pipeline.errors import ConfigError
+from pipeline.invert.fhofc import fhofc, fhofc_receding
+from pipeline.metrics_bound import bound_terms
+from pipeline.models.closed_loop import DiscreteController
+from pipeline.params import FORCE_MAX, ITER_MAX, schema, spec
 
 
 @schema

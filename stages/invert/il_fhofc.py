@@ -13,17 +13,18 @@ noise floor of B2c.  Returns the last trial's feedforward (the evaluate stage ru
 """
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 
 from pipeline.errors import ConfigError
 from pipeline.invert.fhofc import il_fhofc
 from pipeline.invert.ilc import norm_optimal_ilc, system_trial
 from pipeline.models.closed_loop import DiscreteController
+from pipeline.params import COUNT_MAX, schema, spec
 from pipeline.plots import pyplot
-from stages.invert.fhofc import check as check_fhofc
-from typing import Literal
-from pipeline.schema import schema, spec, COUNT_MAX
 from stages.invert.fhofc import Params as FhofcParams
+from stages.invert.fhofc import check as check_fhofc
 
 
 @schema

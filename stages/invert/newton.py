@@ -7,12 +7,12 @@ cleanly is counted (``invert/<ref>/newton_bounds|singular|diverged``), never sil
 from __future__ import annotations
 
 import math
-
-from pipeline.invert.newton import newton_feedforward, newton_step
-from pipeline.errors import ConfigError
-from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
 from typing import Literal, Optional
-from pipeline.schema import schema, spec, FORCE_MAX
+
+from pipeline.errors import ConfigError
+from pipeline.invert.newton import newton_feedforward, newton_step
+from pipeline.params import FORCE_MAX, schema, spec
+from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
 
 
 @schema

@@ -1,7 +1,9 @@
 """invert.kind=none: no feedforward (feedback only), the reference point for every method."""
-import numpy as np
 from typing import Literal
-from pipeline.schema import schema
+
+import numpy as np
+
+from pipeline.params import schema
 
 
 @schema

@@ -1,6 +1,7 @@
 """invert.kind=physics: the analytic inverse of the identified physics model (SPEC §6)."""
 from typing import Literal
-from pipeline.schema import schema
+
+from pipeline.params import schema
 
 
 @schema

@@ -7,14 +7,15 @@ plant's exact optimal input where known, else the feedforward itself).
 """
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 import torch
 
+from pipeline.errors import ConfigError
 from pipeline.identify.orthogonal import spread_over_inits
 from pipeline.invert.rational_filter import rational_feedforward
-from pipeline.errors import ConfigError
-from typing import Literal
-from pipeline.schema import schema
+from pipeline.params import schema
 
 
 @schema

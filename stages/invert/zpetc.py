@@ -1,10 +1,11 @@
 """invert.kind=zpetc: zero-phase-error tracking feedforward of the identified linear physics model,
 a stable approximate inverse for nonminimum-phase models (rot_trans_nmp, SPEC §2.3)."""
-from pipeline.errors import ConfigError
-from pipeline.systems.rot_trans_nmp import zpetc_feedforward
-from pipeline.systems.arx_bias import ARXPhysics
 from typing import Literal
-from pipeline.schema import schema
+
+from pipeline.errors import ConfigError
+from pipeline.params import schema
+from pipeline.systems.arx_bias import ARXPhysics
+from pipeline.systems.rot_trans_nmp import zpetc_feedforward
 
 
 @schema

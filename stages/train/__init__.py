@@ -11,8 +11,8 @@ from typing import Any, Literal
 
 from omegaconf import OmegaConf
 
+from pipeline.params import is_number, schema, spec
 from pipeline.runner import implementation
-from pipeline.schema import is_number, schema, spec
 
 
 @schema

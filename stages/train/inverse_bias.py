@@ -22,8 +22,8 @@ from pipeline.errors import ConfigError
 from pipeline.identify.narx import arx_inverse_asymptotics, forward_regressor, inverse_regressor, physics_least_squares
 from pipeline.models.pgnn import PGNN
 from pipeline.models.physics_maps import LinearFeatures
+from pipeline.params import COUNT_MAX, schema, spec
 from pipeline.plots import pyplot
-from pipeline.schema import COUNT_MAX, schema, spec
 
 
 @schema

@@ -18,6 +18,8 @@ physical parameters.
 """
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 from omegaconf import OmegaConf
 
@@ -25,10 +27,9 @@ from pipeline.errors import ConfigError
 from pipeline.identify.narx import identify_pgnn
 from pipeline.models.pgnn import PGNN
 from pipeline.models.physics_maps import physics_features_for
+from pipeline.params import COUNT_MAX, ITER_MAX, schema, spec
 from pipeline.plots import pyplot
 from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
-from typing import Literal
-from pipeline.schema import schema, spec, ITER_MAX, COUNT_MAX
 
 
 @schema

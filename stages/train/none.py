@@ -1,6 +1,7 @@
 """identify.kind=none: no training; downstream stages use the physics baseline."""
 from typing import Literal
-from pipeline.schema import schema
+
+from pipeline.params import schema
 
 
 @schema

@@ -32,8 +32,8 @@ from pipeline.identify.sim_error import closed_loop_exogenous, identify_sim_erro
 from pipeline.models.closed_loop import DiscreteController
 from pipeline.models.pgnn import PGNN
 from pipeline.models.physics_maps import LinearFeatures
+from pipeline.params import COUNT_MAX, ITER_MAX, schema, spec
 from pipeline.plots import pyplot
-from pipeline.schema import COUNT_MAX, ITER_MAX, schema, spec
 from pipeline.systems.arx_bias import ARXPhysics
 from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
 from stages.train.narx import build_model as build_narx_model

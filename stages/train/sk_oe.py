@@ -28,6 +28,7 @@ inner LM stopped on its cap); f̂, f, f_M, f_C (as [K] Fig. 6) with every restar
 from __future__ import annotations
 
 import time
+from typing import Literal
 
 import numpy as np
 import torch
@@ -38,10 +39,9 @@ from pipeline.identify.orthogonal import interpretability, spread_over_inits
 from pipeline.identify.sk import output_error_lm, sk_restarts
 from pipeline.models.rational import RationalFeedforward, basis_coefficients, basis_matrix
 from pipeline.models.shared_ar import ReferenceWindow, SharedARPGNN, make_approximator
+from pipeline.params import COUNT_MAX, ITER_MAX, schema, spec
 from pipeline.plots import pyplot
 from pipeline.resources import job_cores
-from typing import Literal
-from pipeline.schema import schema, spec, ITER_MAX, COUNT_MAX
 
 
 # Stops on convergence, not on a cap (issue 11, SPEC §8 K3): the outer loop stops when a step's relative

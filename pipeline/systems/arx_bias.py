@@ -224,8 +224,8 @@ class ArxBias(System):
 
     name = "arx_bias"
 
-    def __init__(self, a=(1.5, -0.7), b=(1.0, 0.5), noise=None, u_std: float = 1.0,
-                 Ts: float = 1.0, name: str = "arx_bias"):
+    def __init__(self, a=(1.5, -0.7), b=(1.0, 0.5), noise=None, u_std: float = Params.u_std,
+                 Ts: float = Params.Ts, name: str = Params.name):
         self.a = np.asarray(a, dtype=np.float64).reshape(-1)
         self.b = np.asarray(b, dtype=np.float64).reshape(-1)
         if self.b.size < 1 or not (np.all(np.isfinite(self.a)) and np.all(np.isfinite(self.b))):

@@ -445,12 +445,13 @@ class LinearMotor(System):
 
     name = "linear_motor"
 
-    def __init__(self, Ts: float = 1e-3, m: float = 20.0, f_v: float = 50.0, f_c: float = 10.0,
-                 f_s: float = 15.0, v_s: float = 0.01, eps_v: float = 1e-3, p: float = 0.025,
-                 A1: float = 5.0, A2: float = 2.0, phi1: float = 0.3, phi2: float = 1.1,
-                 cogging: bool = True, friction: str = "stribeck", noise=None,
-                 substeps: int = 20, crossover_hz: float = 20.0, physics_input: str = "auto",
-                 stroke: float = 0.2, v_limit: float = 0.5, name: str = "linear_motor"):
+    def __init__(self, Ts: float = Params.Ts, m: float = Params.m, f_v: float = Params.f_v, f_c: float = Params.f_c,
+                 f_s: float = Params.f_s, v_s: float = Params.v_s, eps_v: float = Params.eps_v, p: float = Params.p,
+                 A1: float = Params.A1, A2: float = Params.A2, phi1: float = Params.phi1, phi2: float = Params.phi2,
+                 cogging: bool = Params.cogging, friction: str = Params.friction, noise=None,
+                 substeps: int = Params.substeps, crossover_hz: float = Params.crossover_hz,
+                 physics_input: str = Params.physics_input,
+                 stroke: float = Params.stroke, v_limit: float = Params.v_limit, name: str = Params.name):
         vals = dict(Ts=Ts, m=m, v_s=v_s, eps_v=eps_v, p=p, crossover_hz=crossover_hz,
                     stroke=stroke, v_limit=v_limit)
         for k, x in vals.items():

@@ -330,9 +330,10 @@ class Recording(System):
 
     measured = True
 
-    def __init__(self, name: str = "measured", Ts: float = 1e-3, controller: dict | None = None,
-                 physics_input: str = "averaged", force_terms: dict | None = None, disturbance: str | None = None,
-                 published: dict | None = None, idim: dict | None = None):
+    def __init__(self, name: str = Params.name, Ts: float = Params.Ts, controller: dict | None = None,
+                 physics_input: str = Params.physics_input, force_terms: dict | None = None,
+                 disturbance: str | None = Params.disturbance,
+                 published: dict | None = Params.published, idim: dict | None = None):
         if not (isinstance(Ts, (int, float)) and math.isfinite(Ts) and Ts > 0):
             raise ValueError(f"Ts={Ts!r} must be a positive sample time in s")
         if physics_input not in ("averaged", "direct"):

@@ -228,12 +228,12 @@ class RotTransNMP(System):
 
     name = "rot_trans_nmp"
 
-    def __init__(self, Ts: float = 0.01, m: float = 20.0, l_x: float = 1.0, l_y: float = 1.0,
-                 J: float = 40.0 / 3.0, f_v: float = 50.0, k: float = 25e3 / 3.0,
-                 d: float = 575.0 / 3.0, l_m: float = 0.05, c: float = 1.0,
-                 controller_gain: float = 5e3, controller_zero: float = 4.0 * math.pi,
-                 controller_pole: float = 20.0 * math.pi, noise=None, substeps: int = 20,
-                 r_limit: float = 0.5, v_limit: float = 1.0, name: str = "rot_trans_nmp"):
+    def __init__(self, Ts: float = Params.Ts, m: float = Params.m, l_x: float = Params.l_x, l_y: float = Params.l_y,
+                 J: float = 40.0 / 3.0, f_v: float = Params.f_v, k: float = 25e3 / 3.0,
+                 d: float = 575.0 / 3.0, l_m: float = Params.l_m, c: float = Params.c,
+                 controller_gain: float = Params.controller_gain, controller_zero: float = 4.0 * math.pi,
+                 controller_pole: float = 20.0 * math.pi, noise=None, substeps: int = Params.substeps,
+                 r_limit: float = Params.r_limit, v_limit: float = Params.v_limit, name: str = Params.name):
         import control as ct  # lazy: saves 1.9 s of start-up (python-control)
         for key, x in dict(Ts=Ts, m=m, l_x=l_x, J=J, l_m=l_m, r_limit=r_limit,
                            v_limit=v_limit).items():

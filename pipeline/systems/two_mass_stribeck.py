@@ -328,9 +328,9 @@ class TwoMassStribeck(System):
 
     name = "two_mass_stribeck"
 
-    def __init__(self, m1: float = 1.0, m2: float = 2.0, k1: float = 1.0, k2: float = 15000.0,
-                 d2: float = 50.0, c1: float = 1.0, c2: float = 20.0, alpha: float = 20.0,
-                 Ts: float = 1e-3, noise: Mapping | None = None, name: str | None = None):
+    def __init__(self, m1: float = Params.m1, m2: float = Params.m2, k1: float = Params.k1, k2: float = Params.k2,
+                 d2: float = Params.d2, c1: float = Params.c1, c2: float = Params.c2, alpha: float = Params.alpha,
+                 Ts: float = Params.Ts, noise: Mapping | None = None, name: str | None = None):
         for key, val in dict(m1=m1, m2=m2, k2=k2, Ts=Ts).items():
             if not float(val) > 0:
                 raise ValueError(f"two_mass_stribeck: {key} must be > 0, got {val}")

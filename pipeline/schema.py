@@ -39,7 +39,10 @@ conf/<group>/<kind>.yaml (tests/test_config_schema.py checks that every implemen
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import importlib
+import json
+import os
 import math
 import typing
 from dataclasses import MISSING, field
@@ -313,10 +316,18 @@ def register(conf: Path | None = None) -> None:
     level's as ``_params_config``. Call before composing (pipeline/__main__.py, tests/conftest.py)."""
     conf = Path(conf or _ROOT / "conf")
     store = ConfigStore.instance()
+    nodes = _cached_defaults(conf)
+    for name, node in nodes.items():
+        group, _, stem = name.rpartition("/")
+        store.store(group=group or None, name=stem, node=node)
+
+
+def _all_defaults(conf: Path) -> dict[str, dict]:
+    """{store name: node} of :func:`register` (imports every option's module)."""
     top = {k: v for k, v in defaults(Config).items() if k not in CHOOSER and k != "evaluate"}
     for key in OWNED:
         top[key] = defaults(owned_class(key))
-    store.store(name="_params_config", node=top)
+    out = {"_params_config": top}
     for group in (*CHOOSER, "evaluate"):
         for path in sorted((conf / group).glob("*.yaml")):
             node = {}
@@ -325,7 +336,35 @@ def register(conf: Path | None = None) -> None:
                 node = defaults(cls)
             except ConfigError:   # an option without a class: schema.check names the choices
                 pass
-            store.store(group=f"_params/{group}", name=path.stem, node=node)
+            out[f"_params/{group}/{path.stem}"] = node
+    return out
+
+
+def _cached_defaults(conf: Path) -> dict[str, dict]:
+    """:func:`_all_defaults`, kept in ``<cache>/params/defaults-<hash>.json`` under the SHA-256 of every
+    source and config file it depends on (pipeline/, stages/, conf/): importing every option's module
+    (torch, numba, python-control) costs ~3.7 s of start-up per process, reading the file ~10 ms. Any
+    edit of those files gives a new hash, so the defaults are recomputed (a lazy start-up saving, not a
+    second statement of the defaults); an unwritable cache only loses the saving."""
+    h = hashlib.sha256()
+    for base, pattern in ((_ROOT / "pipeline", "*.py"), (_ROOT / "stages", "*.py"), (conf, "*.yaml")):
+        for f in sorted(base.rglob(pattern)):
+            h.update(str(f.relative_to(base.parent)).encode() + b"\0" + f.read_bytes())
+    cache = Path(os.environ.get("PIPELINE_CACHE") or _ROOT / ".cache")
+    where = cache / "params" / f"defaults-{h.hexdigest()[:20]}.json"
+    try:
+        return json.loads(where.read_text())
+    except (OSError, ValueError):
+        pass
+    nodes = _all_defaults(conf)
+    try:
+        where.parent.mkdir(parents=True, exist_ok=True)
+        tmp = where.with_name(f".{where.name}.{os.getpid()}")
+        tmp.write_text(json.dumps(nodes))
+        os.replace(tmp, where)
+    except OSError:
+        pass
+    return nodes
 
 
 # ------------------------------------------------------------------------------------------------

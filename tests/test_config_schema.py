@@ -300,3 +300,28 @@ def test_the_schema_sets_every_key_left_out_to_its_default(cfg_of):
     assert cfg.evaluate.validation_tail == 0.2 and cfg.report["update"] is False
     assert cfg.evaluate.convention == "published"
     assert schema.check(cfg) == []                      # nothing left out the second time
+
+
+def test_registered_defaults_are_kept_by_content_hash(tmp_path, monkeypatch):
+    """schema.register's defaults of every option are computed once per content of pipeline/, stages/ and
+    conf/ (importing every option module costs seconds of start-up), read back equal, and recomputed
+    when a config file changes."""
+    import json
+    import shutil
+    from pipeline import schema
+    monkeypatch.setenv("PIPELINE_CACHE", str(tmp_path / "cache"))
+    conf = ROOT / "conf"
+    first = schema._cached_defaults(conf)
+    assert first == json.loads(json.dumps(schema._all_defaults(conf)))
+    assert first["_params/identify/narx"]["patience"] >= 1 and "_params_config" in first
+    assert len(list((tmp_path / "cache" / "params").glob("defaults-*.json"))) == 1
+
+    def no_import(_conf):
+        raise AssertionError("recomputed")
+    monkeypatch.setattr(schema, "_all_defaults", no_import)
+    assert schema._cached_defaults(conf) == first            # read back, no module imported
+    other = tmp_path / "conf"
+    shutil.copytree(conf, other)
+    (other / "identify" / "narx.yaml").write_text((other / "identify" / "narx.yaml").read_text() + "\n# edited\n")
+    with pytest.raises(AssertionError, match="recomputed"):
+        schema._cached_defaults(other)

@@ -103,6 +103,13 @@ def implementation(stage: str, kind: str):
     return importlib.import_module(f"stages.{stage}.{kind}")
 
 
+def exportable() -> list[str]:
+    """The invert options the exporter ships: those whose stages/invert/<kind>.py declares ``export_laws``."""
+    folder = Path(importlib.import_module("stages.invert").__file__).parent
+    return [k for k in sorted(p.stem for p in folder.glob("*.py") if not p.stem.startswith("_"))
+            if hasattr(implementation("invert", k), "export_laws")]
+
+
 @dataclass
 class StageContext:
     """What a stage sees: config, upstream results, seeded randomness, and recorders."""

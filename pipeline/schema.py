@@ -197,6 +197,8 @@ STAGE = {"data": "generate", "identify": "train", "invert": "invert"}
 #: top-level nodes a stage owns: their class is that stage module's ``Params``
 OWNED = {"export": "stages.export"}
 _ROOT = Path(__file__).resolve().parent.parent
+#: where :func:`register` keeps the options' defaults per content hash (beside this package's bytecode)
+DEFAULTS_CACHE = Path(__file__).resolve().parent / "__pycache__"
 
 
 def owned_class(key: str) -> type:
@@ -341,17 +343,17 @@ def _all_defaults(conf: Path) -> dict[str, dict]:
 
 
 def _cached_defaults(conf: Path) -> dict[str, dict]:
-    """:func:`_all_defaults`, kept in ``<cache>/params/defaults-<hash>.json`` under the SHA-256 of every
+    """:func:`_all_defaults`, kept beside the bytecode (:data:`DEFAULTS_CACHE`) under the SHA-256 of every
     source and config file it depends on (pipeline/, stages/, conf/): importing every option's module
     (torch, numba, python-control) costs ~3.7 s of start-up per process, reading the file ~10 ms. Any
-    edit of those files gives a new hash, so the defaults are recomputed (a lazy start-up saving, not a
-    second statement of the defaults); an unwritable cache only loses the saving."""
+    edit of those files gives a new hash, so the defaults are recomputed (a compiled form of the code,
+    like a .pyc, not a second statement of the defaults; never in a run's cache or results); an
+    unwritable folder only loses the saving."""
     h = hashlib.sha256()
     for base, pattern in ((_ROOT / "pipeline", "*.py"), (_ROOT / "stages", "*.py"), (conf, "*.yaml")):
         for f in sorted(base.rglob(pattern)):
             h.update(str(f.relative_to(base.parent)).encode() + b"\0" + f.read_bytes())
-    cache = Path(os.environ.get("PIPELINE_CACHE") or _ROOT / ".cache")
-    where = cache / "params" / f"defaults-{h.hexdigest()[:20]}.json"
+    where = DEFAULTS_CACHE / f"params-defaults-{h.hexdigest()[:20]}.json"
     try:
         return json.loads(where.read_text())
     except (OSError, ValueError):

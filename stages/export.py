@@ -41,6 +41,7 @@ from pipeline.export.guard import Guard, envelope_of
 from pipeline.export.misra import find_cppcheck
 from pipeline.export.package import check_prefix, find_compiler, reference_file_clash, write_package
 from pipeline.params import COUNT_MAX, FORCE_MAX, FREQ_MAX, schema, spec
+from pipeline.runner import exportable, implementation
 from stages._common import reference_specs
 
 
@@ -99,27 +100,16 @@ VERSION = 3      # 3: the guard (limits, envelope, flags, fallback), vectors, RE
 
 def validate(cfg, system) -> None:
     kind = str(cfg.invert.kind)
-    if kind not in laws.LAWS:
+    impl = implementation("invert", kind)
+    if not hasattr(impl, "export_laws"):
         raise ConfigError(f"export: invert.kind={kind} has no feedforward law to ship; export covers "
-                          f"invert.kind in {list(laws.LAWS)} (drop 'export' from stages)")
-    if system is not None and system.measured:
-        if kind != "physics":
-            raise ConfigError(f"export: on a measured system the exporter ships invert.kind=physics (the inverse "
-                              f"rigid-body force minus the controller's force on the reference); invert.kind={kind} "
-                              "is not exported for a measured system: use invert=physics or drop 'export' from stages")
-    elif kind == "physics" and getattr(getattr(system, "physics", None), "physics_law", None) != "linear_motor":
-        raise ConfigError(f"export: the physics feedforward (8) is exported for the linear motor only, not "
-                          f"for system '{system.name}'; drop 'export' from stages")
-    m = cfg.model
-    if kind in ("direct", "analytic", "newton"):
-        hidden = list(m.get("hidden") or [])
-        if len(hidden) > 1 or (hidden and str(m.get("activation")) != "tanh"):
-            raise ConfigError(f"export: invert.kind={kind} is exported for a PGNN with no NN or one tanh hidden "
-                              f"layer; got model.hidden={hidden}, model.activation={m.get('activation')}: use "
-                              "e.g. model.hidden=[16] model.activation=tanh, or drop 'export' from stages")
-    if kind == "rational_filter" and str(m.get("kind")) == "pgnn_shared_ar" and str(m.get("approximator")) != "mlp":
-        raise ConfigError(f"export: the [K] PGNN is exported with the MLP approximator (model.approximator=mlp), "
-                          f"got {m.get('approximator')!r}")
+                          f"invert.kind in {exportable()} (drop 'export' from stages)")
+    if system is not None and system.measured and not getattr(impl, "EXPORTS_MEASURED", False):
+        raise ConfigError(f"export: on a measured system the exporter ships invert.kind=physics (the inverse "
+                          f"rigid-body force minus the controller's force on the reference); invert.kind={kind} "
+                          "is not exported for a measured system: use invert=physics or drop 'export' from stages")
+    if hasattr(impl, "export_check"):
+        impl.export_check(cfg, system)
     clash = reference_file_clash(s["name"] for s in reference_specs(OmegaConf.select(cfg, "evaluate.references")))
     if clash:
         raise ConfigError(f"export: evaluate.{clash}")
@@ -186,39 +176,45 @@ def guard_of(ctx) -> dict:
 
 
 def build_laws(ctx) -> dict[str, tuple["laws.Law", list[str]]]:
-    """{package name: (law, the evaluation references it is verified on)}: every reference, or for
-    FHOFC / IL-FHOFC one table package per reference."""
-    cfg, train = ctx.cfg, ctx.inputs["train"]
-    every = list(ctx.inputs["invert"]["r"])
-    kind, Ts = str(cfg.invert.kind), float(ctx.system.Ts)
-    if kind == "physics" and ctx.system.measured:   # minus the controller's force on y = r
-        try:
-            law = laws.from_measured_physics(ctx.system.physics, ctx.inputs["baseline"]["theta"], ctx.system.ctrl)
-        except laws.ExportError as exc:
-            raise ConfigError(f"export: {exc}") from exc
-        return {"ff_physics": (law, every)}
-    if kind == "physics":
-        return {"ff_physics": (laws.from_linear_motor_physics(ctx.system.physics, ctx.inputs["baseline"]["theta"]),
-                               every)}
-    if kind in ("direct", "analytic", "newton"):
-        model = train.get("model")
-        if model is None:
-            raise ConfigError(f"export: invert.kind={kind} needs a trained PGNN; the train stage has none")
-        averaged = bool(train.get("model_input")) and bool(getattr(ctx.system.physics, "averaged_input", False))
-        kw = {}
-        if kind == "newton":
-            lo, hi = cfg.invert.get("u_min"), cfg.invert.get("u_max")
-            kw = {"k": int(cfg.invert.k), "u_bounds": (-math.inf if lo is None else float(lo),
-                                                       math.inf if hi is None else float(hi))}
-        try:
-            return {f"ff_{kind}": (laws.from_pgnn(model, kind, Ts, averaged=averaged, **kw), every)}
-        except laws.ExportError as exc:
-            raise ConfigError(f"export: {exc}") from exc
-    if kind == "rational_filter":
-        model = train["model"]
-        return {f"ff_{'pgnn_shared_ar' if hasattr(model, 'g') else 'rational'}": (laws.from_k_filter(model), every)}
+    """{package name: (law, the evaluation references it is verified on)}: the invert option's own
+    ``export_laws(ctx)`` (stages/invert/<kind>.py), a law builder's ExportError as one config line."""
+    try:
+        return implementation("invert", str(ctx.cfg.invert.kind)).export_laws(ctx)
+    except laws.ExportError as exc:
+        raise ConfigError(f"export: {exc}") from exc
+
+
+# ---- the shared parts of the invert options' ``export_laws`` / ``export_check``
+def every_reference(ctx) -> list[str]:
+    return list(ctx.inputs["invert"]["r"])
+
+
+def pgnn_check(cfg, kind: str) -> None:
+    """A [B1] PGNN law is exported with no NN or one tanh hidden layer."""
+    m = cfg.model
+    hidden = list(m.get("hidden") or [])
+    if len(hidden) > 1 or (hidden and str(m.get("activation")) != "tanh"):
+        raise ConfigError(f"export: invert.kind={kind} is exported for a PGNN with no NN or one tanh hidden "
+                          f"layer; got model.hidden={hidden}, model.activation={m.get('activation')}: use "
+                          "e.g. model.hidden=[16] model.activation=tanh, or drop 'export' from stages")
+
+
+def pgnn_laws(ctx, kind: str, **kw) -> dict:
+    """The [B1] inversion ``kind`` of the trained PGNN, verified on every reference."""
+    train = ctx.inputs["train"]
+    model = train.get("model")
+    if model is None:
+        raise ConfigError(f"export: invert.kind={kind} needs a trained PGNN; the train stage has none")
+    averaged = bool(train.get("model_input")) and bool(getattr(ctx.system.physics, "averaged_input", False))
+    return {f"ff_{kind}": (laws.from_pgnn(model, kind, float(ctx.system.Ts), averaged=averaged, **kw),
+                           every_reference(ctx))}
+
+
+def table_laws(ctx, kind: str) -> dict:
+    """One table package per reference: a signal optimised offline for that reference (FHOFC, IL-FHOFC)."""
     inv = ctx.inputs["invert"]
-    return {f"ff_{kind}_{ref}": (laws.from_table(kind, Ts, r, inv["u_ff"][ref]), [ref]) for ref, r in inv["r"].items()}
+    return {f"ff_{kind}_{ref}": (laws.from_table(kind, float(ctx.system.Ts), r, inv["u_ff"][ref]), [ref])
+            for ref, r in inv["r"].items()}
 
 
 def run(ctx) -> dict:

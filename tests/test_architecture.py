@@ -199,3 +199,18 @@ def test_the_numerical_library_imports_no_config_or_tracking_machinery():
             todo += sorted(graph[m])
     bad = {m: sorted(_external(m) & {"hydra", "omegaconf", "mlflow"}) for m in sorted(seen)}
     assert {m: v for m, v in bad.items() if v} == {}
+
+
+def test_the_export_stage_asks_the_invert_option_not_its_name():
+    """Issue 21 item 3: stages/export.py ships whatever law the invert option's module declares
+    (``export_laws``, ``export_check``, ``EXPORTS_MEASURED``); it compares the kind with no option name,
+    so an exportable inversion is added in its own module (README: Architecture)."""
+    tree = ast.parse((ROOT / "stages" / "export.py").read_text())
+    kinds = {p.stem for p in (ROOT / "stages" / "invert").glob("*.py") if not p.stem.startswith("_")}
+    named = sorted({ast.unparse(c) for c in ast.walk(tree) if isinstance(c, ast.Compare) and "kind" in ast.unparse(c)
+                    and any(isinstance(n, ast.Constant) and n.value in kinds for n in ast.walk(c))})
+    assert "physics" in kinds and named == []
+    assert [ast.unparse(c) for c in ast.walk(ast.parse("if kind in ('direct', 'newton'): pass"))
+            if isinstance(c, ast.Compare)] == ["kind in ('direct', 'newton')"]    # the walk sees such a test
+    declared = [k for k in sorted(kinds) if "def export_laws" in (ROOT / "stages" / "invert" / f"{k}.py").read_text()]
+    assert len(declared) >= 7

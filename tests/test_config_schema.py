@@ -309,12 +309,12 @@ def test_registered_defaults_are_kept_by_content_hash(tmp_path, monkeypatch):
     import json
     import shutil
     from pipeline import schema
-    monkeypatch.setenv("PIPELINE_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(schema, "DEFAULTS_CACHE", tmp_path / "cache")
     conf = ROOT / "conf"
     first = schema._cached_defaults(conf)
     assert first == json.loads(json.dumps(schema._all_defaults(conf)))
     assert first["_params/identify/narx"]["patience"] >= 1 and "_params_config" in first
-    assert len(list((tmp_path / "cache" / "params").glob("defaults-*.json"))) == 1
+    assert len(list((tmp_path / "cache").glob("params-defaults-*.json"))) == 1
 
     def no_import(_conf):
         raise AssertionError("recomputed")

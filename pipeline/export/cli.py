@@ -25,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline import owned, runner, schema, tracking
 from pipeline.cache import UntrustedCache, _read_signed, cache_dir
-from pipeline.export.law import LAWS, ExportError
+from pipeline.export.law import ExportError
 from pipeline.export.package import replace_dir
 from pipeline.runner import ORDER, ConfigError
 
@@ -76,9 +76,9 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
         raise ConfigError(f"run {run_id}'s config artifact {run_id}.yaml is not a mapping: the run was altered or "
                           "not made by this pipeline")
     kind = str(OmegaConf.select(cfg, "invert.kind", default=""))
-    if kind not in LAWS:
+    if kind not in runner.exportable():
         raise ConfigError(f"run {run_id} has invert.kind={kind!r}, which has no feedforward law to ship; "
-                          f"export covers {list(LAWS)}")
+                          f"export covers {runner.exportable()}")
     default = OmegaConf.create(schema.defaults(schema.owned_class("export")))   # stages/export.py Params
     if "export" not in cfg:   # a run made before the export stage existed
         cfg.export = default

@@ -5,6 +5,7 @@ from typing import Literal
 
 from pipeline.invert.analytic import analytic_feedforward, analytic_step
 from pipeline.params import schema
+from stages.export import pgnn_check, pgnn_laws
 from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
 
 
@@ -29,3 +30,12 @@ def feedforward(ctx, name, r):
     log_common(ctx, name, model, r, u, analytic_step)
     log_diagnostics(ctx, name, model, r)
     return u
+
+
+# ---- export (stages/export.py asks this module)
+def export_check(cfg, system) -> None:
+    pgnn_check(cfg, "analytic")
+
+
+def export_laws(ctx) -> dict:
+    return pgnn_laws(ctx, "analytic")

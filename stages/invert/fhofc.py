@@ -25,6 +25,7 @@ from pipeline.invert.fhofc import fhofc, fhofc_receding
 from pipeline.metrics_bound import bound_terms
 from pipeline.models.closed_loop import DiscreteController
 from pipeline.params import FORCE_MAX, ITER_MAX, schema, spec
+from stages.export import table_laws
 
 
 @schema
@@ -125,3 +126,8 @@ def feedforward(ctx, name, r):
     sim = ctx.system.simulate(r, u_ff=res.u_ff, v=evaluation_noise(ctx, name, r.size))
     log_bound(ctx, f"{name}/bound", r, sim.y, res.y_hat)
     return res.u_ff
+
+
+# ---- export (stages/export.py asks this module): one table per reference, optimised offline for it
+def export_laws(ctx) -> dict:
+    return table_laws(ctx, "fhofc")

@@ -23,6 +23,7 @@ from pipeline.invert.ilc import norm_optimal_ilc, system_trial
 from pipeline.models.closed_loop import DiscreteController
 from pipeline.params import COUNT_MAX, schema, spec
 from pipeline.plots import pyplot
+from stages.export import table_laws
 from stages.invert.fhofc import Params as FhofcParams
 from stages.invert.fhofc import check as check_fhofc
 
@@ -111,3 +112,8 @@ def _figure(e_rms, name):
     ax.set_title(f"IL-FHOFC on '{name}' ([B2] (22))", fontsize=9)
     ax.grid(True, which="both", lw=0.3)
     return fig
+
+
+# ---- export (stages/export.py asks this module): one table per reference, optimised offline for it
+def export_laws(ctx) -> dict:
+    return table_laws(ctx, "il_fhofc")

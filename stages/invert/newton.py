@@ -12,6 +12,7 @@ from typing import Literal, Optional
 from pipeline.errors import ConfigError
 from pipeline.invert.newton import newton_feedforward, newton_step
 from pipeline.params import FORCE_MAX, schema, spec
+from stages.export import pgnn_check, pgnn_laws
 from stages.invert._pgnn import applied, check_structure, log_common, log_diagnostics, trained
 
 
@@ -68,3 +69,12 @@ def feedforward(ctx, name, r):
     log_common(ctx, name, model, r, u, newton_step, k, lo, hi)
     log_diagnostics(ctx, name, model, r)
     return u
+
+
+# ---- export (stages/export.py asks this module)
+def export_check(cfg, system) -> None:
+    pgnn_check(cfg, "newton")
+
+
+def export_laws(ctx) -> dict:
+    return pgnn_laws(ctx, "newton", k=int(ctx.cfg.invert.k), u_bounds=_bounds(ctx.cfg))

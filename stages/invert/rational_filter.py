@@ -13,9 +13,11 @@ import numpy as np
 import torch
 
 from pipeline.errors import ConfigError
+from pipeline.export import law as laws
 from pipeline.identify.orthogonal import spread_over_inits
 from pipeline.invert.rational_filter import rational_feedforward
 from pipeline.params import schema
+from stages.export import every_reference
 
 
 @schema
@@ -49,3 +51,17 @@ def feedforward(ctx, name, r):
                     parts.append(m.parts(m.inputs(r))[0].numpy())
             ctx.metric(f"{name}/spread_f_M", spread_over_inits(parts, f_hat))
     return out.f
+
+
+# ---- export (stages/export.py asks this module)
+def export_check(cfg, system) -> None:
+    m = cfg.model
+    if str(m.get("kind")) == "pgnn_shared_ar" and str(m.get("approximator")) != "mlp":
+        raise ConfigError(f"export: the [K] PGNN is exported with the MLP approximator (model.approximator=mlp), "
+                          f"got {m.get('approximator')!r}")
+
+
+def export_laws(ctx) -> dict:
+    model = ctx.inputs["train"]["model"]
+    name = "pgnn_shared_ar" if hasattr(model, "g") else "rational"
+    return {f"ff_{name}": (laws.from_k_filter(model), every_reference(ctx))}

@@ -53,25 +53,9 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf, open_dict
 
 from pipeline.errors import ORDER, SAFE_NAME, ConfigError
-from pipeline.params import (  # noqa: F401
-    COUNT_MAX,
-    DAMP_MAX,
-    FORCE_MAX,
-    FREQ_MAX,
-    ITER_MAX,
-    LENGTH_MAX,
-    MASS_MAX,
-    NOISE_MAX,
-    SPEED_MAX,
-    STIFF_MAX,
-    TS_MAX,
-    is_number,
-    references_rule,
-    schema,
-    spec,
-)
+from pipeline.params import is_number, references_rule, schema, spec
 
-__all__ = ["check", "spec", "schema", "options", "option_class", "defaults", "register", "Config", "Evaluate"]
+__all__ = ["check", "options", "option_class", "defaults", "register", "Config", "Evaluate"]
 
 
 def _stages_rule(v) -> str | None:

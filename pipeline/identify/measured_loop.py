@@ -490,11 +490,11 @@ def identify_loop_sim_error(model, averaged: bool, ctrl, sig, tau_meas, *, lam: 
         step, a rejected step or the geodesic acceleration's extra point needs the residual alone
         (about 20× cheaper; ŷ and τ̂ are the same to the bit with or without them)."""
         key = theta.tobytes()
-        if key not in cache or (sens and len(cache[key][0]) < 5):
+        if key not in cache or (sens and not cache[key][0]):
             cache.clear()
             m = loop0.with_theta(theta)
-            cache[key] = [simulate_loop(m, ctrl, s_, "data", sens=sens) for s_ in sigs]
-        return cache[key]
+            cache[key] = (sens, [simulate_loop(m, ctrl, s_, "data", sens=sens) for s_ in sigs])
+        return cache[key][1]
 
     def residual(th):
         theta = th.numpy()

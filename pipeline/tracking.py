@@ -24,6 +24,7 @@ from urllib.parse import unquote, urlparse
 
 import mlflow
 import mlflow.data
+import mlflow.models
 import pandas as pd
 from filelock import FileLock
 from hydra.core.utils import JobStatus
@@ -47,6 +48,8 @@ SLURM_TAGS = {"SLURM_JOB_ID": "slurm.job_id", "SLURM_ARRAY_JOB_ID": "slurm.array
 
 
 #: tracking-store URI schemes MLflow opens (a bare path is a file store)
+#: rows a numeric dataset's MLflow schema is inferred from (its dtypes decide it; see ``log_dataset``)
+SCHEMA_ROWS = 100
 STORE_SCHEMES = ("sqlite", "http", "https", "file", "postgresql", "mysql", "mssql", "databricks")
 
 
@@ -213,6 +216,10 @@ class JobRun:
         with warnings.catch_warnings():  # schema hints about int columns, ambiguous local sources
             warnings.simplefilter("ignore", UserWarning)
             ds = mlflow.data.from_pandas(df, source=source, name=name)
+            if all(pd.api.types.is_numeric_dtype(t) for t in df.dtypes) and not df.isna().to_numpy().any():
+                # a numeric frame without NaN: its schema is its dtypes, every column required. Inferred on
+                # the first rows, not value by value (1.08 M values of a [B1] record: 1.1-1.5 s per job)
+                ds.schema = mlflow.models.infer_signature(df.head(SCHEMA_ROWS)).inputs
             inp = DatasetInput(ds._to_mlflow_entity(),
                                tags=[InputTag("mlflow.data.context", context)])
         for attempt in range(5):

@@ -47,6 +47,30 @@ def test_a_tiny_value_that_moves_is_ill_determined_not_moved():
     assert s["n_above_rtol"] == 1 and s["n_ill_determined"] == 1
 
 
+def test_a_fit_converged_on_both_sides_in_another_minimum_is_ill_determined_a_capped_one_moved():
+    """Two fits whose training cost moved by 50 %: the one that stopped on its tolerance on both sides
+    (fit_stopped_on_cap 0) landed in another local minimum, its value is ill-determined (other minimum);
+    the one that stopped on a cap on one side landed on a slope, its value moved; a fit without the
+    flag row is not classified (moved)."""
+    def side(cost, flag_b):
+        rows = []
+        for v, f in (("a", 0.0), ("b", flag_b), ("c", None)):
+            rows += [(v, "fit_cost", cost)] + ([] if f is None else [(v, "fit_stopped_on_cap", f)]) + \
+                [(f"{v}/R", "mae", cost * 10)]
+        return pd.DataFrame({"experiment": "b2", "claim": "", "variant": [r[0] for r in rows],
+                             "metric": [r[1] for r in rows], "value": [r[2] for r in rows],
+                             "paper_value": None, "claim_holds": None})
+    keys, summ = compare(side(1.0, 0.0), side(1.5, 1.0), rtol=0.02)
+    k = keys.set_index(["variant", "metric"])
+    assert k.loc[("a/R", "mae"), "category"] == "other_minimum" and k.loc[("a/R", "mae"), "ill_determined"]
+    assert k.loc[("a", "fit_cost"), "category"] == "other_minimum"
+    assert k.loc[("b/R", "mae"), "category"] == "moved" and not k.loc[("b/R", "mae"), "ill_determined"]
+    assert k.loc[("c/R", "mae"), "category"] == "moved"
+    assert k.loc[("b", "fit_stopped_on_cap"), "category"] == "moved"      # converged on one side only
+    s = summ.iloc[0]
+    assert s["n_other_minimum"] == 2 and s["n_above_rtol"] == 5 and s["fits_moved"] == "3 of 3"
+
+
 @pytest.mark.slow      # two subprocesses per case (~8 s); the tightening test below covers the hook path
 @pytest.mark.parametrize("eps", ["0", "1e-13"])
 def test_perturbation_reaches_the_lm_and_a_converged_fit_stays(eps):
@@ -122,7 +146,7 @@ def test_report_shows_the_check_of_its_own_summary_only(tmp_path):
     (tmp_path / "check-perturb.json").write_text(json.dumps({"reference_sha256": digest, "setting": "P=1e-13",
                                                               "rtol": 0.02}))
     md = _with_checks("# Results\n\nhead\n\n## k\n\nsection\n", tmp_path)
-    line = "| k | 2 | 0.333 | `a/r1|m` | 1 | 1 | 0 | 0 of 0 | 0 | 0 |"
+    line = "| k | 2 | 0.333 | `a/r1|m` | 1 | 1 | 0 | 0 | 0 of 0 | 0 | 0 |"
     assert line in md and md.index("Same numbers") < md.index("## k")
     assert line in markdown(summ, 0.02, "perturb", "P=1e-13")
     keys.drop(columns=["category"]).to_csv(tmp_path / "check-perturb.csv", index=False)

@@ -328,6 +328,34 @@ def test_a_postgresql_unique_violation_on_log_inputs_is_retried(store, monkeypat
     run.end()
 
 
+def test_a_logged_dataset_carries_the_schema_mlflow_infers_from_every_value(store):
+    """log_dataset infers a numeric frame's schema from its first SCHEMA_ROWS rows: the logged schema
+    equals MLflow's own inference over every value, for a clean frame and for one whose NaN (an
+    optional column) sits past those rows."""
+    import json
+    import warnings
+
+    import numpy as np
+    import pandas as pd
+    from mlflow.types.utils import _infer_schema
+
+    from pipeline.tracking import SCHEMA_ROWS, JobRun
+    n = 3 * SCHEMA_ROWS
+    clean = pd.DataFrame({"u": np.linspace(0, 1, n), "segment": np.arange(n) // SCHEMA_ROWS})
+    late_nan = clean.assign(y=np.where(np.arange(n) == n - 1, np.nan, 1.0))
+    run = JobRun("schema", "r", {}, {})
+    for i, df in enumerate((clean, late_nan)):
+        run.log_dataset(df, f"train{i}", f"/data/train{i}.parquet")
+    logged = {d.dataset.name: json.loads(d.dataset.schema)["mlflow_colspec"]
+              for d in run.client.get_run(run.run_id).inputs.dataset_inputs}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for i, df in enumerate((clean, late_nan)):
+            assert logged[f"train{i}"] == _infer_schema(df).to_dict()
+    assert [c["required"] for c in logged["train1"]] == [True, True, False]
+    run.end()
+
+
 def test_a_job_run_by_slurm_names_its_slurm_job_in_tags(store, monkeypatch):
     """Issue 24 item 3: a run made inside a SLURM job (an array task of hydra/launcher=slurm) carries
     slurm.job_id, slurm.array_job_id and slurm.array_task_id; outside SLURM it has no slurm tag."""

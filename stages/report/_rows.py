@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pandas as pd
 
-from pipeline.perturbation import FIT_METRIC
+from pipeline.perturbation import FIT_CAP_METRIC, FIT_METRIC
 
 
 def row(experiment, variant, metric, value, *, paper=None) -> dict:
@@ -20,7 +20,12 @@ def run_metrics(run: pd.Series) -> dict[str, float]:
 
 
 def fit_cost_row(experiment, variant, metrics: dict, key: str = "train/cost") -> list[dict]:
-    """The ``fit_cost`` row of a trained model (its training cost; [] if the run has none): the
-    reproduce checks (pipeline/perturbation.py) tell from it whether a fit landed elsewhere."""
+    """The ``fit_cost`` row of a trained model (its training cost; [] if the run has none) and, where
+    the run logged it, its ``fit_stopped_on_cap`` row: the reproduce checks (pipeline/perturbation.py)
+    tell from them whether a fit landed elsewhere, and whether it had converged where it landed."""
     v = metrics.get(key)
-    return [] if v is None else [row(experiment, variant, FIT_METRIC, v)]
+    if v is None:
+        return []
+    capped = metrics.get("train/stopped_on_cap")     # 1: the kept fit stopped on a cap, not a tolerance
+    return [row(experiment, variant, FIT_METRIC, v)] + \
+        ([] if capped is None else [row(experiment, variant, FIT_CAP_METRIC, capped)])

@@ -58,6 +58,7 @@ def sweep_table(runs: pd.DataFrame) -> pd.DataFrame:
         d["train_seconds"] = _metric(run, "train/seconds")
         d["train_iterations"] = _metric(run, "train/iterations")
         d["train_cost"] = _metric(run, "train/cost")
+        d["train_capped"] = _metric(run, "train/stopped_on_cap")
         d["max_iter"] = float(run.get("params.identify.max_iter", "nan"))
         d["n_restarts"] = float(run.get("params.identify.n_restarts", "nan"))
         rows.append(d)
@@ -171,7 +172,8 @@ def _sweep_section(tab, rows, figdir) -> list[str]:
                   f"{t['train_seconds'] or 0:.1f} |")
         v = f"n1={t['n1']}/gamma={t['gamma']:g}"
         if t["gamma"] == tab["gamma"].min() and pd.notna(t["train_cost"]):   # one fit per n1, shared by the γ runs
-            rows += fit_cost_row(EXPERIMENTS[0], f"n1={t['n1']}", {"train/cost": t["train_cost"]})
+            rows += fit_cost_row(EXPERIMENTS[0], f"n1={t['n1']}", {"train/cost": t["train_cost"]} | (
+                {} if t["train_capped"] is None or pd.isna(t["train_capped"]) else {"train/stopped_on_cap": t["train_capped"]}))
         for k in BOUND:
             rows.append(_row(v, k, t[k]))
         # B2a: (15) holds on every run; |ε| ≤ 0.25 tracking for n1 ≥ 8 with γ = 1e-6
@@ -250,7 +252,7 @@ def _il_curves(il) -> dict:
             "zeros": run.get("tags.zeros") or "", "stop": run.get("tags.stop_reason") or "?",
             "iterations": _metric(run, "train/iterations"),
             "ident": _metric(run, "train/identification_error"),
-            "metrics": {"train/cost": _metric(run, "train/cost")} if _metric(run, "train/cost") is not None else {}}
+            "metrics": {k: v for k in ("train/cost", "train/stopped_on_cap") if (v := _metric(run, k)) is not None}}
     return curves
 
 

@@ -242,7 +242,8 @@ def _k3(experiment: str, m: dict, found: dict, rows: list) -> list[str]:
                  row(experiment, key, "oe_check_lm_iterations", chk_it),
                  row(experiment, key, "oe_check_max_iter", chk_cap),
                  ] + imp_row
-        rows += fit_cost_row(experiment, key, {"c": before}, key="c")   # what SK minimised: J_OE (+ λR)
+        rows += fit_cost_row(experiment, key, {"c": before, "train/stopped_on_cap": g("stopped_on_cap", None)},
+                             key="c")   # what SK minimised: J_OE (+ λR)
         if reg:
             rows += [row(experiment, key, "oe_check_lam", lam),
                      row(experiment, key, "oe_check_R_before", g("oe_check/R_before")),

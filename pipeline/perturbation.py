@@ -95,7 +95,8 @@ def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02
     not of itself: ill-determined); ``equal_fit`` (moved by more than ``rtol``, but the fit it comes
     from reached the same training cost to FIT_RTOL on both sides: ill-determined by the data);
     ``other_minimum`` (moved; its fit's cost moved by more than FIT_RTOL, but that fit stopped on a
-    tolerance on both sides: two local minima, FIT_CAP_METRIC); ``moved``; ``same``.  Keys on one side only are counted per experiment (``keys_on_one_side``),
+    tolerance on both sides: two local minima, FIT_CAP_METRIC); ``moved``; ``same``.  Keys on one
+    side only are counted per experiment (``keys_on_one_side``),
     not compared; only the experiments of ``perturbed`` are compared (a check of a subset)."""
     b = perturbed.copy()
     a = reference[reference["experiment"].isin(set(b["experiment"]))].copy()   # a subset rerun: its experiments
@@ -189,8 +190,9 @@ def table_lines(summary: pd.DataFrame) -> list[str]:
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in summary.itertuples():
         other = getattr(r, "n_other_minimum", 0)   # a csv written before the category: none
+        other = 0 if pd.isna(other) else int(other)
         lines.append(f"| {r.experiment} | {r.values} | {r.max_rel_change:.3g} | `{r.worst_key}` | "
-                     f"{r.n_above_rtol} | {r.n_ill_determined} | {r.n_equal_fit} | {0 if pd.isna(other) else int(other)} | "
+                     f"{r.n_above_rtol} | {r.n_ill_determined} | {r.n_equal_fit} | {other} | "
                      f"{r.fits_moved} | {r.verdicts_changed} | {r.n_solver_path} |")
     return lines
 
@@ -205,7 +207,8 @@ EXPLAIN = (f"A value below {SCALE_FLOOR:g} of the largest value of its metric fo
            f"on its tolerance on both sides (`{FIT_CAP_METRIC}` rows 0), is *ill-determined: other minimum*: the "
            "nonconvex criterion has several minima and rounding decides which one a machine reaches; its spread is "
            "both values. *Fits moved*: trained models whose training cost moved by more than that, i.e. landed "
-           "elsewhere; values of a fit that stopped on a cap on either side count as moved. Solver-path values (iteration counts, the last step's size, "
+           "elsewhere; values of a fit that stopped on a cap on either side count as moved. Solver-path values "
+           "(iteration counts, the last step's size, "
            "the tolerance itself, a check LM's remaining gain, rounding-level C/Python differences) are listed, "
            "not compared. Ratios of two fits are attached to the first.")
 

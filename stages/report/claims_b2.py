@@ -172,8 +172,8 @@ def _sweep_section(tab, rows, figdir) -> list[str]:
                   f"{t['train_seconds'] or 0:.1f} |")
         v = f"n1={t['n1']}/gamma={t['gamma']:g}"
         if t["gamma"] == tab["gamma"].min() and pd.notna(t["train_cost"]):   # one fit per n1, shared by the γ runs
-            rows += fit_cost_row(EXPERIMENTS[0], f"n1={t['n1']}", {"train/cost": t["train_cost"]} | (
-                {} if t["train_capped"] is None or pd.isna(t["train_capped"]) else {"train/stopped_on_cap": t["train_capped"]}))
+            capped = {} if pd.isna(t["train_capped"]) else {"train/stopped_on_cap": t["train_capped"]}
+            rows += fit_cost_row(EXPERIMENTS[0], f"n1={t['n1']}", {"train/cost": t["train_cost"]} | capped)
         for k in BOUND:
             rows.append(_row(v, k, t[k]))
         # B2a: (15) holds on every run; |ε| ≤ 0.25 tracking for n1 ≥ 8 with γ = 1e-6

@@ -112,3 +112,4 @@ slurm-local:  ## one-node SLURM on this machine, partition debug (as root; SLURM
 
 clean:  ## remove caches and stores (keeps results/)
 	rm -rf .cache .perturbed outputs multirun mlruns .pytest_cache
+	find pipeline -path "*/__pycache__/numba-*" -prune -exec rm -rf {} +

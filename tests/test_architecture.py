@@ -2,6 +2,8 @@
 counting imports inside functions too (they hide cycles as well as they hide start-up cost)."""
 import ast
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -214,3 +216,25 @@ def test_the_export_stage_asks_the_invert_option_not_its_name():
             if isinstance(c, ast.Compare)] == ["kind in ('direct', 'newton')"]    # the walk sees such a test
     declared = [k for k in sorted(kinds) if "def export_laws" in (ROOT / "stages" / "invert" / f"{k}.py").read_text()]
     assert len(declared) >= 7
+
+
+def test_the_numba_cache_is_a_folder_per_version_of_the_numba_modules(tmp_path):
+    """numba keys a cached kernel by its own file only; the package's cache folder changes with any
+    module that compiles with numba (a stale inlined callee cannot survive an edit), not with others,
+    and the package sets it before numba loads."""
+    import os
+
+    import pipeline
+    (tmp_path / "kernels.py").write_text("import numba\n\n@numba.njit(cache=True)\ndef f(x):\n    return x\n")
+    (tmp_path / "plain.py").write_text("X = 1\n")
+    first = pipeline.numba_cache_dir(tmp_path)
+    assert first == pipeline.numba_cache_dir(tmp_path) and first.startswith(str(tmp_path))
+    (tmp_path / "plain.py").write_text("X = 2\n")
+    assert pipeline.numba_cache_dir(tmp_path) == first
+    (tmp_path / "kernels.py").write_text("import numba\n\n@numba.njit(cache=True)\ndef f(x):\n    return 2 * x\n")
+    assert pipeline.numba_cache_dir(tmp_path) != first
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    code = "import pipeline.models.fast_pgnn, numba; print(numba.config.CACHE_DIR)"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == pipeline.numba_cache_dir()

@@ -353,3 +353,39 @@ def test_peak_diagnosis_reads_the_cause_from_the_phase_metrics():
     del table[("equation", "analytic")]["evaluate/v0.15/max_abs_accel"]   # a run from evaluate v1
     md = "\n".join(claims_b1._peak_diagnosis(table, [], "b1_linear_motor", **kw))
     assert "analytic (27) |" not in md
+
+
+def test_fast_path_of_a_measured_rigid_body_with_force_terms_equals_torch_reference():
+    """A measured axis's physics (RigidBodyPhysics with every force term: viscous, smooth Coulomb,
+    Stribeck, offset, two cogging harmonics) on its direct input has a numba fast path (kind 3):
+    analytic [B1] (27), Newton and physics feedforwards equal their torch references to the
+    resolution of u (ulp(y)/ψ, ψ = Ts²/M); on the averaged input there is no fast path, and the C
+    exporter refuses the kind it has no kernel for."""
+    from pipeline.export.law import ExportError, from_pgnn
+    from pipeline.models.physics_maps import PhysicsModelFeatures, physics_features_for
+    from pipeline.systems.force_terms import ForceTerms
+    from pipeline.systems.measured import RigidBodyPhysics
+    terms = ForceTerms(("viscous", "coulomb", "stribeck", "offset", "cogging"), coulomb_width=0.002,
+                       stribeck_velocity=0.01, cogging_period=0.03, cogging_harmonics=2)
+    pm = RigidBodyPhysics(TS, averaged_input=True, terms=terms)
+    M = 95.0
+    theta = pm.theta_from_physical({"M": M, "F_v": 200.0, "F_c": 20.0, "F_s": 5.0, "OF": -3.0,
+                                    "C_cos1": 2.0, "C_sin1": -1.0, "C_cos2": 0.5, "C_sin2": 0.3})
+    phys = physics_features_for(pm, "invertible", 2, 1, input_is_model_input=True)
+    assert phys.fast_kind == 3 and PhysicsModelFeatures(pm).fast_kind == -1
+    m = PGNN(2, 1, structure="invertible", physics=phys, hidden=(8,), out_init_scale=1.0, seed=3,
+             input_transform="delta")
+    m.set_physics_estimate(theta)
+    with torch.no_grad():
+        m.out_scale.fill_(TS ** 2 / M * 3.0)   # NN worth ~3 N of force
+    assert fast_pgnn(m) is not None
+    r = 0.1 * (1 - np.cos(np.linspace(0, 2 * np.pi, 600))) + 0.02 * np.sin(np.linspace(0, 9, 600))
+    quantum = np.spacing(0.25) / (TS ** 2 / M)          # u is defined to ~1 ulp of y over ψ
+    pairs = [(analytic_feedforward(m, r), analytic_feedforward(m, r, fast=False)),
+             (physics_feedforward(m, r), physics_feedforward(m, r, fast=False)),
+             (newton_feedforward(m, r).u_ff, newton_feedforward(m, r, fast=False).u_ff)]
+    for a, b in pairs:
+        assert np.all(np.isfinite(a)) and np.max(np.abs(b)) > 10.0
+        assert np.max(np.abs(a - b)) < 8 * quantum
+    with pytest.raises(ExportError, match="built-in physics"):
+        from_pgnn(m, "analytic", TS)

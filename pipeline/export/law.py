@@ -183,6 +183,8 @@ def from_pgnn(model, law: str, Ts: float, *, averaged: bool = False, k: int = 5,
     if law not in ("direct", "analytic", "newton", "physics"):
         raise ExportError(f"a PGNN is exported by law direct | analytic | newton | physics, not {law!r}")
     fm = fast_pgnn(model, theta_start=theta_start)
+    if fm is not None and fm.meta[0] > 2:   # the C kernel knows the kinds 0-2 (templates/pgnn.c)
+        fm = None
     if fm is None:
         phys = type(model.physics).__name__ if model.use_physics else "none"
         raise ExportError(

@@ -15,6 +15,8 @@ import numba
 import numpy as np
 import torch
 
+from pipeline.systems.force_terms import term
+
 if TYPE_CHECKING:
     from pipeline.models.pgnn import PGNN
 
@@ -97,12 +99,21 @@ def _fast_physics(kind, cfg, theta, phi):
         v = (y1 - y2) / Ts
         sg = 1.0 if v > 0 else (-1.0 if v < 0 else 0.0)
         return 2.0 * y1 - y2 + Ts * Ts * (theta[0] * u1 - theta[1] * v - theta[2] * sg)
-    else:  # RigidBodyInverse
+    elif kind == 2:  # RigidBodyInverse
         Ts = cfg[0]
         acc = (phi[0] - 2.0 * phi[1] + phi[2]) / (Ts * Ts)
         v = (phi[1] - phi[2]) / Ts
         sg = 1.0 if v > 0 else (-1.0 if v < 0 else 0.0)
         return theta[0] * acc + theta[1] * v + theta[2] * sg
+    else:  # measured rigid body with force terms (PhysicsModelFeatures of RigidBodyPhysics, direct input)
+        Ts = cfg[0]
+        nt = int(cfg[1])
+        y1, y2 = phi[0], phi[1]
+        v = (y1 - y2) / Ts
+        s = Ts * Ts * phi[2] * theta[0]          # Ts² w(t-1) θ₀
+        for j in range(nt):                      # - Ts² T_j(y(t-1), δy(t-1)) θ_j
+            s += -Ts * Ts * term(int(cfg[2 + j]), cfg[2 + nt + j], y1, v)[0] * theta[1 + j]
+        return 2.0 * y1 - y2 + s
 
 
 @numba.njit(cache=True)
@@ -111,7 +122,7 @@ def _fast_physics_gain(kind, cfg, theta, u_index):
     f(u=1) - f(u=0) would lose ~10 digits to cancellation when ψ u << f, e.g. Ts²/m)."""
     if kind == 0:  # LinearFeatures: θ of the u(t-n_k-1) column
         return theta[u_index]
-    elif kind == 1:  # RigidBodyForward: Ts² / m
+    elif kind == 1 or kind == 3:  # RigidBodyForward, rigid body with terms: Ts² / m
         return cfg[0] * cfg[0] * theta[0]
     return np.nan  # inverse map: no input gain
 

@@ -26,7 +26,7 @@ __all__ = ["PhysicsFeatures", "LinearFeatures", "RigidBodyForward", "RigidBodyIn
            "physics_features_for"]
 
 # numba kernel ids of the built-in physics maps (pipeline.models.fast_pgnn._fast_physics)
-_KIND_LINEAR, _KIND_RIGID_FWD, _KIND_RIGID_INV = 0, 1, 2
+_KIND_LINEAR, _KIND_RIGID_FWD, _KIND_RIGID_INV, _KIND_RIGID_TERMS = 0, 1, 2, 3
 
 
 # --------------------------------------------------------------------------------------------
@@ -180,9 +180,14 @@ class RigidBodyInverse(PhysicsFeatures):
 class PhysicsModelFeatures(PhysicsFeatures):
     """Adapter for a plant's nominal physics model (``pipeline.systems``) exposing
     ``offset(φ)`` and ``features(φ)`` (forward layout) or ``inverse_features(φ')`` (inverse
-    layout, offset 0), numpy/torch-agnostic.  No numba fast path (the inversions then use
-    their torch reference); prefer :func:`physics_features_for`, which maps the known plants
-    to the built-in maps.
+    layout, offset 0), numpy/torch-agnostic.  Prefer :func:`physics_features_for`, which maps the
+    known plants to the built-in maps.
+
+    Numba fast path: only for a measured rigid body with force terms
+    (:class:`pipeline.systems.measured.RigidBodyPhysics`) on its direct input, forward layout:
+    ``y(t) = 2y(t-1) - y(t-2) + Ts² (θ₀ w(t-1) - Σ_j θ_j T_j(y(t-1), δy(t-1)))`` with the terms'
+    kernel codes (``kernel_terms``).  Any other model has none (the inversions then use their torch
+    reference, one sample at a time).
     """
 
     def __init__(self, physics_model, inverse: bool = False):
@@ -197,6 +202,19 @@ class PhysicsModelFeatures(PhysicsFeatures):
         n = len(physics_model.param_names)
         self.param_names = tuple(f"theta'_{i}" for i in range(n)) if inverse \
             else tuple(physics_model.param_names)
+
+    @property
+    def fast_kind(self) -> int:
+        pm = self.pm
+        rigid = (getattr(pm, "physics_law", None) == "rigid_body" and hasattr(pm, "kernel_terms")
+                 and not getattr(pm, "averaged_input", True))
+        return _KIND_RIGID_TERMS if rigid and not self.inverse else -1
+
+    def fast_config(self):
+        if self.fast_kind != _KIND_RIGID_TERMS:
+            return super().fast_config()
+        codes, p = self.pm.kernel_terms()
+        return np.concatenate([[self.pm.Ts, float(codes.size)], codes.astype(np.float64), p])
 
     def features(self, phi):
         if self.inverse:

@@ -7,8 +7,9 @@ sensitivities (:mod:`pipeline.models.closed_loop`) and the ILC filters
 
 Both functions are inlined into their callers (``inline="always"``): a plain njit call costs
 about 3x in a filter loop (per-call reference counting of the array arguments).  numba caches
-a ``cache=True`` caller by its own source file only: after editing this module, delete the
-callers' ``__pycache__/*.nbi``/``*.nbc`` files so that they are recompiled.
+a ``cache=True`` caller by its own source file only; the package keeps its numba cache in a
+folder per version of its numba modules (:func:`pipeline.numba_cache_dir`), so editing this
+module recompiles the callers.
 """
 from __future__ import annotations
 

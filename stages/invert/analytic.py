@@ -17,7 +17,9 @@ class Params:
     model_structure: Literal["forward", "inverse", "invertible"] = "invertible"
 
 
-VERSION = 2   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
+VERSION = 3   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
+              # 3: a measured rigid body (PhysicsModelFeatures of RigidBodyPhysics) inverts on the numba fast path
+              # (the torch reference summed in another order: last bits)
 
 
 def check(cfg, system) -> None:

@@ -30,7 +30,9 @@ class Params:
     u_max: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=100.0)
 
 
-VERSION = 2   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
+VERSION = 3   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
+              # 3: a measured rigid body (PhysicsModelFeatures of RigidBodyPhysics) inverts on the numba fast path
+              # (the torch reference summed in another order: last bits)
 
 
 def _bounds(cfg):

@@ -55,13 +55,15 @@ reproduce: install  ## run every paper experiment, then write results/REPORT.md,
 # is a result pinned down by its fit's tolerances? (issue 19; pipeline/perturbation.py)
 #   CHECK=perturb: a second machine, emulated: every LM step's normal equations perturbed at relative
 #                  PERTURB (another BLAS summation order); values must move by < 2 %
-#   CHECK=tighten: every LM and SK tolerance divided by TIGHTEN; values must move by < 1 %
+#   CHECK=tighten: every LM and SK tolerance divided by TIGHTEN, and the restarts' iteration caps
+#                  times CAPS (a fit that stopped on its cap runs on); values must move by < 1 %
 # Own cache and store under .perturbed/<CHECK>/; compared key by key with results/summary.csv into
 # results/check-<CHECK>.md and .csv
 CHECK ?= perturb
 PERTURB ?= 1e-13
 TIGHTEN ?= 10
-CHECK_ENV = $(if $(filter tighten,$(CHECK)),PIPELINE_TIGHTEN=$(TIGHTEN),PIPELINE_PERTURB=$(PERTURB))
+CAPS ?= 2
+CHECK_ENV = $(if $(filter tighten,$(CHECK)),PIPELINE_TIGHTEN=$(TIGHTEN) PIPELINE_CAP_FACTOR=$(CAPS),PIPELINE_PERTURB=$(PERTURB))
 CHECK_RTOL = $(if $(filter tighten,$(CHECK)),0.01,0.02)
 CHECKED := $(ROOT)/.perturbed/$(CHECK)
 reproduce-check: install  ## rerun every experiment perturbed (CHECK=perturb) or tightened (CHECK=tighten), compare with results/

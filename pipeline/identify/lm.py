@@ -81,6 +81,10 @@ _PERTURB = float(os.environ.get("PIPELINE_PERTURB", "0") or 0)
 #: set from PIPELINE_TIGHTEN by ``make reproduce-check CHECK=tighten``: a converged fit's reported
 #: values must not move when its tolerances are tightened (issue 19)
 TIGHTEN = float(os.environ.get("PIPELINE_TIGHTEN", "1") or 1)
+#: factor on the safety caps of the fits' restarts (``best_of_restarts``' ``max_iter``, not a screening
+#: budget; 1: off); set from PIPELINE_CAP_FACTOR by ``make reproduce-check CHECK=tighten``: a fit that
+#: stopped on its cap runs that much longer, so the check shows how far its values still had to go
+CAP_FACTOR = float(os.environ.get("PIPELINE_CAP_FACTOR", "1") or 1)
 
 
 def _perturb_normal_equations(A: torch.Tensor, g: torch.Tensor, k: int):

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from scipy.linalg import solve_discrete_lyapunov
 
-from pipeline.identify.lm import LMResult, levenberg_marquardt, normal_equations_from_blocks
+from pipeline.identify.lm import CAP_FACTOR, LMResult, levenberg_marquardt, normal_equations_from_blocks
 from pipeline.models.pgnn import PGNN, Prepared
 
 __all__ = ["Regression", "forward_regressor", "inverse_regressor", "build_regression",
@@ -467,7 +467,7 @@ def best_of_restarts(model: PGNN, residual, jacobian, n_restarts: int, seed: int
     ``memo(i, budget, compute)`` (e.g. the stage cache, :meth:`pipeline.runner.StageContext.memo`)
     may return a stored result of it."""
     theta0 = model.parameter_vector()
-    max_iter = int(lm_options.pop("max_iter", 100))
+    max_iter = int(round(int(lm_options.pop("max_iter", 100)) * CAP_FACTOR))   # the tightening check's cap
     screen = 0 < int(screen_iter) < max_iter and n_restarts > 1
     budget = int(screen_iter) if screen else max_iter
 

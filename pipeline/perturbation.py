@@ -182,6 +182,38 @@ def summarise(keys: pd.DataFrame, rtol: float, one_side: dict | None = None) -> 
     return pd.DataFrame(rows)
 
 
+def capped_fits(keys: pd.DataFrame) -> pd.DataFrame:
+    """Per fit that stopped on its cap in the reference run (``fit_stopped_on_cap`` 1): its training
+    cost on both sides and the largest relative change of its result values (solver-path values left
+    out). In the tightening check (caps times CAPS) this is how far the capped fit still had to go."""
+    rows = []
+    flags = keys[(keys["metric"] == FIT_CAP_METRIC) & (pd.to_numeric(keys["value_ref"], errors="coerce") == 1)]
+    for exp, fit in zip(flags["experiment"], flags["variant"]):
+        g = keys[(keys["experiment"] == exp) & (keys["fit"] == fit)]
+        cost = g[g["metric"] == FIT_METRIC]
+        vals = g[~g["metric"].isin((FIT_METRIC, FIT_CAP_METRIC)) & (g["category"].astype(str) != "solver_path")]
+        pert_flag = g.loc[g["metric"] == FIT_CAP_METRIC, "value_pert"]
+        rows.append({"experiment": exp, "fit": fit,
+                     "cost_ref": float(cost["value_ref"].iloc[0]) if len(cost) else np.nan,
+                     "cost_pert": float(cost["value_pert"].iloc[0]) if len(cost) else np.nan,
+                     "still_capped": bool(len(pert_flag) and float(pert_flag.iloc[0]) == 1),
+                     "n_values": len(vals), "max_value_change": float(vals["rel_change"].max()) if len(vals) else 0.0})
+    return pd.DataFrame(rows, columns=["experiment", "fit", "cost_ref", "cost_pert", "still_capped", "n_values",
+                                       "max_value_change"])
+
+
+def capped_lines(keys: pd.DataFrame, check: str) -> list[str]:
+    """The paragraph on the fits that stopped on their cap (empty without one)."""
+    c = capped_fits(keys)
+    if c.empty:
+        return []
+    what = "run on with their caps raised" if check == "tighten" else "rerun"
+    items = [f"`{r.experiment}` `{r.fit}`: training cost {r.cost_ref:.4g} → {r.cost_pert:.4g}"
+             f"{' (on its cap again)' if r.still_capped else ''}, its {r.n_values} values move by up to "
+             f"{r.max_value_change:.2%}" for r in c.itertuples()]
+    return ["", f"Fits that stopped on their iteration cap in the reference run, {what}: " + "; ".join(items) + "."]
+
+
 def table_lines(summary: pd.DataFrame) -> list[str]:
     """The per-experiment table of a check (check-<check>.md and REPORT.md show the same one)."""
     lines = ["| experiment | values | largest relative change (of the moved ones) | at | moved > rtol "
@@ -216,16 +248,18 @@ EXPLAIN = (f"A value below {SCALE_FLOOR:g} of the largest value of its metric fo
 _WHAT = {"perturb": ("Perturbation check (a second machine, emulated)",
                     "every LM step's normal equations perturbed at relative rounding level"),
          "tighten": ("Tightening check (are the tolerances adequate?)",
-                     "every LM and SK tolerance divided by the factor")}
+                     "every LM and SK tolerance divided by the factor and the restarts' iteration caps "
+                     "multiplied by CAPS")}
 
 
-def markdown(summary: pd.DataFrame, rtol: float, check: str, setting: str) -> str:
+def markdown(summary: pd.DataFrame, rtol: float, check: str, setting: str,
+             keys: pd.DataFrame | None = None) -> str:
     title, what = _WHAT[check]
     lines = [f"# {title}", "",
              f"The whole `make reproduce` rerun with {what} (`{setting}`); values compared key by "
              f"key with the reference `summary.csv` (timings left out). A value that moves by more "
              f"than {rtol:.0%} comes from a fit that its tolerance does not pin down. " + EXPLAIN, ""]
-    lines += table_lines(summary)
+    lines += table_lines(summary) + ([] if keys is None else capped_lines(keys, check))
     return "\n".join(lines) + "\n"
 
 
@@ -260,7 +294,7 @@ def main(argv=None) -> int:
     keys, summary = compare(pd.read_csv(args.reference), pd.read_csv(args.perturbed), args.rtol)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    md = markdown(summary, args.rtol, args.check, args.setting)
+    md = markdown(summary, args.rtol, args.check, args.setting, keys)
     _atomic_write(out / f"check-{args.check}.csv", keys.to_csv(index=False))
     _atomic_write(out / f"check-{args.check}.md", md)
     _atomic_write(out / f"check-{args.check}.json", json.dumps({   # the report shows the check of this summary only

@@ -71,6 +71,23 @@ def test_a_fit_converged_on_both_sides_in_another_minimum_is_ill_determined_a_ca
     assert s["n_other_minimum"] == 2 and s["n_above_rtol"] == 5 and s["fits_moved"] == "3 of 3"
 
 
+def test_the_check_names_each_fit_that_stopped_on_its_cap_and_how_far_its_values_moved():
+    """A fit flagged fit_stopped_on_cap = 1 in the reference gets a line of its own: both training
+    costs, whether it stopped on its cap again, and the largest change of its values."""
+    from pipeline.perturbation import capped_fits, markdown
+
+    def side(cost, flag, mae):
+        return pd.DataFrame({"experiment": "b2", "claim": "", "variant": ["n1=24", "n1=24", "n1=24/R", "n1=8", "n1=8"],
+                             "metric": ["fit_cost", "fit_stopped_on_cap", "mae", "fit_cost", "fit_stopped_on_cap"],
+                             "value": [cost, flag, mae, 1.0, 0.0], "paper_value": None, "claim_holds": None})
+    keys, summ = compare(side(3e-9, 1.0, 2.0), side(2.4e-9, 0.0, 2.1), rtol=0.01)
+    c = capped_fits(keys)
+    assert list(c["fit"]) == ["n1=24"] and not c["still_capped"].iloc[0]
+    assert c["max_value_change"].iloc[0] == pytest.approx(0.1 / 2.1) and c["n_values"].iloc[0] == 1
+    md = markdown(summ, 0.01, "tighten", "T=10", keys)
+    assert "`b2` `n1=24`: training cost 3e-09 → 2.4e-09, its 1 values move by up to 4.76%" in md
+
+
 @pytest.mark.slow      # two subprocesses per case (~8 s); the tightening test below covers the hook path
 @pytest.mark.parametrize("eps", ["0", "1e-13"])
 def test_perturbation_reaches_the_lm_and_a_converged_fit_stays(eps):

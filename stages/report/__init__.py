@@ -32,7 +32,7 @@ import pandas as pd
 
 from pipeline import compare, owned, tracking
 from pipeline.export.law import strict_json
-from pipeline.perturbation import EXPLAIN, summarise, summary_digest, table_lines
+from pipeline.perturbation import EXPLAIN, capped_lines, summarise, summary_digest, table_lines
 from pipeline.runner import ROOT
 from stages.report import claims
 from stages.report._rows import row, run_metrics
@@ -126,7 +126,7 @@ def _with_checks(text: str, results: Path) -> str:
                 f"Per experiment, the largest relative change of a summary value between this run and the "
                 f"rerun, and how many moved by more than {rtol:.0%}. " + EXPLAIN +
                 f" Per key: results/check-{check}.csv.", ""]
-        out += table_lines(summarise(k, rtol, keys_one_side))
+        out += table_lines(summarise(k, rtol, keys_one_side)) + capped_lines(k, check)
         out.append("")
     if not out:
         return text

@@ -463,3 +463,31 @@ def test_a_physics_fit_that_explains_almost_nothing_is_flagged(store, cfg_of):
         w.simplefilter("always")
         runner.run_job(cfg_of("experiment=emps_physics", "stages=[generate,baseline]"))
     assert not [c for c in caught if "unexplained" in str(c.message)]
+
+
+def test_a_pgnn_regressor_other_than_the_plant_models_layout_is_refused():
+    """The measured rigid body reads φ as [y(t-1), y(t-2), w(t-1)] ([B1] (32)): a PGNN with n_a = 3
+    would feed it y(t-3) as the force (a wrong model, silently). physics_features_for refuses it with
+    the fix; n_a = 2 with extra input lags (seen by the NN only) is fine."""
+    from pipeline.models.physics_maps import physics_features_for
+    from pipeline.systems.measured import RigidBodyPhysics
+    pm = RigidBodyPhysics(1e-3, averaged_input=True)
+    with pytest.raises(ValueError, match="set model.n_a=2"):
+        physics_features_for(pm, "forward", 3, 1, 0, True)
+    with pytest.raises(ValueError, match="model.n_b>=2"):
+        physics_features_for(pm, "forward", 2, 1, 0, False)      # raw u: the physics averages two lags
+    assert physics_features_for(pm, "forward", 2, 3, 0, True).fast_kind == 3
+
+
+@pytest.mark.parametrize("identify", ["narx", "sim_error"])
+def test_a_pgnn_whose_regressor_misreads_the_rigid_body_is_refused_before_any_work(tmp_path, store, cfg_of,
+                                                                                 identify):
+    """model.n_a=3 on a measured axis: the config is refused in one line naming the fix, before any
+    stage runs (nothing cached), for the one-step and the closed-loop fit."""
+    path = _csv(tmp_path)
+    over = [o for o in _measured_overrides(path) if not o.startswith(("model=", "identify=", "invert="))]
+    cfg = cfg_of(*over, "model=pgnn", f"identify={identify}", "invert=analytic", "model.structure=invertible",
+                 "model.n_a=3", "model.n_b=1", "model.hidden=[4]")
+    with pytest.raises(runner.ConfigError, match=r"model: RigidBodyPhysics .*set model.n_a=2"):
+        runner.run_job(cfg)
+    assert not (store / "cache").exists() or not any((store / "cache").glob("*/*"))

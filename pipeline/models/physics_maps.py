@@ -263,4 +263,12 @@ def physics_features_for(physics_model, structure: str, n_a: int, n_b: int, n_k:
         return LinearFeatures(n_a + n_b, names)
     if input_is_model_input and averaged and hasattr(physics_model, "with_direct_input"):
         physics_model = physics_model.with_direct_input()   # the data's input is already w = ū
+    pa = getattr(physics_model, "n_a", None)      # a plant model reads φ in its own layout (e.g. [B1] (32):
+    if not inverse and pa is not None:            # [y(t-1), y(t-2), w(t-1)]): the PGNN's must start with it
+        pb, pk = int(getattr(physics_model, "n_b", 1)), int(getattr(physics_model, "n_k", 0))
+        if (n_a, n_k) != (int(pa), pk) or n_b < pb:
+            raise ValueError(f"{name} reads the regressor as [y(t-1) … y(t-{pa}), its input's {pb} lag(s)] with "
+                             f"n_k = {pk}; the PGNN regressor has n_a={n_a}, n_b={n_b}, n_k={n_k}, so the physics "
+                             f"would read an output lag as its input: set model.n_a={pa}, model.n_b>={pb}, "
+                             f"model.n_k={pk}")
     return PhysicsModelFeatures(physics_model, inverse)

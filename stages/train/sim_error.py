@@ -219,6 +219,10 @@ def _check_measured(cfg, system) -> None:
     if m.n_a < 2 or m.n_b < 1 or m.n_k != 0:
         raise ConfigError(f"the rigid-body loop model needs n_a >= 2, n_b >= 1, n_k = 0; got n_a={m.n_a}, "
                           f"n_b={m.n_b}, n_k={m.n_k}")
+    try:                                       # the physics map reads the regressor in the plant's layout
+        build_narx_model(cfg, system)
+    except ValueError as exc:
+        raise ConfigError(f"model: {exc}") from exc
 
 
 def _fit_measured(ctx) -> dict:

@@ -14,7 +14,8 @@ A fit that stopped on a tolerance lands where the reference landed; a fit that s
 
 writes ``DIR/check-<check>.csv`` (per summary key: both values and the relative change) and
 ``DIR/check-<check>.md`` (per experiment: values compared, the largest relative change and its key,
-how many moved by more than ``rtol``, and the claim verdicts that changed).  Timings are left out.
+how many moved by more than ``rtol``, the claim verdicts that changed (a claim holds when all its
+rows hold) and the claim rows whose verdict changed).  Timings are left out.
 """
 from __future__ import annotations
 
@@ -153,7 +154,8 @@ def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02
 def summarise(keys: pd.DataFrame, rtol: float, one_side: dict | None = None) -> pd.DataFrame:
     """Per experiment, from :func:`compare`'s keys (or check-<check>.csv): result values compared, the
     largest relative change among them and its key, how many moved, how many are ill-determined (tiny,
-    equal fits), how many fits landed elsewhere (training cost moved > FIT_RTOL), verdicts changed."""
+    equal fits, other minimum), how many fits landed elsewhere (training cost moved > FIT_RTOL), claim
+    verdicts changed (a claim holds when every one of its rows holds) and claim rows changed."""
     one_side = one_side or {}
     rows = []
     for exp, g in keys.groupby("experiment", sort=False):
@@ -165,7 +167,11 @@ def summarise(keys: pd.DataFrame, rtol: float, one_side: dict | None = None) -> 
         fits = g[g["metric"] == FIT_METRIC]
         verdicts = g[g["claim_holds_ref"].astype(str) != g["claim_holds_pert"].astype(str)] \
             if "claim_holds_ref" in g else g.iloc[:0]
-        verdicts = verdicts[verdicts["claim"].fillna("") != ""]
+        verdicts = verdicts[verdicts["claim"].fillna("") != ""]          # claim rows whose verdict changed
+        claimed = g[g["claim"].fillna("") != ""] if "claim_holds_ref" in g else g.iloc[:0]
+        holds = {side: claimed.groupby("claim")[f"claim_holds_{side}"].agg(
+            lambda v: all(str(x).lower() == "true" for x in v)) for side in ("ref", "pert")}
+        claims_changed = int(sum(holds["ref"][c] != holds["pert"][c] for c in holds["ref"].index))
         rows.append({"experiment": exp, "values": len(res),
                      "max_rel_change": float(pool["rel_change"].max()) if len(pool) else 0.0,
                      "worst_key": "" if worst is None else
@@ -177,7 +183,8 @@ def summarise(keys: pd.DataFrame, rtol: float, one_side: dict | None = None) -> 
                      "n_other_minimum": int((cat == "other_minimum").sum()),
                      "fits_moved": f"{int((fits['rel_change'] > FIT_RTOL).sum())} of {len(fits)}",
                      "n_solver_path": int((cat == "solver_path").sum()),
-                     "verdicts_changed": int(verdicts["claim"].nunique()),
+                     "verdicts_changed": claims_changed,
+                     "claim_rows_changed": int(len(verdicts)),
                      "keys_on_one_side": int(one_side.get(exp, 0))})
     return pd.DataFrame(rows)
 
@@ -218,14 +225,15 @@ def table_lines(summary: pd.DataFrame) -> list[str]:
     """The per-experiment table of a check (check-<check>.md and REPORT.md show the same one)."""
     lines = ["| experiment | values | largest relative change (of the moved ones) | at | moved > rtol "
              "| ill-determined: tiny | ill-determined: equal fits | ill-determined: other minimum "
-             "| fits moved > 0.1 % | claim verdicts changed | solver-path values (not compared) |",
+             "| fits moved > 0.1 % | claim verdicts changed (claim rows) | solver-path values (not compared) |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in summary.itertuples():
         other = getattr(r, "n_other_minimum", 0)   # a csv written before the category: none
         other = 0 if pd.isna(other) else int(other)
         lines.append(f"| {r.experiment} | {r.values} | {r.max_rel_change:.3g} | `{r.worst_key}` | "
                      f"{r.n_above_rtol} | {r.n_ill_determined} | {r.n_equal_fit} | {other} | "
-                     f"{r.fits_moved} | {r.verdicts_changed} | {r.n_solver_path} |")
+                     f"{r.fits_moved} | {r.verdicts_changed} ({getattr(r, 'claim_rows_changed', 0)}) | "
+                     f"{r.n_solver_path} |")
     return lines
 
 

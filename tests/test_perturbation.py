@@ -31,6 +31,20 @@ def test_compare_reports_the_largest_change_per_experiment_and_skips_timings():
     assert s.loc["e2", "keys_on_one_side"] == 1 and s.loc["e2", "max_rel_change"] == pytest.approx(0.1 / 2.1)
 
 
+def test_a_claim_verdict_changes_only_when_the_claim_does_not_one_of_its_rows():
+    """A claim holds when every one of its rows holds: a row that flips while another row of the claim
+    fails on both sides changes a claim row, not the claim's verdict."""
+    def side(first):
+        return pd.DataFrame({"experiment": "b2", "claim": ["B2a", "B2a", "B2b"], "variant": ["n1=20", "n1=8", "x"],
+                             "metric": ["eps", "eps", "m"], "value": [1.0, 2.0, 3.0], "paper_value": None,
+                             "claim_holds": [first, "False", "True"]})
+    s = compare(side("True"), side("False"), rtol=0.02)[1].iloc[0]
+    assert s["verdicts_changed"] == 0 and s["claim_rows_changed"] == 1
+    flipped = side("True").assign(claim_holds=["True", "True", "True"])
+    s = compare(flipped, side("True"), rtol=0.02)[1].iloc[0]
+    assert s["verdicts_changed"] == 1 and s["claim_rows_changed"] == 1
+
+
 def test_a_tiny_value_that_moves_is_ill_determined_not_moved():
     """Against the floor 1e-3 x the largest value of its metric for its model in its experiment:
     1e-9 -> 2e-9 beside 20 moves 50 % of itself, 5e-11 of the floor: ill-determined (counted,
@@ -163,7 +177,7 @@ def test_report_shows_the_check_of_its_own_summary_only(tmp_path):
     (tmp_path / "check-perturb.json").write_text(json.dumps({"reference_sha256": digest, "setting": "P=1e-13",
                                                               "rtol": 0.02}))
     md = _with_checks("# Results\n\nhead\n\n## k\n\nsection\n", tmp_path)
-    line = "| k | 2 | 0.333 | `a/r1|m` | 1 | 1 | 0 | 0 | 0 of 0 | 0 | 0 |"
+    line = "| k | 2 | 0.333 | `a/r1|m` | 1 | 1 | 0 | 0 | 0 of 0 | 0 (0) | 0 |"
     assert line in md and md.index("Same numbers") < md.index("## k")
     assert line in markdown(summ, 0.02, "perturb", "P=1e-13")
     keys.drop(columns=["category"]).to_csv(tmp_path / "check-perturb.csv", index=False)

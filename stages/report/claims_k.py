@@ -170,7 +170,10 @@ def _k2_caps(mn: dict, mo: dict) -> str:
         if out is None:
             return "- stop reasons of the restarts: not logged (runs older than train VERSION 2)."
         parts.append((name, out, inner))
-    txt = "; ".join(f"{n}: {o:.0f} of the restarts stopped on the SK cap, {i:.0f} had an inner LM "
+    screened = all(mk.get("train/screened_restarts") for mk in (mn, mo))
+    cap = "the screening budget (screened out: only the kept restart runs to its tolerance)" if screened \
+        else "the SK cap"
+    txt = "; ".join(f"{n}: {o:.0f} of the restarts stopped on {cap}, {i:.0f} had an inner LM "
                     "solve stopped on its cap" for n, o, i in parts)
     if any(o or i for _, o, i in parts):
         return f"- **Flag: K2 is fed by fits that stopped on a cap** ({txt})."
@@ -261,7 +264,8 @@ def _k3(experiment: str, m: dict, found: dict, rows: list) -> list[str]:
         n_rest_cap = g("sk_inner_capped_restarts", 0.0)
         n_rest_out = g("sk_not_converged_restarts", 0.0)
         if n_rest_cap or n_rest_out:
-            cap_parts.append(f"over all restarts (they feed K2): {n_rest_out:.0f} stopped on the SK cap, "
+            where = "the screening budget" if g("screened_restarts", 0.0) else "the SK cap"
+            cap_parts.append(f"over all restarts (they feed K2): {n_rest_out:.0f} stopped on {where}, "
                              f"{n_rest_cap:.0f} had capped inner solves")
         if cap_parts:
             flags.append(f"- **{key}: " + "; ".join(cap_parts) + ".**")

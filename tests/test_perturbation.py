@@ -216,29 +216,24 @@ def test_values_of_equal_fits_are_ill_determined_and_of_moved_fits_moved():
     assert s["max_rel_change"] == pytest.approx(0.3 / 1.3)
 
 
-_CAPPED = """
-import torch
-from pipeline.identify.narx import best_of_restarts
-from pipeline.models.pgnn import PGNN
-from pipeline.models.physics_maps import LinearFeatures
-g = torch.Generator().manual_seed(0)
-phi = torch.randn(200, 2, generator=g, dtype=torch.float64)
-y = torch.tanh(3 * phi[:, 0]) * phi[:, 1]
-m = PGNN(1, 1, physics=LinearFeatures(2), hidden=(4,), seed=0)
-res = lambda th: m.predict(th, m.prepare(phi)) - y
-out, best = best_of_restarts(m, res, None, 3, 0, max_iter=12, screen_iter=4, ftol=0.0, gtol=0.0)
-print(out[best].n_iter, out[best].message, [r.n_iter for r in out])
-"""
+def test_the_tightening_check_runs_a_capped_fit_on_and_leaves_the_screening_budget(monkeypatch):
+    """PIPELINE_CAP_FACTOR (make reproduce-check CHECK=tighten, CAPS; read into lm.CAP_FACTOR) multiplies the
+    restarts' safety cap: the kept restart of a fit that stops on its cap runs on (up to twice as many LM
+    steps), the screened ones keep their screening budget (the choice of the kept restart does not change)."""
+    import torch
 
-
-def test_the_tightening_check_runs_a_capped_fit_on_and_leaves_the_screening_budget():
-    """PIPELINE_CAP_FACTOR (make reproduce-check CHECK=tighten, CAPS) multiplies the restarts' safety cap:
-    the kept restart of a fit that stops on its cap runs twice as many LM steps, the screened ones keep
-    their screening budget (the choice of the kept restart does not change)."""
+    from pipeline.identify import narx
+    from pipeline.models.pgnn import PGNN
+    from pipeline.models.physics_maps import LinearFeatures
+    g = torch.Generator().manual_seed(0)
+    phi = torch.randn(200, 2, generator=g, dtype=torch.float64)
+    y = torch.tanh(3 * phi[:, 0]) * phi[:, 1]
     runs = {}
-    for f in ("1", "2"):
-        out = subprocess.run([sys.executable, "-c", _CAPPED], env={**os.environ, "PIPELINE_CAP_FACTOR": f},
-                             capture_output=True, text=True, check=True).stdout.split(" ", 2)
-        runs[f] = (int(out[0]), out[1], sorted(eval(out[2])))
-    assert runs["1"] == (12, "max_iter", [4, 4, 12])
-    assert 12 < runs["2"][0] <= 24 and runs["2"][2] == [4, 4, runs["2"][0]]
+    for f in (1.0, 2.0):
+        monkeypatch.setattr(narx, "CAP_FACTOR", f)
+        m = PGNN(1, 1, physics=LinearFeatures(2), hidden=(4,), seed=0)
+        out, best = narx.best_of_restarts(m, lambda th: m.predict(th, m.prepare(phi)) - y, None, 3, 0,
+                                          max_iter=12, screen_iter=4, ftol=0.0, gtol=0.0)
+        runs[f] = (out[best].n_iter, out[best].message, sorted(r.n_iter for r in out))
+    assert runs[1.0] == (12, "max_iter", [4, 4, 12])
+    assert 12 < runs[2.0][0] <= 24 and runs[2.0][2] == [4, 4, runs[2.0][0]]

@@ -23,15 +23,21 @@ def numba_cache_dir(root: Path | None = None) -> str:
     SHA-256 of every module that compiles with numba makes any such edit a new cache.  Beside the
     bytecode (``pipeline/__pycache__/numba-<hash>``), or in the temp folder where that is read-only."""
     root = Path(__file__).resolve().parent if root is None else Path(root)
-    h = hashlib.sha256()
-    for p in sorted(root.rglob("*.py")):
-        text = p.read_bytes()
-        if b"numba" in text:
-            h.update(p.relative_to(root).as_posix().encode() + b"\0" + text)
+    sources = ((p.relative_to(root).as_posix(), p.read_bytes()) for p in sorted(root.rglob("*.py")))
+    digest = source_digest((name, text) for name, text in sources if b"numba" in text)
     base = root / "__pycache__"
     if not os.access(base if base.exists() else root, os.W_OK):
         base = Path(tempfile.gettempdir()) / "pgnn-feedforward"
-    return str(base / f"numba-{h.hexdigest()[:16]}")
+    return str(base / f"numba-{digest[:16]}")
+
+
+def source_digest(sources) -> str:
+    """SHA-256 (hex) of ``(name, bytes)`` pairs in the given order: the key of a cache compiled from
+    source files (the numba folder above, the options' defaults of :mod:`pipeline.schema`)."""
+    h = hashlib.sha256()
+    for name, text in sources:
+        h.update(name.encode() + b"\0" + text)
+    return h.hexdigest()
 
 
 # before numba loads (a caller's own NUMBA_CACHE_DIR wins)

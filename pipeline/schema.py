@@ -39,7 +39,6 @@ conf/<group>/<kind>.yaml (tests/test_config_schema.py checks that every implemen
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import importlib
 import json
 import os
@@ -52,6 +51,7 @@ from typing import Any, Literal, Optional, Union
 from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf, open_dict
 
+from pipeline import source_digest
 from pipeline.errors import ORDER, SAFE_NAME, ConfigError
 from pipeline.params import is_number, references_rule, schema, spec
 
@@ -333,11 +333,11 @@ def _cached_defaults(conf: Path) -> dict[str, dict]:
     edit of those files gives a new hash, so the defaults are recomputed (a compiled form of the code,
     like a .pyc, not a second statement of the defaults; never in a run's cache or results); an
     unwritable folder only loses the saving."""
-    h = hashlib.sha256()
-    for base, pattern in ((_ROOT / "pipeline", "*.py"), (_ROOT / "stages", "*.py"), (conf, "*.yaml")):
-        for f in sorted(base.rglob(pattern)):
-            h.update(str(f.relative_to(base.parent)).encode() + b"\0" + f.read_bytes())
-    where = DEFAULTS_CACHE / f"params-defaults-{h.hexdigest()[:20]}.json"
+    digest = source_digest((f.relative_to(base.parent).as_posix(), f.read_bytes())
+                           for base, pattern in ((_ROOT / "pipeline", "*.py"), (_ROOT / "stages", "*.py"),
+                                                 (conf, "*.yaml"))
+                           for f in sorted(base.rglob(pattern)))
+    where = DEFAULTS_CACHE / f"params-defaults-{digest[:20]}.json"
     try:
         return json.loads(where.read_text())
     except (OSError, ValueError):

@@ -348,12 +348,33 @@ def bench_k(args) -> dict:
     def ne_new(i=0):                                     # as LM calls it: after the residual at that φ
         jac.normal_equations(phis_ne_new[i % len(phis_ne_new)], r_last["r"])
     per_repeat(ne_new, lambda i: r_last.update(r=res(phis_ne_new[i % len(phis_ne_new)])))
+    # the geodesic acceleration's J v and Jᵀ w (lm.py), after the normal equations at that φ, as LM calls
+    # them; "explicit": the full J formed first (the code before 2026-12-03), "after": J never formed
+    phis_geo = phi_list(5)
+    v_geo = torch.from_numpy(np.random.default_rng(1).standard_normal(n_phi))
+    w_geo = torch.from_numpy(np.random.default_rng(2).standard_normal(r_n.numel()))
+
+    def geo_setup(i):
+        p = phis_geo[i % len(phis_geo)]
+        jac.normal_equations(p, res(p))
+
+    def geo_after(i=0):
+        p = phis_geo[i % len(phis_geo)]
+        jac.jvp(p, v_geo), jac.vjp(p, w_geo)
+
+    def geo_explicit(i=0):
+        J = jac(phis_geo[i % len(phis_geo)])
+        J @ v_geo, J.T @ w_geo
+    per_repeat(geo_after, geo_setup)
+    per_repeat(geo_explicit, geo_setup)
     fns.update({
         "after: residual": lambda: res(phi0),
         "after: normal equations": ne_new,
+        "after, geodesic: J v and Jᵀ w, J not formed": geo_after,
+        "explicit, geodesic: J formed, J v and Jᵀ w": geo_explicit,
         "after: iteration": iteration(res, jac, phi_list(4)),
         "after, part: g forward (activations kept)": lambda: model.g_forward(inp, phi0),
-        "after, part: W ∂g/∂φ stored (jvp/vjp, rare columns)": lambda: model.filtered_jacobian(
+        "after, part: W ∂g/∂φ stored (rare columns)": lambda: model.filtered_jacobian(
             inp, phi0, [1.0], den, seg, acts),
         "after, part: W ∂g/∂φ reduced in blocks (G, C, WJᵀr)": lambda: model.filtered_jacobian_gram(
             inp, phi0, [1.0], den, seg, U1c, r1, acts),
@@ -382,9 +403,11 @@ def bench_k(args) -> dict:
              g("after, part: g forward (activations kept)")),
             ("  W ∂g/∂φ + syrk + U1ᵀWJ + WJᵀr in blocks (one kernel)", None,
              g("after, part: W ∂g/∂φ reduced in blocks (G, C, WJᵀr)")),
-            ("  W ∂g/∂φ stored whole (jvp/vjp and rare columns only)", None,
-             g("after, part: W ∂g/∂φ stored (jvp/vjp, rare columns)")),
+            ("  W ∂g/∂φ stored whole (rare columns only)", None,
+             g("after, part: W ∂g/∂φ stored (rare columns)")),
             ("iteration = residual + normal equations", g("before: iteration"), g("after: iteration")),
+            ("geodesic step's J v, Jᵀ w (J formed | J not formed)", g("explicit, geodesic: J formed, J v and Jᵀ w"),
+             g("after, geodesic: J v and Jᵀ w, J not formed")),
             ("floor: syrk of WJ, scipy dsyrk (F order, 'T')", None, t["floor: scipy dsyrk of WJ (F order, 'T')"]),
             ("floor: syrk of WJ, scipy dsyrk (C order, 'N')", None, t["floor: scipy dsyrk of WJ (C order, 'N')"]),
             ("floor: syrk of WJ, numpy WJ.T @ WJ", None, t["floor: numpy WJ.T @ WJ"]),

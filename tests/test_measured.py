@@ -490,3 +490,32 @@ def test_a_pgnn_whose_regressor_misreads_the_rigid_body_is_refused_before_any_wo
     with pytest.raises(runner.ConfigError, match=r"model: RigidBodyPhysics .*set model.n_a=2"):
         runner.run_job(cfg)
     assert not (store / "cache").exists() or not any((store / "cache").glob("*/*"))
+
+
+def test_measured_sim_error_stage_passes_every_restart_option(store, cfg_of, tmp_path, monkeypatch):
+    """The measured loop's fit gets the restart options of the config, screen_iter included (it was
+    once dropped on this path: every EMPS restart ran to its stop, 2.6x the training time), read in
+    one place (stages.train.restart_options) for narx and both sim_error paths."""
+    import pipeline.identify.measured_loop as measured_loop
+    from stages.train import restart_options
+    _csv(tmp_path, n=3000)
+    user = ["system=measured", "system.controller.kind=cascade", "system.controller.num=null",
+            "system.controller.kp=160.18", "system.controller.kv=243.45",
+            "system.controller.gtau=35.150652", "data.format=table", f"data.path={tmp_path}", "data.file=rec.csv",
+            "evaluate.references=[{name:train,kind:measured,file:rec.csv}]"]
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def spy(*args, **kw):
+        seen.update(kw)
+        raise Stop
+    monkeypatch.setattr(measured_loop, "identify_loop_sim_error", spy)   # the stage imports it when it runs
+    cfg = cfg_of("experiment=emps", *user, "model.hidden=[2]", "identify.n_restarts=3", "identify.screen_iter=7",
+                 "identify.max_iter=11", "identify.stat_frac=0.25")
+    with pytest.raises(Stop):
+        runner.run_job(cfg)
+    want = restart_options(cfg.identify)
+    assert {k: seen[k] for k in want} == want
+    assert (want["screen_iter"], want["n_restarts"], want["max_iter"], want["stat_frac"]) == (7, 3, 11, 0.25)

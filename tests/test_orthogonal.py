@@ -120,6 +120,34 @@ def test_per_sample_jacobian_matches_autograd(module):
     nn.utils.vector_to_parameters(phi, module.parameters())
 
 
+@pytest.mark.parametrize("approx", ["mlp", "mlp_no_out_bias", "residual"])
+def test_g_jvp_and_vjp_equal_the_jacobian_products(approx):
+    """∂g/∂φ v and (∂g/∂φ)ᵀ w without ∂g/∂φ (closed form for a tanh MLP, with and without the kept
+    activations; torch.func otherwise) against g_and_jacobian's J, at a φ that is not the model's
+    (left unchanged), with g_gain ≠ 1.  Tolerance 1e-13 of ‖J‖‖v‖: other sums of the same products."""
+    rng = np.random.default_rng(5)
+    rs = _smooth_refs(rng)
+    w = ReferenceWindow(3, "delta", TS).fit(rs)
+    g = {"mlp": MLP(4, (6, 5), seed=0, out_bias=True), "mlp_no_out_bias": MLP(4, (6,), seed=1),
+         "residual": ResidualMLP(4, width=4, n_blocks=2, seed=2)}[approx]
+    m = SharedARPGNN(3, 3, g, w, basis="delta", Ts=TS)
+    m.scale_extra(0.7)
+    assert m.closed_form_jacobian == approx.startswith("mlp")
+    inp = m.inputs(rs)
+    phi0 = m.phi
+    phi = phi0 + 0.1 * torch.from_numpy(rng.standard_normal(phi0.numel()))
+    _, J = m.g_and_jacobian(inp, phi)
+    J = J.numpy()
+    acts = m.g_forward(inp, phi)[1] if m.closed_form_jacobian else None
+    for a in ([None, acts] if acts is not None else [None]):
+        v, wv = rng.standard_normal(J.shape[1]), rng.standard_normal(J.shape[0])
+        tol = 1e-13 * np.linalg.norm(J)
+        np.testing.assert_allclose(m.g_jvp(inp, phi, torch.from_numpy(v), a).numpy(), J @ v, rtol=0,
+                                   atol=tol * np.linalg.norm(v))
+        np.testing.assert_allclose(m.g_vjp(inp, phi, wv, a).numpy(), J.T @ wv, rtol=0, atol=tol * np.linalg.norm(wv))
+    assert torch.equal(m.phi, phi0)
+
+
 def test_per_sample_jacobian_generic_module_falls_back_to_torch_func():
     class Scaled(nn.Module):                       # a parameter outside any nn.Linear
         def __init__(self):
@@ -260,3 +288,52 @@ def test_sk_restarts_in_worker_processes_match_sequential_runs():
     for (a, _, wa), (b, _, wb) in zip(par, seq):
         assert a.J_OE == b.J_OE and wa and wb
         np.testing.assert_array_equal(a.model.theta, b.model.theta)
+
+
+# ----------------------------------------------------------------------------- geodesic J v, Jᵀ w
+def _captured_varpro(monkeypatch, model, rs, fs, regularizer, lam):
+    """The residual and Jacobian closures of the last SK step's variable projection (sk._varpro_step)."""
+    import pipeline.identify.sk as sk
+    seen, lm = [], sk.levenberg_marquardt
+
+    def spy(residual, phi0, *, jacobian, **kw):
+        seen.append((residual, phi0.clone(), jacobian))
+        return lm(residual, phi0, jacobian=jacobian, **kw)
+    monkeypatch.setattr(sk, "levenberg_marquardt", spy)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SKNotConvergedWarning)
+        sk_iterations(model, rs, fs, regularizer=regularizer, lam=lam, max_iter=2, tol=1e-30,
+                      lm_max_iter=5, geodesic=True)
+    return seen[-1]
+
+
+@pytest.mark.parametrize("case", ["mlp-orthogonal", "mlp-none", "in_span-orthogonal"])
+def test_geodesic_products_equal_the_explicit_jacobian(monkeypatch, case):
+    """The geodesic LM's J v and Jᵀ w of the SK step (one directional derivative of g and one
+    filtering pass, J never formed) equal the explicit J's products, flat columns included (the
+    in-span approximator moves g only inside im(W M): every column is flat, [K] Corollary 14).
+    Tolerance 1e-11 of ‖J‖‖v‖: the same sums in another order (torch.func vs per-sample rows)."""
+    model, reg = case.split("-")
+    rs, fs = _corollary_data()
+    if model == "mlp":
+        m = SharedARPGNN(3, 3, MLP(4, (6,), seed=0), ReferenceWindow(3, "delta", TS).fit(rs),
+                         basis="delta", Ts=TS)
+    else:
+        m = _linear_in_span_pgnn(seed=0)
+    residual, phi0, jac = _captured_varpro(monkeypatch, m, rs, fs, reg, 1.0 if reg == "orthogonal" else 0.0)
+    rng = np.random.default_rng(0)
+    phi = phi0 + 1e-3 * torch.from_numpy(rng.standard_normal(phi0.numel())) * phi0.abs().max()
+    r = residual(phi)
+    jac.normal_equations(phi, r)                     # as LM does before a geodesic step
+    J = jac(phi).numpy()
+    if model == "in_span":
+        n_main = rs[0].size + rs[1].size
+        assert np.all(J[:n_main] == 0)               # every column flat in the main rows
+        assert reg != "orthogonal" or np.linalg.norm(J[n_main:]) > 0   # the regulariser rows see them
+    for _ in range(3):
+        v = torch.from_numpy(rng.standard_normal(J.shape[1]))
+        w = torch.from_numpy(rng.standard_normal(J.shape[0]))
+        jv, jtw = jac.jvp(phi, v).numpy(), jac.vjp(phi, w).numpy()
+        scale = np.linalg.norm(J)
+        np.testing.assert_allclose(jv, J @ v.numpy(), rtol=0, atol=1e-11 * scale * np.linalg.norm(v))
+        np.testing.assert_allclose(jtw, J.T @ w.numpy(), rtol=0, atol=1e-11 * scale * np.linalg.norm(w))

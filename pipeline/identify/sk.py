@@ -292,6 +292,7 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
         return acts["acts"] if acts.get("key") == key else None
 
     last: dict = {}     # the filtered Jacobian of g (and J) at the last φ asked for
+    zeroed: dict = {}   # the flat columns normal_equations zeroed, and at which φ
 
     def filtered(phi: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         key = phi.numpy().tobytes()
@@ -339,6 +340,7 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
         g = C.T @ (U1.T @ r1) - WJr
         full2 = np.diag(G).copy()
         sus = np.flatnonzero(np.diag(A) <= _CANCEL_RTOL2 * full2)
+        zeroed.update(key=key, flat=sus[:0], acts=activations(key) if closed else None)
         if sus.size:
             WJ = filtered(phi)[0]                             # the explicit columns (rare)
             WJt = WJ.T
@@ -351,6 +353,7 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
                 A[:, flat] = 0.0
                 A[flat, :] = 0.0
                 g[flat] = 0.0
+                zeroed["flat"] = flat
         if lam > 0:
             K = sq * sub.coordinates(C, projected=True)       # [p, n_φ] regulariser rows
             A = A + K.T @ K
@@ -363,9 +366,54 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
             last["J"] = jacobian(phi)
         return last["J"]
 
+    # J v and Jᵀ w for the geodesic acceleration (lm.py), J never formed: one directional derivative
+    # of g and one filtering pass instead of the n_φ columns of W ∂g/∂φ.  With J = −(I − U1U1ᵀ) W ∂g/∂φ
+    # (flat columns zeroed, as normal_equations did at this φ) over the regulariser rows
+    # K = √λ V Σ⁻¹ U1ᵀ W ∂g/∂φ ([K] (23)):
+    #   J v  = [−(I − U1U1ᵀ) W ∂g/∂φ v_nf ;  √λ V Σ⁻¹ U1ᵀ W ∂g/∂φ v]                 (v_nf: v, flat zeroed)
+    #   Jᵀ w = zero_flat(∂g/∂φᵀ Wᵀ (−(I − U1U1ᵀ) w1)) + ∂g/∂φᵀ Wᵀ U1 √λ Σ⁻¹ Vᵀ w2   (Wᵀ: the time-reversed filter)
+    def flat_at(phi: torch.Tensor):
+        return zeroed["flat"] if zeroed.get("key") == phi.numpy().tobytes() else None
+
+    def jvp(phi: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        flat = flat_at(phi)
+        if flat is None:
+            return explicit(phi) @ v
+        v_nf = v.clone()
+        v_nf[flat] = 0.0
+        acts = zeroed["acts"]
+        u = filter_segments(model.g_jvp(inp, phi, v_nf, acts).numpy(), [1.0], den, seg)
+        out = -sub.project_out(u)
+        if lam > 0:
+            u_full = u if flat.size == 0 else filter_segments(model.g_jvp(inp, phi, v, acts).numpy(), [1.0],
+                                                              den, seg)
+            out = np.concatenate([out, sq * sub.coordinates(U1.T @ u_full, projected=True)])
+        return torch.from_numpy(out)
+
+    def vjp(phi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        flat = flat_at(phi)
+        if flat is None:
+            return explicit(phi).T @ w
+        wn = w.numpy()
+        n = seg.n
+
+        def pull(y):                                          # ∂g/∂φᵀ Wᵀ y
+            return model.g_vjp(inp, phi, filter_segments(y, [1.0], den, seg, reverse=True), zeroed["acts"])
+
+        y = -sub.project_out(wn[:n])
+        y_reg = U1 @ (sq * (sub.Vt @ wn[n:]) / sub.s) if lam > 0 else None
+        if flat.size == 0:
+            return pull(y if y_reg is None else y + y_reg)
+        out = pull(y)
+        out[flat] = 0.0
+        return out if y_reg is None else out + pull(y_reg)
+
     jacobian.normal_equations = normal_equations              # type: ignore[attr-defined]
-    jacobian.jvp = lambda phi, v: explicit(phi) @ v           # type: ignore[attr-defined]  (geodesic LM)
-    jacobian.vjp = lambda phi, w: explicit(phi).T @ w         # type: ignore[attr-defined]
+    if hasattr(model, "g_jvp"):
+        jacobian.jvp, jacobian.vjp = jvp, vjp                 # type: ignore[attr-defined]  (geodesic LM)
+    else:
+        jacobian.jvp = lambda phi, v: explicit(phi) @ v       # type: ignore[attr-defined]
+        jacobian.vjp = lambda phi, w: explicit(phi).T @ w     # type: ignore[attr-defined]
     res = levenberg_marquardt(residual, model.phi, jacobian=jacobian, **lm_kw)
     return res.theta, res
 

@@ -563,6 +563,52 @@ class SharedARPGNN(RationalFeedforward):
         with torch.no_grad():
             return self.g_gain * self._functional_g(Xn)(torch.as_tensor(phi, dtype=torch.float64), Xn)
 
+    def g_jvp(self, inputs: dict, phi: torch.Tensor, v: torch.Tensor, acts=None) -> torch.Tensor:
+        """∂g/∂φ · v [N] at φ, without forming ∂g/∂φ; the model is not modified.  A tanh MLP in closed
+        form (forward-mode chain rule through the layers, from the activations ``acts`` of
+        :meth:`g_forward` at φ when given), any other approximator by ``torch.func.jvp``.  Equal to
+        ``g_and_jacobian(inputs, φ)[1] @ v`` to rounding."""
+        lin = self._mlp_layers()
+        if lin is None:
+            Xn = self.window(inputs["X"]).detach()
+            g_of = self._functional_g(Xn)
+            _, out = torch.func.jvp(lambda p: g_of(p, Xn), (torch.as_tensor(phi, dtype=torch.float64),),
+                                    (torch.as_tensor(v, dtype=torch.float64),))
+            return float(self.g_gain) * out
+        acts = self.g_forward(inputs, phi)[1] if acts is None else acts
+        P, D = self._mlp_parameters(phi, lin), self._mlp_parameters(v, lin)
+        t = None                                   # the tangent of the layer's input (x does not move)
+        for a, h, (W, _), (dW, db) in zip(acts[:-1], acts[1:], P[:-1], D[:-1]):
+            dz = a @ dW.numpy().T + db.numpy()    # z = W a + b  ->  dz = dW a + db + W da
+            if t is not None:
+                dz += t @ W.numpy().T
+            t = (1.0 - h * h) * dz                 # tanh' = 1 - tanh²
+        (W, _), (dW, db) = P[-1], D[-1]
+        dg = acts[-1] @ dW.numpy()[0] + t @ W.numpy()[0] + (float(db[0]) if db is not None else 0.0)
+        return torch.from_numpy(float(self.g_gain) * dg)
+
+    def g_vjp(self, inputs: dict, phi: torch.Tensor, w: torch.Tensor, acts=None) -> torch.Tensor:
+        """(∂g/∂φ)ᵀ w [n_φ] at φ, without forming ∂g/∂φ; the model is not modified.  A tanh MLP in
+        closed form (backpropagation of w through the layers, from ``acts`` of :meth:`g_forward` at φ
+        when given), any other approximator by ``torch.func.vjp``.  Equal to
+        ``g_and_jacobian(inputs, φ)[1].T @ w`` to rounding."""
+        lin = self._mlp_layers()
+        if lin is None:
+            Xn = self.window(inputs["X"]).detach()
+            g_of = self._functional_g(Xn)
+            _, pull = torch.func.vjp(lambda p: g_of(p, Xn), torch.as_tensor(phi, dtype=torch.float64))
+            return float(self.g_gain) * pull(torch.as_tensor(w, dtype=torch.float64))[0]
+        acts = self.g_forward(inputs, phi)[1] if acts is None else acts
+        P = self._mlp_parameters(phi, lin)
+        w = float(self.g_gain) * np.asarray(w, dtype=np.float64)
+        grads = [[w @ acts[-1]] + ([np.array([w.sum()])] if P[-1][1] is not None else [])]
+        delta = np.outer(w, P[-1][0].numpy()[0])          # ∂/∂h_L
+        for a, h, (W, _) in zip(acts[-2::-1], acts[:0:-1], P[-2::-1]):
+            delta = delta * (1.0 - h * h)                   # ∂/∂z of this layer
+            grads.append([(delta.T @ a).ravel(), delta.sum(axis=0)])
+            delta = delta @ W.numpy()                       # ∂/∂ its input
+        return torch.from_numpy(np.concatenate([c for layer in grads[::-1] for c in layer]))
+
     # -- closed-form filtered Jacobian (tanh MLP) ------------------------------------------
     def _mlp_layers(self) -> list[nn.Linear] | None:
         """The Linear layers of a tanh :class:`MLP` approximator with at least one hidden layer

@@ -29,7 +29,7 @@ from pipeline.models.pgnn import PGNN
 from pipeline.models.physics_maps import physics_features_for
 from pipeline.params import COUNT_MAX, ITER_MAX, schema, spec
 from pipeline.plots import pyplot
-from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
+from stages.train import l2_lam, lm_progress, log_restarts, restart_memo, restart_options
 
 
 @schema
@@ -116,14 +116,8 @@ def fit(ctx) -> dict:
         us.append(u)
     ident = cfg.identify
     lam = l2_lam(cfg)
-    fit_ = identify_pgnn(model, ys, us, lam=lam, n_restarts=int(ident.n_restarts),
-                         seed=int(cfg.seed), val_fraction=float(ident.val_fraction),
-                         max_iter=int(ident.max_iter), ftol=float(ident.ftol),
-                         gtol=float(ident.gtol), mu0=float(ident.mu0),
-                         patience=int(ident.patience), geodesic=bool(ident.geodesic),
-                         stat_window=int(ident.stat_window), stat_tol=float(ident.stat_tol),
-                         stat_frac=float(ident.stat_frac), screen_iter=int(ident.screen_iter),
-                         **lm_progress(ctx),
+    fit_ = identify_pgnn(model, ys, us, lam=lam, seed=int(cfg.seed), val_fraction=float(ident.val_fraction),
+                         patience=int(ident.patience), **restart_options(ident), **lm_progress(ctx),
                          theta_star=ctx.inputs["baseline"]["theta"] if system.measured else None,
                          memo=restart_memo(ctx))
     log_restarts(ctx, fit_.restarts, fit_.best)

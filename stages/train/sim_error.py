@@ -35,7 +35,7 @@ from pipeline.models.physics_maps import LinearFeatures
 from pipeline.params import COUNT_MAX, ITER_MAX, schema, spec
 from pipeline.plots import pyplot
 from pipeline.systems.arx_bias import ARXPhysics
-from stages.train import l2_lam, lm_progress, log_restarts, restart_memo
+from stages.train import l2_lam, lm_progress, log_restarts, restart_memo, restart_options
 from stages.train.narx import build_model as build_narx_model
 
 
@@ -82,9 +82,10 @@ class Params:
 
 
 THETA_STAR = ("arx", "sim_error", "oracle")   # oracle: the plant's true linear part (an oracle, simulation only)
-VERSION = 4   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zeros logged;
+VERSION = 5   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zeros logged;
               # 3: measured loop from the recorded state; 4: the statistical window spans a continued
-              # restart's screening steps (issue 19)
+              # restart's screening steps (issue 19); 5: the measured loop screens its restarts too
+              # (identify.screen_iter was ignored there)
 
 
 def check(cfg, system) -> None:
@@ -144,15 +145,10 @@ def fit(ctx) -> dict:
     ident = cfg.identify
     lam = l2_lam(cfg)
     theta_star = system.linear_theta() if ident.theta_star == "oracle" else str(ident.theta_star)
-    fit_ = identify_sim_error(model, ctrl, r, u_ex, y, u, lam=lam, theta_star=theta_star,
-                              n_restarts=int(ident.n_restarts), seed=int(cfg.seed),
-                              val_fraction=float(ident.val_fraction), max_iter=int(ident.max_iter),
-                              ftol=float(ident.ftol), gtol=float(ident.gtol), mu0=float(ident.mu0),
-                              patience=int(ident.patience), linear_max_iter=int(ident.linear_max_iter),
-                              geodesic=bool(ident.geodesic), stat_window=int(ident.stat_window),
-                              stat_tol=float(ident.stat_tol), stat_frac=float(ident.stat_frac),
-                              memo=restart_memo(ctx), screen_iter=int(ident.screen_iter),
-                              **lm_progress(ctx))
+    fit_ = identify_sim_error(model, ctrl, r, u_ex, y, u, lam=lam, theta_star=theta_star, seed=int(cfg.seed),
+                              val_fraction=float(ident.val_fraction), patience=int(ident.patience),
+                              linear_max_iter=int(ident.linear_max_iter), memo=restart_memo(ctx),
+                              **restart_options(ident), **lm_progress(ctx))
     log_restarts(ctx, fit_.restarts, fit_.best)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)
@@ -253,13 +249,9 @@ def _fit_measured(ctx) -> dict:
     n_trains = [int(round((1.0 - float(ident.val_fraction)) * len(g))) for g in segs]   # each record's head
     lam = float(l2_lam(cfg))
     fit_ = identify_loop_sim_error(model, bool(system.physics.averaged_input), system.ctrl, sigs,
-                                   [col(g, "u") for g in segs], lam=lam, n_train=n_trains,
-                                   n_restarts=int(ident.n_restarts), seed=int(cfg.seed),
-                                   max_iter=int(ident.max_iter), ftol=float(ident.ftol), gtol=float(ident.gtol),
-                                   mu0=float(ident.mu0), memo=restart_memo(ctx), geodesic=bool(ident.geodesic),
-                                   stat_window=int(ident.stat_window), stat_tol=float(ident.stat_tol),
-                                   stat_frac=float(ident.stat_frac), n_data=sum(n_trains) - N_INIT * len(segs),
-                                   **lm_progress(ctx))
+                                   [col(g, "u") for g in segs], lam=lam, n_train=n_trains, seed=int(cfg.seed),
+                                   memo=restart_memo(ctx), n_data=sum(n_trains) - N_INIT * len(segs),
+                                   **restart_options(ident), **lm_progress(ctx))
     log_restarts(ctx, fit_.restarts, fit_.best)
     best = fit_.restarts[fit_.best]
     ctx.metric("cost", best.cost)

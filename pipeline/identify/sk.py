@@ -409,11 +409,7 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
         return out if y_reg is None else out + pull(y_reg)
 
     jacobian.normal_equations = normal_equations              # type: ignore[attr-defined]
-    if hasattr(model, "g_jvp"):
-        jacobian.jvp, jacobian.vjp = jvp, vjp                 # type: ignore[attr-defined]  (geodesic LM)
-    else:
-        jacobian.jvp = lambda phi, v: explicit(phi) @ v       # type: ignore[attr-defined]
-        jacobian.vjp = lambda phi, w: explicit(phi).T @ w     # type: ignore[attr-defined]
+    jacobian.jvp, jacobian.vjp = jvp, vjp                     # type: ignore[attr-defined]  (geodesic LM)
     res = levenberg_marquardt(residual, model.phi, jacobian=jacobian, **lm_kw)
     return res.theta, res
 

@@ -563,6 +563,12 @@ class SharedARPGNN(RationalFeedforward):
         with torch.no_grad():
             return self.g_gain * self._functional_g(Xn)(torch.as_tensor(phi, dtype=torch.float64), Xn)
 
+    def _g_of_phi(self, inputs: dict):
+        """g on these inputs as a function of the flat φ alone (for torch.func), without the gain."""
+        Xn = self.window(inputs["X"]).detach()
+        g_of = self._functional_g(Xn)
+        return lambda p: g_of(p, Xn)
+
     def g_jvp(self, inputs: dict, phi: torch.Tensor, v: torch.Tensor, acts=None) -> torch.Tensor:
         """∂g/∂φ · v [N] at φ, without forming ∂g/∂φ; the model is not modified.  A tanh MLP in closed
         form (forward-mode chain rule through the layers, from the activations ``acts`` of
@@ -570,9 +576,7 @@ class SharedARPGNN(RationalFeedforward):
         ``g_and_jacobian(inputs, φ)[1] @ v`` to rounding."""
         lin = self._mlp_layers()
         if lin is None:
-            Xn = self.window(inputs["X"]).detach()
-            g_of = self._functional_g(Xn)
-            _, out = torch.func.jvp(lambda p: g_of(p, Xn), (torch.as_tensor(phi, dtype=torch.float64),),
+            _, out = torch.func.jvp(self._g_of_phi(inputs), (torch.as_tensor(phi, dtype=torch.float64),),
                                     (torch.as_tensor(v, dtype=torch.float64),))
             return float(self.g_gain) * out
         acts = self.g_forward(inputs, phi)[1] if acts is None else acts
@@ -594,9 +598,7 @@ class SharedARPGNN(RationalFeedforward):
         ``g_and_jacobian(inputs, φ)[1].T @ w`` to rounding."""
         lin = self._mlp_layers()
         if lin is None:
-            Xn = self.window(inputs["X"]).detach()
-            g_of = self._functional_g(Xn)
-            _, pull = torch.func.vjp(lambda p: g_of(p, Xn), torch.as_tensor(phi, dtype=torch.float64))
+            _, pull = torch.func.vjp(self._g_of_phi(inputs), torch.as_tensor(phi, dtype=torch.float64))
             return float(self.g_gain) * pull(torch.as_tensor(w, dtype=torch.float64))[0]
         acts = self.g_forward(inputs, phi)[1] if acts is None else acts
         P = self._mlp_parameters(phi, lin)

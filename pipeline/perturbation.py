@@ -16,6 +16,11 @@ writes ``DIR/check-<check>.csv`` (per summary key: both values and the relative 
 ``DIR/check-<check>.md`` (per experiment: values compared, the largest relative change and its key,
 how many moved by more than ``rtol``, the claim verdicts that changed (a claim holds when all its
 rows hold) and the claim rows whose verdict changed).  Timings are left out.
+
+A check of a subset (``EXPERIMENTS=...``) replaces its experiments' rows and keeps the others':
+``DIR/check-<check>.json`` records, per experiment, the sha256 of the reference rows it compared
+(:func:`experiment_digests`), so the report shows an experiment's check only while its reference
+rows are unchanged and names the others stale.
 """
 from __future__ import annotations
 
@@ -102,7 +107,7 @@ def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02
     b = perturbed.copy()
     a = reference[reference["experiment"].isin(set(b["experiment"]))].copy()   # a subset rerun: its experiments
     for d in (a, b):
-        d[KEY] = d[KEY].fillna("")
+        d[KEY] = d[KEY].astype(object).fillna("")
     m = a.merge(b, on=KEY, how="outer", suffixes=("_ref", "_pert"), indicator=True)
     m = m[~m["metric"].map(_is_timing)]
     va = pd.to_numeric(m["value_ref"], errors="coerce").to_numpy(float)
@@ -261,12 +266,17 @@ _WHAT = {"perturb": ("Perturbation check (a second machine, emulated)",
 
 
 def markdown(summary: pd.DataFrame, rtol: float, check: str, setting: str,
-             keys: pd.DataFrame | None = None) -> str:
+             keys: pd.DataFrame | None = None, per: dict | None = None) -> str:
+    """check-<check>.md; ``per``: the json's per-experiment entries (when each experiment was checked)."""
     title, what = _WHAT[check]
     lines = [f"# {title}", "",
              f"The whole `make reproduce` rerun with {what} (`{setting}`); values compared key by "
              f"key with the reference `summary.csv` (timings left out). A value that moves by more "
              f"than {rtol:.0%} comes from a fit that its tolerance does not pin down. " + EXPLAIN, ""]
+    if per:
+        lines += ["Checked (each experiment against its rows of the reference summary.csv; a subset run "
+                  "replaces only its own): " + "; ".join(f"{e} {v.get('checked_at', '?')}" for e, v in per.items())
+                  + ".", ""]
     lines += table_lines(summary) + ([] if keys is None else capped_lines(keys, check))
     return "\n".join(lines) + "\n"
 
@@ -278,6 +288,27 @@ def summary_digest(path: Path) -> str:
     t = t[~t["metric"].map(_is_timing)]
     t = t.sort_values([c for c in KEY if c in t.columns], kind="stable").reset_index(drop=True)
     return hashlib.sha256(t.to_csv(index=False).encode()).hexdigest()
+
+
+def experiment_digests(path: Path) -> dict[str, str]:
+    """Per experiment, the sha256 of its rows of a summary.csv (as :func:`summary_digest`): a check made
+    against these rows still holds for a later summary whose rows of that experiment have this digest."""
+    t = pd.read_csv(path, dtype=str, keep_default_na=False)
+    t = t[~t["metric"].map(_is_timing)]
+    return {str(e): hashlib.sha256(g.sort_values([c for c in KEY if c in g.columns], kind="stable")
+                                   .reset_index(drop=True).to_csv(index=False).encode()).hexdigest()
+            for e, g in t.groupby("experiment", sort=True)}
+
+
+def kept_experiments(meta: dict, digests: dict[str, str]) -> tuple[list[str], list[str]]:
+    """From a check-<check>.json: the experiments whose check was made against the reference rows now in
+    the summary (``digests``: :func:`experiment_digests`), and the stale ones (their rows changed since).
+    A json written before the per-experiment digests (one ``reference_sha256`` of the whole summary) has
+    none it can vouch for one by one: its experiments are all stale."""
+    per = meta.get("experiments", {})
+    valid = sorted(e for e, info in per.items() if digests.get(e) == info.get("reference_sha256"))
+    stale = sorted(set(per) - set(valid))
+    return valid, stale
 
 
 def _atomic_write(path: Path, text: str) -> None:
@@ -299,16 +330,34 @@ def main(argv=None) -> int:
         if not Path(f).is_file():
             raise SystemExit(f"error: {f} does not exist: run `make reproduce` (reference) and the "
                              "perturbed reproduce first (`make reproduce-check` runs both)")
-    keys, summary = compare(pd.read_csv(args.reference), pd.read_csv(args.perturbed), args.rtol)
+    reference = pd.read_csv(args.reference)
+    keys, summary = compare(reference, pd.read_csv(args.perturbed), args.rtol)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    md = markdown(summary, args.rtol, args.check, args.setting, keys)
-    _atomic_write(out / f"check-{args.check}.csv", keys.to_csv(index=False))
+    digests = experiment_digests(Path(args.reference))
+    stamp = {"setting": args.setting, "checked_at": pd.Timestamp.now(tz="UTC").strftime("%Y-%m-%d %H:%M UTC")}
+    per = {r.experiment: {"reference_sha256": digests.get(r.experiment, ""), "keys_on_one_side": r.keys_on_one_side,
+                          **stamp} for r in summary.itertuples()}
+    # a subset rerun: keep the other experiments' rows of the previous check while their reference rows are unchanged
+    meta_path, csv_path = out / f"check-{args.check}.json", out / f"check-{args.check}.csv"
+    if meta_path.exists() and csv_path.exists():
+        old_meta = json.loads(meta_path.read_text())
+        if float(old_meta.get("rtol", args.rtol)) == args.rtol:
+            keep = [e for e in kept_experiments(old_meta, digests)[0] if e not in per]
+            if keep:
+                old = pd.read_csv(csv_path, dtype={"claim": str, "variant": str, "metric": str})
+                keys = pd.concat([keys, old[old["experiment"].isin(keep)]], ignore_index=True)
+                per.update({e: old_meta["experiments"][e] for e in keep})
+                summary = summarise(keys, args.rtol, {e: per[e].get("keys_on_one_side", 0) for e in per})
+    order = sorted(per)
+    keys = keys.assign(_o=keys["experiment"].map(order.index)).sort_values("_o", kind="stable").drop(columns="_o")
+    summary = summary.set_index("experiment").loc[order].reset_index()
+    settings = sorted({v["setting"] for v in per.values()})
+    md = markdown(summary, args.rtol, args.check, " / ".join(settings), keys, per)
+    _atomic_write(csv_path, keys.to_csv(index=False))
     _atomic_write(out / f"check-{args.check}.md", md)
-    _atomic_write(out / f"check-{args.check}.json", json.dumps({   # the report shows the check of this summary only
-        "reference_sha256": summary_digest(Path(args.reference)),
-        "setting": args.setting, "rtol": args.rtol,
-        "keys_on_one_side": {r.experiment: r.keys_on_one_side for r in summary.itertuples()}}, indent=1) + "\n")
+    _atomic_write(meta_path, json.dumps({   # the report shows each experiment's check while its rows are unchanged
+        "rtol": args.rtol, "experiments": per}, indent=1) + "\n")
     print(md)
     return 0
 

@@ -237,3 +237,41 @@ def test_the_tightening_check_runs_a_capped_fit_on_and_leaves_the_screening_budg
         runs[f] = (out[best].n_iter, out[best].message, sorted(r.n_iter for r in out))
     assert runs[1.0] == (12, "max_iter", [4, 4, 12])
     assert 12 < runs[2.0][0] <= 24 and runs[2.0][2] == [4, 4, runs[2.0][0]]
+
+
+def test_a_subset_check_replaces_its_experiments_and_keeps_the_others_while_their_rows_hold(tmp_path):
+    """make reproduce-check EXPERIMENTS=<subset>: check-<check>.csv/.json keep the other experiments' rows of
+    the previous check, each with the sha256 of the reference rows it compared; the report shows an
+    experiment's check while its rows of summary.csv are unchanged and names it stale once they change."""
+    import json
+    from pipeline.perturbation import main
+    from stages.report import _with_checks
+
+    def table(rows):
+        return pd.DataFrame([{"experiment": e, "claim": "", "variant": v, "metric": "m", "value": x,
+                              "paper_value": None, "claim_holds": None} for e, v, x in rows])
+    ref, out = tmp_path / "summary.csv", tmp_path / "out"
+    table([("a", "p", 1.0), ("b", "q", 2.0)]).to_csv(ref, index=False)
+    table([("a", "p", 1.5), ("b", "q", 2.0)]).to_csv(tmp_path / "full.csv", index=False)
+    table([("b", "q", 2.2)]).to_csv(tmp_path / "only_b.csv", index=False)
+    common = ["--out", str(out), "--check", "perturb", "--rtol", "0.02"]
+    assert main([str(ref), str(tmp_path / "full.csv"), *common]) == 0
+    assert main([str(ref), str(tmp_path / "only_b.csv"), *common]) == 0
+    keys = pd.read_csv(out / "check-perturb.csv")
+    got = dict(zip(keys["experiment"], keys["value_pert"]))
+    assert got == {"a": 1.5, "b": 2.2}   # a kept from the full check, b replaced by the subset's
+    meta = json.loads((out / "check-perturb.json").read_text())
+    assert sorted(meta["experiments"]) == ["a", "b"]
+    md = (out / "check-perturb.md").read_text()
+    assert "| a | 1 | 0.333 |" in md and "| b | 1 | 0.0909 |" in md
+    # the report over this summary shows both; once a's reference rows change, a is named stale
+    for f in ("check-perturb.csv", "check-perturb.json"):
+        (tmp_path / f).write_text((out / f).read_text())
+    text = _with_checks("# R\n\n## k\n", tmp_path)
+    assert "| a | 1 | 0.333 |" in text and "Stale" not in text
+    table([("a", "p", 1.1), ("b", "q", 2.0)]).to_csv(ref, index=False)
+    text = _with_checks("# R\n\n## k\n", tmp_path)
+    assert "| a | 1 |" not in text and "| b | 1 | 0.0909 |" in text and "Stale" in text and ": a." in text
+    # a subset rerun against the new reference drops a (its check compared other rows), keeps nothing stale
+    assert main([str(ref), str(tmp_path / "only_b.csv"), *common]) == 0
+    assert set(pd.read_csv(out / "check-perturb.csv")["experiment"]) == {"b"}

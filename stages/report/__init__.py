@@ -32,7 +32,8 @@ import pandas as pd
 
 from pipeline import compare, owned, tracking
 from pipeline.export.law import strict_json
-from pipeline.perturbation import EXPLAIN, capped_lines, summarise, summary_digest, table_lines
+from pipeline.perturbation import (EXPLAIN, capped_lines, experiment_digests, kept_experiments, summarise,
+                                   summary_digest, table_lines)
 from pipeline.runner import ROOT
 from stages.report import claims
 from stages.report._rows import row, run_metrics
@@ -101,16 +102,22 @@ def run(ctx) -> dict:
 
 
 def _with_checks(text: str, results: Path) -> str:
-    """REPORT.md with a section per reproduce-check (pipeline/perturbation.py) made against this very
-    summary.csv (its sha256 in check-<check>.json); a check of another summary is named stale."""
-    digest = summary_digest(results / "summary.csv")
+    """REPORT.md with a section per reproduce-check (pipeline/perturbation.py): the experiments whose check was
+    made against their rows of this very summary.csv (per-experiment sha256 in check-<check>.json); the
+    experiments checked against other rows are named stale, those never checked are named too."""
+    digest, digests = summary_digest(results / "summary.csv"), experiment_digests(results / "summary.csv")
     out = []
     for check, title in (("perturb", "a second machine, emulated"), ("tighten", "tolerances tightened 10x")):
         meta, csv = results / f"check-{check}.json", results / f"check-{check}.csv"
         if not (meta.exists() and csv.exists()):
             continue
         info = json.loads(meta.read_text())
-        if info.get("reference_sha256") != digest:
+        if "experiments" not in info:   # one digest of the whole summary (a check written before the merge)
+            valid = [] if info.get("reference_sha256") != digest else None
+            stale = sorted(info.get("keys_on_one_side", {})) if valid == [] else []
+        else:
+            valid, stale = kept_experiments(info, digests)
+        if valid == []:
             out += [f"`make reproduce-check CHECK={check}` ({title}): results/check-{check}.md compares another "
                     "summary.csv than this one (stale); rerun it.", ""]
             continue
@@ -121,11 +128,21 @@ def _with_checks(text: str, results: Path) -> str:
                     "version of the check (no categories); rerun it.", ""]
             continue
         k[["claim", "variant"]] = k[["claim", "variant"]].fillna("")
-        keys_one_side = info.get("keys_on_one_side", {})
-        out += [f"### Same numbers on {title} (`make reproduce-check CHECK={check}`, `{info.get('setting', '')}`)", "",
+        per = info.get("experiments", {})
+        if valid is not None:
+            k = k[k["experiment"].isin(valid)]
+        keys_one_side = {e: v.get("keys_on_one_side", 0) for e, v in per.items()} or info.get("keys_on_one_side", {})
+        settings = sorted({v.get("setting", "") for v in per.values()} or {info.get("setting", "")})
+        unchecked = sorted(set(digests) - set(k["experiment"]) - set(stale))
+        out += [f"### Same numbers on {title} (`make reproduce-check CHECK={check}`, `{' / '.join(settings)}`)", "",
                 f"Per experiment, the largest relative change of a summary value between this run and the "
                 f"rerun, and how many moved by more than {rtol:.0%}. " + EXPLAIN +
                 f" Per key: results/check-{check}.csv.", ""]
+        if stale or unchecked:
+            out += [" ".join(x for x in (
+                f"Stale (their rows of summary.csv changed since they were checked; rerun with "
+                f"`EXPERIMENTS=...`): {', '.join(stale)}." if stale else "",
+                f"Not checked: {', '.join(unchecked)}." if unchecked else "") if x), ""]
         out += table_lines(summarise(k, rtol, keys_one_side)) + capped_lines(k, check)
         out.append("")
     if not out:

@@ -244,6 +244,35 @@ def test_statistical_stop_waits_for_the_decrement_on_a_slow_crawl(monkeypatch):
     assert window.cost - c_min > 1.5 * threshold
 
 
+def test_the_damped_promise_stops_a_crawl_within_two_thresholds_and_the_full_one_within_one():
+    # stat_promise='damped' (the measured fits) regularises the decrement by μ as well: on Rosenbrock's valley
+    # (the crawl above) it stops where the window rule alone does, 1.47-1.68 thresholds above the minimum
+    # (measured, noise seeds 3-5), the full Gauss–Newton promise at 1.08. That is the price: the damped one
+    # ends a crawl whose full promise never comes true (the EMPS loop, pipeline/identify/lm.py)
+    from pipeline.identify.lm import _gauss_newton_decrement
+    N = 400
+    for seed in (3, 4, 5):
+        e = torch.randn(N, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+
+        def res_fn(th):
+            return torch.cat([e, torch.stack([1000.0 * (th[1] - th[0] ** 2), 1 - th[0]])])
+        th0 = torch.tensor([-1.2, 1.0], dtype=torch.float64)
+        c_min = float(e @ e)
+        threshold = 0.1 * np.sqrt(2 / N) * c_min
+        kw = dict(max_iter=5000, ftol=0.0, gtol=0.0, stat_window=10, stat_tol=0.1, mu0=100.0)
+        full = levenberg_marquardt(res_fn, th0, **kw)
+        damped = levenberg_marquardt(res_fn, th0, stat_promise="damped", **kw)
+        assert full.message == damped.message == "stat" and damped.n_iter < full.n_iter
+        assert full.cost - c_min <= 1.25 * threshold < damped.cost - c_min <= 2.0 * threshold
+    # the damped decrement is gᵀ(A + μI)⁻¹g (a linear problem's closed form)
+    A, b, _ = _lip_problem([1.0, 2.0, 0.5, 1.5, 1.0])
+    g, eye = A.T @ (A @ torch.zeros(5, dtype=torch.float64) - b), torch.eye(5, dtype=torch.float64)
+    want = float(g @ torch.linalg.solve(A.T @ A + 0.3 * eye, g))
+    assert _gauss_newton_decrement(A.T @ A, g, eye, 0.3) == pytest.approx(want, rel=1e-12)
+    with pytest.raises(ValueError, match="stat_promise"):
+        levenberg_marquardt(res_fn, th0, stat_promise="trust")
+
+
 def test_statistical_stop_with_a_growing_window_waits_out_a_crawl():
     # a tanh fit under σ = 1e-4 noise crawls (plain LM: the cost still falls after 2000 steps).
     # A fixed window of 10 steps stops at step ~330; the window of the last 30 % of the run

@@ -516,6 +516,8 @@ def test_measured_sim_error_stage_passes_every_restart_option(store, cfg_of, tmp
                  "identify.max_iter=11", "identify.stat_frac=0.25")
     with pytest.raises(Stop):
         runner.run_job(cfg)
-    want = restart_options(cfg.identify)
+    want = restart_options(cfg.identify, measured=True)
     assert {k: seen[k] for k in want} == want
     assert (want["screen_iter"], want["n_restarts"], want["max_iter"], want["stat_frac"]) == (7, 3, 11, 0.25)
+    # identify.stat_promise=auto: the damped promise on a recording, the full one on a simulated plant
+    assert want["stat_promise"] == "damped" and restart_options(cfg.identify)["stat_promise"] == "gauss_newton"

@@ -342,7 +342,7 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
                   val_fraction: float = 0.2, max_iter: int = 100, ftol: float = 1e-10,
                   gtol: float = 1e-10, mu0: float = 1e-3, patience: int = 5,
                   geodesic: bool = False, stat_window: int = 0, stat_tol: float = 0.1,
-                  stat_frac: float = 0.0, screen_iter: int = 0,
+                  stat_frac: float = 0.0, screen_iter: int = 0, stat_promise: str = "gauss_newton",
                   progress: Callable | None = None,
                   on_iteration: Callable[[int, int, float], None] | None = None,
                   theta_star=None, memo: Callable | None = None) -> NarxFit:
@@ -366,7 +366,7 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
     val_fraction : float
         Length of the validation block at the end of the record(s) (0 disables early
         stopping).
-    max_iter, ftol, gtol, mu0, patience, geodesic, stat_window, stat_tol, stat_frac
+    max_iter, ftol, gtol, mu0, patience, geodesic, stat_window, stat_tol, stat_frac, stat_promise
         Passed to :func:`pipeline.identify.lm.levenberg_marquardt` (the statistical stop's N is
         the number of training rows).
     screen_iter : int
@@ -447,7 +447,7 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
                                           patience=patience, progress=progress, on_iteration=on_iteration,
                                           memo=memo, geodesic=geodesic, stat_window=stat_window,
                                           stat_tol=stat_tol, stat_frac=stat_frac, n_data=M,
-                                          screen_iter=screen_iter)
+                                          screen_iter=screen_iter, stat_promise=stat_promise)
     fit.restarts.extend(restarts)
     return fit
 

@@ -176,7 +176,7 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
                        linear_max_iter: int = 50, geodesic: bool = False, stat_window: int = 0,
                        stat_tol: float = 0.1, stat_frac: float = 0.0, progress: Callable | None = None,
                        on_iteration: Callable | None = None, memo: Callable | None = None,
-                       screen_iter: int = 0) -> SimErrorFit:
+                       screen_iter: int = 0, stat_promise: str = "gauss_newton") -> SimErrorFit:
     """Closed-loop simulation-error identification of a PGNN, [B2] (16), by Levenberg–Marquardt.
 
     Steps: θ*_phy (the linear model identified first), NN input normalisation and output
@@ -211,7 +211,7 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
     val_fraction : float
         Contiguous tail of the record for early stopping (0 = none); the simulation still
         runs through it.
-    max_iter, ftol, gtol, mu0, patience, geodesic, stat_window, stat_tol, stat_frac
+    max_iter, ftol, gtol, mu0, patience, geodesic, stat_window, stat_tol, stat_frac, stat_promise
         Passed to :func:`pipeline.identify.lm.levenberg_marquardt` (the statistical stop's N is
         the number of training samples; the θ*_phy refinement uses them too).
     linear_max_iter : int
@@ -271,7 +271,7 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
                                       jacobian=lambda th: torch.from_numpy(jac_l(th.numpy())),
                                       max_iter=linear_max_iter, ftol=ftol, gtol=gtol, mu0=mu0,
                                       geodesic=geodesic, stat_window=stat_window, stat_tol=stat_tol,
-                                      stat_frac=stat_frac, n_data=N - n_val)
+                                      stat_frac=stat_frac, n_data=N - n_val, stat_promise=stat_promise)
             ts = out.theta.numpy().copy()
             linear_stop, linear_history, linear_iter = out.message, out.history, out.n_iter
     else:
@@ -305,7 +305,7 @@ def identify_sim_error(model, ctrl: DiscreteController, r, u_ex, y, u=None, *, l
                                               patience=patience, progress=progress, on_iteration=on_iteration,
                                               memo=memo, screen_iter=screen_iter, geodesic=geodesic,
                                               stat_window=stat_window, stat_tol=stat_tol, stat_frac=stat_frac,
-                                              n_data=N - n_val)
+                                              n_data=N - n_val, stat_promise=stat_promise)
     else:   # the linear model (n1 = 0) is θ*_phy: fitting (16) toward itself would only trade it off
         from pipeline.identify.narx import RestartResult  # lazy: saves 2.7 s of start-up (torch)
         th = model.parameter_vector()

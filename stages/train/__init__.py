@@ -69,15 +69,19 @@ def l2_lam(cfg):
     return OmegaConf.to_container(lam, resolve=True) if OmegaConf.is_list(lam) else float(lam)
 
 
-def restart_options(ident) -> dict:
+def restart_options(ident, measured: bool = False) -> dict:
     """The LM and restart options of ``identify`` that every LM fit with restarts takes (narx,
     sim_error simulated and measured; :func:`pipeline.identify.narx.best_of_restarts` and
     :func:`pipeline.identify.lm.levenberg_marquardt`), read in one place so that no path drops one
-    (the measured sim_error path once ignored ``screen_iter``)."""
+    (the measured sim_error path once ignored ``screen_iter``). ``identify.stat_promise=auto`` is
+    ``damped`` on a measured system (``measured``), ``gauss_newton`` on a simulated one."""
+    promise = str(ident.stat_promise)
+    if promise == "auto":
+        promise = "damped" if measured else "gauss_newton"
     return dict(n_restarts=int(ident.n_restarts), max_iter=int(ident.max_iter), ftol=float(ident.ftol),
                 gtol=float(ident.gtol), mu0=float(ident.mu0), geodesic=bool(ident.geodesic),
                 stat_window=int(ident.stat_window), stat_tol=float(ident.stat_tol),
-                stat_frac=float(ident.stat_frac), screen_iter=int(ident.screen_iter))
+                stat_frac=float(ident.stat_frac), screen_iter=int(ident.screen_iter), stat_promise=promise)
 
 
 def lm_progress(ctx, desc: str = "LM restarts") -> dict:

@@ -62,9 +62,14 @@ class Params:
     stat_tol: float = spec(0.1, ge=0, le=100)
     # window of the statistical stop grows with the run (0: fixed; see conf/identify/sim_error.yaml)
     stat_frac: float = spec(0.0, ge=0, lt=1)
+    # the local model's promise the statistical stop also asks for (pipeline/identify/lm.py): gauss_newton (the full
+    # Gauss–Newton decrement) | damped (regularised by the LM's damping μ: what the model promises where the gain
+    # ratio trusts it; a crawl held back by μ near the largest curvature, measured on the EMPS loop) | auto: damped on
+    # a measured recording, gauss_newton on a simulated plant
+    stat_promise: Literal["auto", "gauss_newton", "damped"] = "auto"
 
 
-VERSION = 2   # 2: the statistical window spans a continued restart's screening steps (issue 19)
+VERSION = 3   # 2: the statistical window spans a continued restart's screening steps (issue 19); 3: stat_promise
 
 STRUCTURES = ("forward", "inverse", "invertible")
 
@@ -117,8 +122,8 @@ def fit(ctx) -> dict:
     ident = cfg.identify
     lam = l2_lam(cfg)
     fit_ = identify_pgnn(model, ys, us, lam=lam, seed=int(cfg.seed), val_fraction=float(ident.val_fraction),
-                         patience=int(ident.patience), **restart_options(ident), **lm_progress(ctx),
-                         theta_star=ctx.inputs["baseline"]["theta"] if system.measured else None,
+                         patience=int(ident.patience), **restart_options(ident, system.measured),
+                         **lm_progress(ctx), theta_star=ctx.inputs["baseline"]["theta"] if system.measured else None,
                          memo=restart_memo(ctx))
     log_restarts(ctx, fit_.restarts, fit_.best)
     best = fit_.restarts[fit_.best]

@@ -146,3 +146,15 @@ def test_queue_gives_each_swept_experiment_its_parent_and_the_same_runs(store):
                                                 for a in ("trialnoise", "noiseless") for b in ("arx", "oracle")}
     single = runs[runs["tags.mlflow.runName"] == "arx_bias-physics-s0"]
     assert len(single) == 1 and single["tags.sweep"].iloc[0] == "single"
+
+
+def test_committed_results_are_the_pipelines_own():
+    """results/.pgnn-owned.json lists every committed report output with its sha256: otherwise the report stage
+    of `make reproduce` on a fresh clone refuses to replace them (pipeline.owned; a REPORT.md copied in
+    without its manifest once made a fresh clone's subset reproduce fail at its last step)."""
+    from pathlib import Path
+
+    from pipeline import owned
+    from stages.report import OUTPUTS
+    results = Path(__file__).resolve().parents[1] / "results"
+    assert owned.foreign(results, OUTPUTS) == []

@@ -57,7 +57,7 @@ reproduce: install  ## run every paper experiment, then write results/REPORT.md,
 #                  PERTURB (another BLAS summation order); values must move by < 2 %
 #   CHECK=tighten: every LM and SK tolerance divided by TIGHTEN, and the restarts' iteration caps
 #                  times CAPS (a fit that stopped on its cap runs on); values must move by < 1 %
-# Own cache and store under .perturbed/<CHECK>/; compared key by key with results/summary.csv into
+# Own cache and store under .perturbed/<CHECK>/ (the store emptied per run); compared key by key with results/summary.csv into
 # results/check-<CHECK>.md and .csv
 CHECK ?= perturb
 PERTURB ?= 1e-13
@@ -67,6 +67,8 @@ CHECK_ENV = $(if $(filter tighten,$(CHECK)),PIPELINE_TIGHTEN=$(TIGHTEN) PIPELINE
 CHECK_RTOL = $(if $(filter tighten,$(CHECK)),0.01,0.02)
 CHECKED := $(ROOT)/.perturbed/$(CHECK)
 reproduce-check: install  ## rerun every experiment perturbed (CHECK=perturb) or tightened (CHECK=tighten), compare with results/
+	@# a store of this run only (the cache stays: a rerun resumes), so its summary holds only EXPERIMENTS
+	rm -rf $(CHECKED)/mlflow.db $(CHECKED)/mlflow.db.open.lock $(CHECKED)/artifacts $(CHECKED)/results/summary.csv
 	$(CHECK_ENV) PIPELINE_CACHE=$(CHECKED)/cache MLFLOW_TRACKING_URI=sqlite:///$(CHECKED)/mlflow.db \
 	  $(PY) -m pipeline.reproduce --results $(CHECKED)/results $(if $(JOBS),--jobs $(JOBS)) $(EXPERIMENTS)
 	$(CHECK_ENV) PIPELINE_CACHE=$(CHECKED)/cache MLFLOW_TRACKING_URI=sqlite:///$(CHECKED)/mlflow.db \

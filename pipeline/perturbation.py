@@ -275,8 +275,9 @@ def markdown(summary: pd.DataFrame, rtol: float, check: str, setting: str,
              f"than {rtol:.0%} comes from a fit that its tolerance does not pin down. " + EXPLAIN, ""]
     if per:
         lines += ["Checked (each experiment against its rows of the reference summary.csv; a subset run "
-                  "replaces only its own): " + "; ".join(f"{e} {v.get('checked_at', '?')}" for e, v in per.items())
-                  + ".", ""]
+                  "replaces only its own): " + "; ".join(f"{e} {v.get('checked_at', '?')}" for e, v in per.items()
+                                                          if not v.get("stale")) + ".", ""]
+        lines += partial_lines(per)
     lines += table_lines(summary) + ([] if keys is None else capped_lines(keys, check))
     return "\n".join(lines) + "\n"
 
@@ -293,7 +294,12 @@ def summary_digest(path: Path) -> str:
 def experiment_digests(path: Path) -> dict[str, str]:
     """Per experiment, the sha256 of its rows of a summary.csv (as :func:`summary_digest`): a check made
     against these rows still holds for a later summary whose rows of that experiment have this digest."""
-    t = pd.read_csv(path, dtype=str, keep_default_na=False)
+    try:
+        t = pd.read_csv(path, dtype=str, keep_default_na=False)
+    except pd.errors.EmptyDataError:
+        return {}
+    if t.empty or not {"experiment", "metric"} <= set(t.columns):   # a report without rows
+        return {}
     t = t[~t["metric"].map(_is_timing)]
     return {str(e): hashlib.sha256(g.sort_values([c for c in KEY if c in g.columns], kind="stable")
                                    .reset_index(drop=True).to_csv(index=False).encode()).hexdigest()
@@ -304,11 +310,29 @@ def kept_experiments(meta: dict, digests: dict[str, str]) -> tuple[list[str], li
     """From a check-<check>.json: the experiments whose check was made against the reference rows now in
     the summary (``digests``: :func:`experiment_digests`), and the stale ones (their rows changed since).
     A json written before the per-experiment digests (one ``reference_sha256`` of the whole summary) has
-    none it can vouch for one by one: its experiments are all stale."""
+    none it can vouch for one by one: its experiments are all stale. An entry marked ``stale`` (kept, without
+    its rows, by a later subset check) stays stale."""
     per = meta.get("experiments", {})
-    valid = sorted(e for e, info in per.items() if digests.get(e) == info.get("reference_sha256"))
+    valid = sorted(e for e, info in per.items()
+                   if not info.get("stale") and digests.get(e) == info.get("reference_sha256"))
     stale = sorted(set(per) - set(valid))
     return valid, stale
+
+
+def partial_lines(per: dict) -> list[str]:
+    """The stale experiments, and those whose rerun lacked reference keys (a subset that left out an experiment
+    file reporting into the same experiment, e.g. emps_narx of emps), from check-<check>.json's entries."""
+    stale = [e for e, v in per.items() if v.get("stale")]
+    part = [f"{e} ({v['keys_on_one_side']} keys)" for e, v in per.items()
+            if not v.get("stale") and v.get("keys_on_one_side", 0)]
+    out = []
+    if stale:
+        out.append(f"Stale (their rows of summary.csv changed since they were checked; rerun with "
+                   f"`EXPERIMENTS=...`): {', '.join(stale)}.")
+    if part:
+        out.append("Partial (the rerun lacked keys of the reference: rerun every experiment file that reports into "
+                   f"it): {', '.join(part)}.")
+    return [" ".join(out), ""] if out else []
 
 
 def _atomic_write(path: Path, text: str) -> None:
@@ -332,27 +356,38 @@ def main(argv=None) -> int:
                              "perturbed reproduce first (`make reproduce-check` runs both)")
     reference = pd.read_csv(args.reference)
     keys, summary = compare(reference, pd.read_csv(args.perturbed), args.rtol)
+    if keys.empty:
+        raise SystemExit(f"error: {args.perturbed} and {args.reference} have no experiment in common to compare")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     digests = experiment_digests(Path(args.reference))
     stamp = {"setting": args.setting, "checked_at": pd.Timestamp.now(tz="UTC").strftime("%Y-%m-%d %H:%M UTC")}
     per = {r.experiment: {"reference_sha256": digests.get(r.experiment, ""), "keys_on_one_side": r.keys_on_one_side,
                           **stamp} for r in summary.itertuples()}
-    # a subset rerun: keep the other experiments' rows of the previous check while their reference rows are unchanged
+    # a subset rerun: keep the other experiments' rows of the previous check while their reference rows are
+    # unchanged; the stale ones stay named (without rows) until a check reruns them
     meta_path, csv_path = out / f"check-{args.check}.json", out / f"check-{args.check}.csv"
     if meta_path.exists() and csv_path.exists():
         old_meta = json.loads(meta_path.read_text())
-        if float(old_meta.get("rtol", args.rtol)) == args.rtol:
-            keep = [e for e in kept_experiments(old_meta, digests)[0] if e not in per]
+        if float(old_meta.get("rtol", args.rtol)) != args.rtol:
+            print(f"note: the previous {csv_path.name} was made at rtol {old_meta.get('rtol')}, not {args.rtol}: "
+                  "its experiments are not kept")
+        else:
+            valid, stale = kept_experiments(old_meta, digests)
+            keep = [e for e in valid if e not in per]
             if keep:
                 old = pd.read_csv(csv_path, dtype={"claim": str, "variant": str, "metric": str})
+                for c in ("claim", "variant", "fit"):
+                    old[c] = old[c].astype(object).fillna("")
                 keys = pd.concat([keys, old[old["experiment"].isin(keep)]], ignore_index=True)
                 per.update({e: old_meta["experiments"][e] for e in keep})
                 summary = summarise(keys, args.rtol, {e: per[e].get("keys_on_one_side", 0) for e in per})
-    order = sorted(per)
+            per.update({e: {**old_meta["experiments"][e], "stale": True} for e in stale if e not in per})
+    per = {e: per[e] for e in sorted(per)}
+    order = sorted(set(keys["experiment"]))
     keys = keys.assign(_o=keys["experiment"].map(order.index)).sort_values("_o", kind="stable").drop(columns="_o")
     summary = summary.set_index("experiment").loc[order].reset_index()
-    settings = sorted({v["setting"] for v in per.values()})
+    settings = sorted({v.get("setting", "") for v in per.values() if not v.get("stale")})
     md = markdown(summary, args.rtol, args.check, " / ".join(settings), keys, per)
     _atomic_write(csv_path, keys.to_csv(index=False))
     _atomic_write(out / f"check-{args.check}.md", md)

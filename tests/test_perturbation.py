@@ -272,6 +272,31 @@ def test_a_subset_check_replaces_its_experiments_and_keeps_the_others_while_thei
     table([("a", "p", 1.1), ("b", "q", 2.0)]).to_csv(ref, index=False)
     text = _with_checks("# R\n\n## k\n", tmp_path)
     assert "| a | 1 |" not in text and "| b | 1 | 0.0909 |" in text and "Stale" in text and ": a." in text
-    # a subset rerun against the new reference drops a (its check compared other rows), keeps nothing stale
+    # a subset rerun against the new reference drops a's rows (they compared other rows) but keeps naming it stale
     assert main([str(ref), str(tmp_path / "only_b.csv"), *common]) == 0
     assert set(pd.read_csv(out / "check-perturb.csv")["experiment"]) == {"b"}
+    assert "Stale" in (out / "check-perturb.md").read_text() and ": a." in (out / "check-perturb.md").read_text()
+    for f in ("check-perturb.csv", "check-perturb.json"):
+        (tmp_path / f).write_text((out / f).read_text())
+    text = _with_checks("# R\n\n## k\n", tmp_path)
+    assert "Stale" in text and ": a." in text and "| b | 1 | 0.0909 |" in text
+    # a rerun that lacks keys of the reference (one experiment file of several) is named partial
+    table([("a", "p", 1.1), ("b", "q", 2.0), ("b", "q2", 3.0)]).to_csv(ref, index=False)
+    assert main([str(ref), str(tmp_path / "only_b.csv"), *common]) == 0
+    assert "Partial" in (out / "check-perturb.md").read_text() and "b (1 keys)" in (out / "check-perturb.md").read_text()
+    # nothing in common: a clear error, the files untouched
+    table([("c", "p", 1.0)]).to_csv(tmp_path / "only_c.csv", index=False)
+    before = (out / "check-perturb.csv").read_text()
+    with pytest.raises(SystemExit, match="no experiment in common"):
+        main([str(ref), str(tmp_path / "only_c.csv"), *common])
+    assert (out / "check-perturb.csv").read_text() == before
+
+
+def test_the_report_of_an_empty_summary_has_no_experiment_digests(tmp_path):
+    """A report without rows (report.experiments that never ran) writes a summary.csv without columns: its
+    per-experiment digests are none (the check section must not fail on it)."""
+    from pipeline.perturbation import experiment_digests
+    pd.DataFrame().to_csv(tmp_path / "summary.csv", index=False)          # what the report stage writes then
+    assert experiment_digests(tmp_path / "summary.csv") == {}
+    (tmp_path / "summary.csv").write_text("")
+    assert experiment_digests(tmp_path / "summary.csv") == {}

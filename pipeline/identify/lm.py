@@ -47,8 +47,9 @@ Stopping (``LMResult.message``):
   largest curvature the quadratic model holds only inside that damped region, and its full promise
   does not come true (measured on the EMPS recorded loop, n1 = 16, λ = 0.1: μ ≈ 0.05-4, the full
   decrement promises 6-7x the threshold for 2600 steps, which gain 0.7 % of C, below the
-  threshold). ``stat_promise='damped'`` then regularises the decrement by μ as well: the decrease
-  the model promises where it is trusted (the measured fits' default, ``identify.stat_promise``);
+  threshold). ``stat_promise='damped'`` then regularises the decrement by μ as well, gᵀ(JᵀJ + μD)⁻¹g:
+  a lower bound (between 1/2 and 1) of the decrease the damped step itself promises, where the gain
+  ratio trusts the model (the measured fits' default, ``identify.stat_promise``);
 - ``'gtol'``: the scaled gradient ``max_i |J_iᵀ r| / (||J_i|| ||r||)`` (cosine between each
   Jacobian column and the residual, as in MINPACK/scipy) is at most ``gtol``;
 - ``'zero_cost'``: the cost is exactly zero;
@@ -454,9 +455,10 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
 
 
 def _gauss_newton_decrement(A_s: torch.Tensor, g_s: torch.Tensor, eye: torch.Tensor, floor: float = 0.0) -> float:
-    """``g̃ᵀ(Ã + εI)⁻¹g̃`` in the scaled variables: the cost decrease promised by a full (barely
-    damped) Gauss–Newton step from here, ε = max(DECREMENT_EPS·max diag Ã, ``floor``) (the damped
-    promise: ``floor`` = the current μ)."""
+    """``g̃ᵀ(Ã + εI)⁻¹g̃`` in the scaled variables, ε = max(DECREMENT_EPS·max diag Ã, ``floor``): with
+    ``floor`` 0 the cost decrease a full (barely damped) Gauss–Newton step from here promises; with
+    ``floor`` = the current μ (the damped promise) a lower bound, between 1/2 and 1, of what the damped
+    step promises."""
     eps = max(DECREMENT_EPS * float(torch.diagonal(A_s).max()), float(floor))
     while True:
         L, info = torch.linalg.cholesky_ex(A_s + eps * eye)

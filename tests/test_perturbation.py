@@ -283,7 +283,8 @@ def test_a_subset_check_replaces_its_experiments_and_keeps_the_others_while_thei
     # a rerun that lacks keys of the reference (one experiment file of several) is named partial
     table([("a", "p", 1.1), ("b", "q", 2.0), ("b", "q2", 3.0)]).to_csv(ref, index=False)
     assert main([str(ref), str(tmp_path / "only_b.csv"), *common]) == 0
-    assert "Partial" in (out / "check-perturb.md").read_text() and "b (1 keys)" in (out / "check-perturb.md").read_text()
+    md = (out / "check-perturb.md").read_text()
+    assert "Partial" in md and "b (1 keys)" in md
     # nothing in common: a clear error, the files untouched
     table([("c", "p", 1.0)]).to_csv(tmp_path / "only_c.csv", index=False)
     before = (out / "check-perturb.csv").read_text()

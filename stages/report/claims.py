@@ -102,7 +102,7 @@ CONDITIONS: tuple[Condition, ...] = (
               text="(15) holds at n1 = {n1}, γ = {gamma}"),
     Condition("B2a", B2, "n1={n1}/gamma={gamma}", "abs_epsilon_over_tracking", "<= 0.25",
               text="|ε| ≤ 0.25·tracking at n1 = {n1}, γ = {gamma}"),
-    Condition("B2b", B2, "gamma={gamma}", "identification_error_n48_over_n1", "<= 0.5",
+    Condition("B2b", B2, "n1=48/gamma={gamma}", "identification_error_n48_over_n1", "<= 0.5",
               text="identification error of n1 = 48 ≤ 0.5× that of n1 = 1"),
     Condition("B2b", B2, "n1={n1}/gamma={gamma}", "inversion_over_identification", "> 1",
               text="inversion error > identification error at n1 = {n1}, γ = {gamma}"),

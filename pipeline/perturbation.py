@@ -277,7 +277,7 @@ def markdown(summary: pd.DataFrame, rtol: float, check: str, setting: str,
         lines += ["Checked (each experiment against its rows of the reference summary.csv; a subset run "
                   "replaces only its own): " + "; ".join(f"{e} {v.get('checked_at', '?')}" for e, v in per.items()
                                                           if not v.get("stale")) + ".", ""]
-        lines += partial_lines(per)
+        lines += status_lines([e for e, v in per.items() if v.get("stale")], partial_of(per))
     lines += table_lines(summary) + ([] if keys is None else capped_lines(keys, check))
     return "\n".join(lines) + "\n"
 
@@ -319,19 +319,25 @@ def kept_experiments(meta: dict, digests: dict[str, str]) -> tuple[list[str], li
     return valid, stale
 
 
-def partial_lines(per: dict) -> list[str]:
-    """The stale experiments, and those whose rerun lacked reference keys (a subset that left out an experiment
-    file reporting into the same experiment, e.g. emps_narx of emps), from check-<check>.json's entries."""
-    stale = [e for e, v in per.items() if v.get("stale")]
-    part = [f"{e} ({v['keys_on_one_side']} keys)" for e, v in per.items()
-            if not v.get("stale") and v.get("keys_on_one_side", 0)]
+def partial_of(per: dict, shown=None) -> list[str]:
+    """From check-<check>.json's entries: the checked experiments (of ``shown``, default all) whose rerun lacked
+    reference keys (a subset that left out an experiment file reporting into the same experiment, e.g.
+    emps_narx of emps), with how many."""
+    return [f"{e} ({v['keys_on_one_side']} keys)" for e, v in per.items()
+            if not v.get("stale") and v.get("keys_on_one_side", 0) and (shown is None or e in shown)]
+
+
+def status_lines(stale: list[str], partial: list[str], unchecked: list[str] = ()) -> list[str]:
+    """The line naming a check's stale, unchecked and partial experiments (check-<check>.md and REPORT.md)."""
     out = []
     if stale:
         out.append(f"Stale (their rows of summary.csv changed since they were checked; rerun with "
                    f"`EXPERIMENTS=...`): {', '.join(stale)}.")
-    if part:
+    if unchecked:
+        out.append(f"Not checked: {', '.join(unchecked)}.")
+    if partial:
         out.append("Partial (the rerun lacked keys of the reference: rerun every experiment file that reports into "
-                   f"it): {', '.join(part)}.")
+                   f"it): {', '.join(partial)}.")
     return [" ".join(out), ""] if out else []
 
 
@@ -354,8 +360,7 @@ def main(argv=None) -> int:
         if not Path(f).is_file():
             raise SystemExit(f"error: {f} does not exist: run `make reproduce` (reference) and the "
                              "perturbed reproduce first (`make reproduce-check` runs both)")
-    reference = pd.read_csv(args.reference)
-    keys, summary = compare(reference, pd.read_csv(args.perturbed), args.rtol)
+    keys, summary = compare(pd.read_csv(args.reference), pd.read_csv(args.perturbed), args.rtol)
     if keys.empty:
         raise SystemExit(f"error: {args.perturbed} and {args.reference} have no experiment in common to compare")
     out = Path(args.out)
@@ -381,12 +386,10 @@ def main(argv=None) -> int:
                     old[c] = old[c].astype(object).fillna("")
                 keys = pd.concat([keys, old[old["experiment"].isin(keep)]], ignore_index=True)
                 per.update({e: old_meta["experiments"][e] for e in keep})
-                summary = summarise(keys, args.rtol, {e: per[e].get("keys_on_one_side", 0) for e in per})
             per.update({e: {**old_meta["experiments"][e], "stale": True} for e in stale if e not in per})
     per = {e: per[e] for e in sorted(per)}
-    order = sorted(set(keys["experiment"]))
-    keys = keys.assign(_o=keys["experiment"].map(order.index)).sort_values("_o", kind="stable").drop(columns="_o")
-    summary = summary.set_index("experiment").loc[order].reset_index()
+    keys = keys.sort_values("experiment", kind="stable")
+    summary = summarise(keys, args.rtol, {e: v.get("keys_on_one_side", 0) for e, v in per.items()})
     settings = sorted({v.get("setting", "") for v in per.values() if not v.get("stale")})
     md = markdown(summary, args.rtol, args.check, " / ".join(settings), keys, per)
     _atomic_write(csv_path, keys.to_csv(index=False))

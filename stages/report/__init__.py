@@ -32,8 +32,8 @@ import pandas as pd
 
 from pipeline import compare, owned, tracking
 from pipeline.export.law import strict_json
-from pipeline.perturbation import (EXPLAIN, capped_lines, experiment_digests, kept_experiments, summarise,
-                                   summary_digest, table_lines)
+from pipeline.perturbation import (EXPLAIN, capped_lines, experiment_digests, kept_experiments, partial_of,
+                                   status_lines, summarise, summary_digest, table_lines)
 from pipeline.runner import ROOT
 from stages.report import claims
 from stages.report._rows import row, run_metrics
@@ -134,20 +134,11 @@ def _with_checks(text: str, results: Path) -> str:
         keys_one_side = {e: v.get("keys_on_one_side", 0) for e, v in per.items()} or info.get("keys_on_one_side", {})
         settings = sorted({v.get("setting", "") for v in per.values()} or {info.get("setting", "")})
         unchecked = sorted(set(digests) - set(k["experiment"]) - set(stale))
-        part = [f"{e} ({v['keys_on_one_side']} keys)" for e, v in per.items()
-                if e in set(k["experiment"]) and v.get("keys_on_one_side", 0)]
         out += [f"### Same numbers on {title} (`make reproduce-check CHECK={check}`, `{' / '.join(settings)}`)", "",
                 f"Per experiment, the largest relative change of a summary value between this run and the "
                 f"rerun, and how many moved by more than {rtol:.0%}. " + EXPLAIN +
                 f" Per key: results/check-{check}.csv.", ""]
-        if stale or unchecked:
-            out += [" ".join(x for x in (
-                f"Stale (their rows of summary.csv changed since they were checked; rerun with "
-                f"`EXPERIMENTS=...`): {', '.join(stale)}." if stale else "",
-                f"Not checked: {', '.join(unchecked)}." if unchecked else "") if x), ""]
-        if part:
-            out += ["Partial (the rerun lacked keys of the reference: rerun every experiment file that reports "
-                    f"into it): {', '.join(part)}.", ""]
+        out += status_lines(stale, partial_of(per, set(k["experiment"])), unchecked)
         out += table_lines(summarise(k, rtol, keys_one_side)) + capped_lines(k, check)
         out.append("")
     if not out:

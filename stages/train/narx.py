@@ -62,10 +62,7 @@ class Params:
     stat_tol: float = spec(0.1, ge=0, le=100)
     # window of the statistical stop grows with the run (0: fixed; see conf/identify/sim_error.yaml)
     stat_frac: float = spec(0.0, ge=0, lt=1)
-    # the local model's promise the statistical stop also asks for (pipeline/identify/lm.py): gauss_newton (the full
-    # Gauss–Newton decrement) | damped (regularised by the LM's damping μ: what the model promises where the gain
-    # ratio trusts it; a crawl held back by μ near the largest curvature, measured on the EMPS loop) | auto: damped on
-    # a measured recording, gauss_newton on a simulated plant
+    # the statistical stop's promise: gauss_newton | damped | auto (as identify=sim_error: stages/train/sim_error.py)
     stat_promise: Literal["auto", "gauss_newton", "damped"] = "auto"
 
 

@@ -90,3 +90,26 @@ def test_sections_give_no_verdicts_of_their_own():
     for f in (ROOT / "stages" / "report").glob("claims_*.py"):
         text = f.read_text()
         assert not re.search(r'claim_holds"?\]?\s*=\s*(?!None)', text), f.name   # clearing one is fine
+
+
+def test_claim_table_names_the_fits_that_stopped_on_a_cap():
+    """The header's claim table counts the experiment's runs stopped on a cap and names the fits behind
+    them (issue 19: a non-zero cap cell names the fit and points at its tightening check)."""
+    import pandas as pd
+
+    from stages.report import _claim_table
+    rows = [row("b2_rot_trans", "training", "fits_with_stop_reason", 32),
+            row("b2_rot_trans", "training", "fits_stopped_on_cap", 2),
+            row("b2_rot_trans", "n1=24", "fit_stopped_on_cap", 1.0),
+            row("b2_rot_trans", "n1=32", "fit_stopped_on_cap", 0.0),
+            row("b2_rot_trans", "n1=24/gamma=5e-05", "inversion_over_identification", 1.5),
+            row("k_two_mass", "training", "fits_with_stop_reason", 4),
+            row("k_two_mass", "training", "fits_stopped_on_cap", 0),
+            row("k_two_mass", "pgnn_none", "sk_stopped_on_tol", 1.0)]
+    table = pd.DataFrame(claims.judge(rows))
+    table["claim"] = table["claim"].fillna("")
+    lines = {ln.split("|")[1].strip(): ln for ln in _claim_table(table)[2:] if ln}
+    b2 = next(v for k, v in lines.items() if k.startswith("B2"))
+    assert "**2 of 32** (fit `n1=24`:" in b2 and "n1=32" not in b2
+    k = next(v for k, v in lines.items() if k.startswith("K"))
+    assert k.rstrip().endswith("| 0 of 4 |")

@@ -381,12 +381,15 @@ def _claim_table(table: pd.DataFrame) -> list[str]:
     if claimed.empty:
         return []
     fits = table[table["variant"] == "training"].set_index(["experiment", "metric"])["value"]
+    flag = table[table["metric"] == "fit_stopped_on_cap"]          # one row per fit (a fit may feed several runs)
+    capped = flag[pd.to_numeric(flag["value"], errors="coerce") == 1].groupby("experiment")["variant"].agg(list)
     out = ["| claim | experiment | holds | its experiment's fits stopped on a cap |", "| --- | --- | --- | --- |"]
     for (c, e), g in claimed.groupby(["claim", "experiment"], sort=False):
         cap = (f"{float(fits[(e, 'fits_stopped_on_cap')]):.0f} of {float(fits[(e, 'fits_with_stop_reason')]):.0f}"
                if (e, "fits_stopped_on_cap") in fits.index and c not in claims.CLAIMS_WITHOUT_FITS else "")
         if cap and not cap.startswith("0 "):
-            cap = f"**{cap}**"
+            named = ", ".join(f"`{v}`" for v in capped.get(e, []))
+            cap = f"**{cap}**" + (f" (fit {named}: its caps raised in the tightening check below)" if named else "")
         out.append(f"| {c} | {e} | {'yes' if (g['claim_holds'] == 'true').all() else 'no'} | {cap} |")
     return out + [""]
 

@@ -110,6 +110,12 @@ def test_claim_table_names_the_fits_that_stopped_on_a_cap():
     table["claim"] = table["claim"].fillna("")
     lines = {ln.split("|")[1].strip(): ln for ln in _claim_table(table)[2:] if ln}
     b2 = next(v for k, v in lines.items() if k.startswith("B2"))
-    assert "**2 of 32** (fit `n1=24`:" in b2 and "n1=32" not in b2
+    assert "**2 of 32** (fit `n1=24`: no current tightening check" in b2 and "n1=32" not in b2
+    # with a current tightening check of that fit, the row shows where its raised caps took it
+    from types import SimpleNamespace
+    t = SimpleNamespace(cost_ref=1.672e-9, cost_pert=6.463e-10, still_capped=True, max_value_change=0.9739)
+    tight = {ln.split("|")[1].strip(): ln for ln in _claim_table(table, {("b2_rot_trans", "n1=24"): t})[2:] if ln}
+    b2t = next(v for k, v in tight.items() if k.startswith("B2"))
+    assert "training cost 1.67e-09 → 6.46e-10, on its cap again, its values move by up to 97%" in b2t
     k = next(v for k, v in lines.items() if k.startswith("K"))
     assert k.rstrip().endswith("| 0 of 4 |")

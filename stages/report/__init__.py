@@ -32,8 +32,8 @@ import pandas as pd
 
 from pipeline import compare, owned, tracking
 from pipeline.export.law import strict_json
-from pipeline.perturbation import (EXPLAIN, capped_lines, experiment_digests, kept_experiments, partial_of,
-                                   status_lines, summarise, summary_digest, table_lines)
+from pipeline.perturbation import (EXPLAIN, capped_fits, capped_lines, experiment_digests, kept_experiments,
+                                   partial_of, status_lines, summarise, summary_digest, table_lines)
 from pipeline.runner import ROOT
 from stages.report import claims
 from stages.report._rows import row, run_metrics
@@ -83,6 +83,8 @@ def run(ctx) -> dict:
         if update:
             table, text = _merge(results, table, text, built, figdir)
         _write(results / "summary.csv", lambda p: table.to_csv(p, index=False))
+        # the claim table again, with the tightening check of each capped fit (valid against this summary.csv)
+        text = text.replace("\n".join(_claim_table(table)), "\n".join(_claim_table(table, _tightened(results))), 1)
         text = _with_checks(text, results)
         text = _with_champions(text, [(e, _champion_or_warn(e)) for e in built])
         old = Path(tempfile.mkdtemp(prefix=".figures-old-", dir=results))
@@ -374,9 +376,27 @@ def _stop_reasons(experiment: str, runs: pd.DataFrame):
     return rows, md + "\n"
 
 
-def _claim_table(table: pd.DataFrame) -> list[str]:
+def _tightened(results: Path) -> dict:
+    """``(experiment, fit) -> ``:func:`pipeline.perturbation.capped_fits` row for the fits that stopped on their cap,
+    from results/check-tighten.* where that check was made against this summary.csv's rows of the experiment."""
+    meta, csv = results / "check-tighten.json", results / "check-tighten.csv"
+    if not (meta.exists() and csv.exists()):
+        return {}
+    info = json.loads(meta.read_text())
+    if "experiments" not in info:
+        return {}
+    valid, _ = kept_experiments(info, experiment_digests(results / "summary.csv"))
+    k = pd.read_csv(csv, dtype={"claim": str, "variant": str, "metric": str})
+    if "category" not in k:
+        return {}
+    k[["claim", "variant"]] = k[["claim", "variant"]].fillna("")
+    return {(r.experiment, r.fit): r for r in capped_fits(k[k["experiment"].isin(valid)]).itertuples()}
+
+
+def _claim_table(table: pd.DataFrame, tightened: dict | None = None) -> list[str]:
     """The header's claim table: a claim holds when every one of its rows holds; beside it, how many
-    of the experiment's fits stopped on an iteration cap."""
+    of the experiment's fits stopped on an iteration cap, the fits named, each with its tightening check
+    (``tightened``: :func:`_tightened`) where one is current."""
     claimed = table[table["claim"] != ""]
     if claimed.empty:
         return []
@@ -388,10 +408,19 @@ def _claim_table(table: pd.DataFrame) -> list[str]:
         cap = (f"{float(fits[(e, 'fits_stopped_on_cap')]):.0f} of {float(fits[(e, 'fits_with_stop_reason')]):.0f}"
                if (e, "fits_stopped_on_cap") in fits.index and c not in claims.CLAIMS_WITHOUT_FITS else "")
         if cap and not cap.startswith("0 "):
-            named = ", ".join(f"`{v}`" for v in capped.get(e, []))
-            cap = f"**{cap}**" + (f" (fit {named}: its caps raised in the tightening check below)" if named else "")
+            named = "; ".join(_capped_fit(e, v, (tightened or {}).get((e, v))) for v in capped.get(e, []))
+            cap = f"**{cap}**" + (f" ({named})" if named else "")
         out.append(f"| {c} | {e} | {'yes' if (g['claim_holds'] == 'true').all() else 'no'} | {cap} |")
     return out + [""]
+
+
+def _capped_fit(experiment: str, fit: str, t) -> str:
+    """A capped fit in the claim table, with what its caps raised (the tightening check) did to it."""
+    if t is None:
+        return f"fit `{fit}`: no current tightening check (`make reproduce-check CHECK=tighten`)"
+    return (f"fit `{fit}`, caps raised in the tightening check: training cost {t.cost_ref:.3g} → {t.cost_pert:.3g}"
+            f"{', on its cap again' if t.still_capped else ', stopped on its tolerance'}, its values move by up to "
+            f"{t.max_value_change:.0%}")
 
 
 def _write(path: Path, write) -> None:

@@ -69,7 +69,7 @@ _SOLVER_PATH = ("iterations", "rel_change", "sk_tol", "oe_check_max_iter", "oe_c
 ILL_DETERMINED = ("tiny", "equal_fit", "other_minimum")
 
 
-def _is_timing(metric: str) -> bool:
+def is_timing(metric: str) -> bool:
     m = metric.lower()
     return any(t in m for t in _TIMING)
 
@@ -109,7 +109,7 @@ def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02
     for d in (a, b):
         d[KEY] = d[KEY].astype(object).fillna("")
     m = a.merge(b, on=KEY, how="outer", suffixes=("_ref", "_pert"), indicator=True)
-    m = m[~m["metric"].map(_is_timing)]
+    m = m[~m["metric"].map(is_timing)]
     va = pd.to_numeric(m["value_ref"], errors="coerce").to_numpy(float)
     vb = pd.to_numeric(m["value_pert"], errors="coerce").to_numpy(float)
     model = m["variant"].fillna("").astype(str).str.split("/").str[0].to_numpy()   # the model (or system) of the row
@@ -170,13 +170,8 @@ def summarise(keys: pd.DataFrame, rtol: float, one_side: dict | None = None) -> 
         pool = counted if len(counted) else res
         worst = pool.sort_values("rel_change", kind="stable").iloc[-1] if len(pool) else None
         fits = g[g["metric"] == FIT_METRIC]
-        verdicts = g[g["claim_holds_ref"].astype(str) != g["claim_holds_pert"].astype(str)] \
-            if "claim_holds_ref" in g else g.iloc[:0]
-        verdicts = verdicts[verdicts["claim"].fillna("") != ""]          # claim rows whose verdict changed
-        claimed = g[g["claim"].fillna("") != ""] if "claim_holds_ref" in g else g.iloc[:0]
-        holds = {side: claimed.groupby("claim")[f"claim_holds_{side}"].agg(
-            lambda v: all(str(x).lower() == "true" for x in v)) for side in ("ref", "pert")}
-        claims_changed = int(sum(holds["ref"][c] != holds["pert"][c] for c in holds["ref"].index))
+        verdicts = claim_verdicts(g)
+        claims_changed = int((verdicts["holds_ref"] != verdicts["holds_pert"]).sum())
         rows.append({"experiment": exp, "values": len(res),
                      "max_rel_change": float(pool["rel_change"].max()) if len(pool) else 0.0,
                      "worst_key": "" if worst is None else
@@ -189,9 +184,24 @@ def summarise(keys: pd.DataFrame, rtol: float, one_side: dict | None = None) -> 
                      "fits_moved": f"{int((fits['rel_change'] > FIT_RTOL).sum())} of {len(fits)}",
                      "n_solver_path": int((cat == "solver_path").sum()),
                      "verdicts_changed": claims_changed,
-                     "claim_rows_changed": int(len(verdicts)),
+                     "claim_rows_changed": int(verdicts["rows_changed"].map(len).sum()),
                      "keys_on_one_side": int(one_side.get(exp, 0))})
     return pd.DataFrame(rows)
+
+
+def claim_verdicts(keys: pd.DataFrame) -> pd.DataFrame:
+    """Per (experiment, claim) of :func:`compare`'s keys: the verdict on both sides (a claim holds when every
+    one of its rows holds) and the claim rows whose verdict changed (``rows_changed``: a list of key rows)."""
+    cols = ["experiment", "claim", "holds_ref", "holds_pert", "rows_changed"]
+    if "claim_holds_ref" not in keys:
+        return pd.DataFrame(columns=cols)
+    claimed = keys[keys["claim"].fillna("").astype(str) != ""]
+    rows = []
+    for (exp, claim), g in claimed.groupby(["experiment", "claim"], sort=False):
+        ref, pert = (g[f"claim_holds_{s}"].astype(str).str.lower() == "true" for s in ("ref", "pert"))
+        rows.append({"experiment": exp, "claim": claim, "holds_ref": bool(ref.all()), "holds_pert": bool(pert.all()),
+                     "rows_changed": [r for _, r in g[ref != pert].iterrows()]})
+    return pd.DataFrame(rows, columns=cols)
 
 
 def capped_fits(keys: pd.DataFrame) -> pd.DataFrame:
@@ -286,7 +296,7 @@ def summary_digest(path: Path) -> str:
     """sha256 of a summary.csv's content (rows sorted by key, values as text, timings left out as
     in :func:`compare`), not of its bytes: a rerun with the same results keeps the digest."""
     t = pd.read_csv(path, dtype=str, keep_default_na=False)
-    t = t[~t["metric"].map(_is_timing)]
+    t = t[~t["metric"].map(is_timing)]
     t = t.sort_values([c for c in KEY if c in t.columns], kind="stable").reset_index(drop=True)
     return hashlib.sha256(t.to_csv(index=False).encode()).hexdigest()
 
@@ -300,7 +310,7 @@ def experiment_digests(path: Path) -> dict[str, str]:
         return {}
     if t.empty or not {"experiment", "metric"} <= set(t.columns):   # a report without rows
         return {}
-    t = t[~t["metric"].map(_is_timing)]
+    t = t[~t["metric"].map(is_timing)]
     return {str(e): hashlib.sha256(g.sort_values([c for c in KEY if c in g.columns], kind="stable")
                                    .reset_index(drop=True).to_csv(index=False).encode()).hexdigest()
             for e, g in t.groupby("experiment", sort=True)}

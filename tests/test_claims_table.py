@@ -119,3 +119,35 @@ def test_claim_table_names_the_fits_that_stopped_on_a_cap():
     assert "training cost 1.67e-09 → 6.46e-10, on its cap again, its values move by up to 97%" in b2t
     k = next(v for k, v in lines.items() if k.startswith("K"))
     assert k.rstrip().endswith("| 0 of 4 |")
+
+
+def test_claim_table_gives_each_verdict_in_the_checks_and_names_the_rows_that_flip_it():
+    """A check that flips a claim's verdict (issue 19: B2c, tightened) shows it beside the claim, with the
+    flipped row's two values and its fit's category; an unflipped claim reads "same", a claim whose
+    experiment no check covers "not checked", and a claim of timings only is not compared."""
+    import pandas as pd
+
+    from pipeline.perturbation import claim_verdicts, compare
+    from stages.report import _claim_table
+
+    def summary(cost, rms, holds):
+        return pd.DataFrame([
+            ("b2", "", "n1=32", "fit_cost", cost, ""), ("b2", "", "n1=32", "fit_stopped_on_cap", 0.0, ""),
+            ("b2", "B2c", "n1=32/noise=True/trial=6", "rms_over_ideal_rms", rms, holds),
+            ("b2", "B2c", "n1=32/noise=False/trial=6", "rms_over_floor", 1.1, "true"),
+            ("b2", "B2b", "n1=48", "id_over_n1", 0.3, "true"),
+            ("b2", "B2d", "n1=32", "fhofc_seconds", 0.1, "true"),
+            ("k", "K1", "pgnn", "ratio", 2.0, "true")],
+            columns=["experiment", "claim", "variant", "metric", "value", "claim_holds"])
+    ref = summary(6.48e-10, 1.78, "false")
+    keys, _ = compare(ref[ref["experiment"] == "b2"], summary(6.73e-10, 1.44, "true"), rtol=0.01)
+    v = claim_verdicts(keys).set_index("claim")
+    assert not v.loc["B2c", "holds_ref"] and v.loc["B2c", "holds_pert"] and len(v.loc["B2c", "rows_changed"]) == 1
+    assert v.loc["B2b", "holds_ref"] == v.loc["B2b", "holds_pert"] and v.loc["B2b", "rows_changed"] == []
+    verdicts = {"tighten": {(r.experiment, r.claim): r for r in claim_verdicts(keys).itertuples()}}
+    lines = {ln.split("|")[1].strip(): ln.split("|")[4].strip() for ln in _claim_table(ref, None, verdicts)[2:] if ln}
+    assert lines["B2c"] == ("second machine: not checked; **tightened: yes** (`n1=32/noise=True/trial=6` "
+                            "rms_over_ideal_rms 1.78 → 1.44, fit `n1=32` other minimum)")
+    assert lines["B2b"] == "second machine: not checked; tightened: same"
+    assert lines["K1"] == "second machine: not checked; tightened: not checked"
+    assert lines["B2d"] == "a timing: the checks do not compare it"

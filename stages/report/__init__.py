@@ -32,8 +32,9 @@ import pandas as pd
 
 from pipeline import compare, owned, tracking
 from pipeline.export.law import strict_json
-from pipeline.perturbation import (EXPLAIN, capped_fits, capped_lines, experiment_digests, kept_experiments,
-                                   partial_of, status_lines, summarise, summary_digest, table_lines)
+from pipeline.perturbation import (EXPLAIN, capped_fits, capped_lines, claim_verdicts, experiment_digests,
+                                   is_timing, kept_experiments, partial_of, status_lines, summarise, summary_digest,
+                                   table_lines)
 from pipeline.runner import ROOT
 from stages.report import claims
 from stages.report._rows import row, run_metrics
@@ -107,7 +108,7 @@ def _with_checks(text: str, results: Path, table: pd.DataFrame | None = None) ->
     experiments checked against other rows are named stale, those never checked are named too.  Before them,
     the claim table of ``table`` (summary.csv's rows), each capped fit with its current tightening check."""
     digest, digests = summary_digest(results / "summary.csv"), experiment_digests(results / "summary.csv")
-    out, tightened = [], {}
+    out, tightened, verdicts = [], {}, {}
     for check, title in (("perturb", "a second machine, emulated"), ("tighten", "tolerances tightened 10x")):
         meta, csv = results / f"check-{check}.json", results / f"check-{check}.csv"
         if not (meta.exists() and csv.exists()):
@@ -142,10 +143,11 @@ def _with_checks(text: str, results: Path, table: pd.DataFrame | None = None) ->
         out += status_lines(stale, partial_of(per, set(k["experiment"])), unchecked)
         out += table_lines(summarise(k, rtol, keys_one_side)) + capped_lines(k, check)
         out.append("")
+        verdicts[check] = {(r.experiment, r.claim): r for r in claim_verdicts(k).itertuples()}
         if check == "tighten":
             tightened = {(r.experiment, r.fit): r for r in capped_fits(k).itertuples()}
     if table is not None:
-        out = _claim_table(table, tightened) + out
+        out = _claim_table(table, tightened, verdicts) + out
     if not out:
         return text
     head, rest = text.split("\n## ", 1) if "\n## " in text else (text, "")
@@ -379,25 +381,53 @@ def _stop_reasons(experiment: str, runs: pd.DataFrame):
     return rows, md + "\n"
 
 
-def _claim_table(table: pd.DataFrame, tightened: dict | None = None) -> list[str]:
+def _claim_table(table: pd.DataFrame, tightened: dict | None = None, verdicts: dict | None = None) -> list[str]:
     """The header's claim table: a claim holds when every one of its rows holds; beside it, how many
     of the experiment's fits stopped on an iteration cap, the fits named, each with its tightening check
-    (``tightened``: (experiment, fit) -> its :func:`pipeline.perturbation.capped_fits` row) where one is current."""
+    (``tightened``: (experiment, fit) -> its :func:`pipeline.perturbation.capped_fits` row) where one is current,
+    and the verdict in each current check (``verdicts``: check -> (experiment, claim) -> its
+    :func:`pipeline.perturbation.claim_verdicts` row): a verdict a check flips is not pinned down by the fits."""
     claimed = table[table["claim"] != ""]
     if claimed.empty:
         return []
     fits = table[table["variant"] == "training"].set_index(["experiment", "metric"])["value"]
     flag = table[table["metric"] == "fit_stopped_on_cap"]          # one row per fit (a fit may feed several runs)
     capped = flag[pd.to_numeric(flag["value"], errors="coerce") == 1].groupby("experiment")["variant"].agg(list)
-    out = ["| claim | experiment | holds | its experiment's fits stopped on a cap |", "| --- | --- | --- | --- |"]
+    out = ["| claim | experiment | holds | in the checks (second machine, emulated; tolerances tightened 10x) "
+           "| its experiment's fits stopped on a cap |", "| --- | --- | --- | --- | --- |"]
     for (c, e), g in claimed.groupby(["claim", "experiment"], sort=False):
         cap = (f"{float(fits[(e, 'fits_stopped_on_cap')]):.0f} of {float(fits[(e, 'fits_with_stop_reason')]):.0f}"
                if (e, "fits_stopped_on_cap") in fits.index and c not in claims.CLAIMS_WITHOUT_FITS else "")
         if cap and not cap.startswith("0 "):
             named = "; ".join(_capped_fit(e, v, (tightened or {}).get((e, v))) for v in capped.get(e, []))
             cap = f"**{cap}**" + (f" ({named})" if named else "")
-        out.append(f"| {c} | {e} | {'yes' if (g['claim_holds'] == 'true').all() else 'no'} | {cap} |")
+        holds = (g["claim_holds"] == "true").all()
+        checks = ("a timing: the checks do not compare it" if g["metric"].map(is_timing).all() else
+                  _verdict_in_checks(holds, {k: v.get((e, c)) for k, v in (verdicts or {}).items()}))
+        out.append(f"| {c} | {e} | {'yes' if holds else 'no'} | {checks} | {cap} |")
     return out + [""]
+
+
+def _verdict_in_checks(holds: bool, per_check: dict) -> str:
+    """A claim's verdict in each current check: the same, or flipped with the claim rows that flipped it
+    (their values on both sides and the fit behind them, with its category in the check)."""
+    names = {"perturb": "second machine", "tighten": "tightened"}
+    parts = []
+    for check in ("perturb", "tighten"):
+        v = per_check.get(check)
+        if v is None:
+            parts.append(f"{names[check]}: not checked")
+        elif v.holds_pert == holds:
+            n = len(v.rows_changed)
+            parts.append(f"{names[check]}: same" + (f" ({n} of its rows flip{'s' if n == 1 else ''})" if n else ""))
+        else:
+            rows = "; ".join(
+                f"`{r['variant']}` {r['metric']} {float(r['value_ref']):.3g} → {float(r['value_pert']):.3g}"
+                + (f", fit `{r['fit']}` {str(r['category']).replace('_', ' ')}"
+                   if isinstance(r["fit"], str) and r["fit"] else "")
+                for r in v.rows_changed)
+            parts.append(f"**{names[check]}: {'yes' if v.holds_pert else 'no'}** ({rows})")
+    return "; ".join(parts)
 
 
 def _capped_fit(experiment: str, fit: str, t) -> str:

@@ -78,8 +78,8 @@ class Params:
     # over the last max(stat_window, stat_frac·k) of its k accepted steps, and the Gauss–Newton
     stat_tol: float = spec(1.0, ge=0, le=100)
     # decrement agrees (pipeline/identify/lm.py): the last 30 % of the run gained less than the data resolve. A fixed
-    # 10-step window (stat_frac 0) stopped the [B2] n1 = 32 fit at 5.8x its final cost (6x the noise floor); this one
-    # within ~1 % of it (measured: n1 = 8, 16, 20, 32)
+    # 10-step window (stat_frac 0) stopped the [B2] n1 = 32 fit at 6.4e-9 after 302 solves, 10x the noise floor and
+    # its final cost (measured at f91e4d7); this one within ~1 % of it (measured: n1 = 8, 16, 20, 32)
     stat_frac: float = spec(0.3, ge=0, lt=1)
     # the local model's promise the statistical stop also asks for (pipeline/identify/lm.py): gauss_newton (the full
     # Gauss–Newton decrement) | damped (regularised by the LM's damping μ: what the model promises where the gain

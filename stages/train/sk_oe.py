@@ -206,7 +206,8 @@ def fit(ctx) -> dict:
                            **{**kw, "max_iter": int(ident.screen_max_iter),
                               "lm_max_iter": int(ident.screen_lm_max_iter)})
     else:
-        outs = sk_restarts(models, rs, fs, n_jobs=1, progress=bar("SK restarts"), **kw)
+        outs = sk_restarts(models, rs, fs, n_jobs=min(int(ident.n_jobs), job_cores()), progress=bar("SK restarts"),
+                           **kw)
     ctx.metric("restarts_seconds", time.perf_counter() - t0)
 
     results = [o[0] for o in outs]

@@ -35,3 +35,21 @@ def test_only_the_unregularised_pgnn_screens_its_restarts_by_default(store, cfg_
         assert sorted(its) == [1, 3] and run["metrics.train/screened_restarts"] == 2
     else:          # every restart runs to its own stop: here the SK cap, 3 iterations each
         assert its == [3, 3] and "metrics.train/screened_restarts" not in run.index
+
+
+def test_k2_flag_names_each_models_own_budget_and_only_the_capped_ones():
+    """The report's K2 flag: the unregularised PGNN's screened restarts count as stopped on the screening budget,
+    the regularised PGNN's (each run to its SK stop) on the SK cap; a model whose restarts all stopped on their
+    tolerances is not flagged."""
+    from stages.report.claims_k import _k2_caps
+    none = {"train/sk_not_converged_restarts": 4.0, "train/sk_inner_capped_restarts": 4.0,
+            "train/screened_restarts": 5.0}
+    orth = {"train/sk_not_converged_restarts": 0.0, "train/sk_inner_capped_restarts": 0.0}
+    txt = _k2_caps(none, orth)
+    assert txt.startswith("- **Flag: K2 is fed by fits that stopped on a cap** (none: 4 of the restarts stopped on "
+                          "the screening budget")
+    assert "orthogonal: 0" not in txt and "every orthogonal restart stopped on its tolerances" in txt
+    orth_capped = {**orth, "train/sk_not_converged_restarts": 1.0}
+    assert "orthogonal: 1 of the restarts stopped on the SK cap" in _k2_caps(none, orth_capped)
+    clean = {"train/sk_not_converged_restarts": 0.0, "train/sk_inner_capped_restarts": 0.0}
+    assert _k2_caps(clean, clean).startswith("- every restart feeding K2 stopped on its tolerances")

@@ -301,3 +301,21 @@ def test_the_report_of_an_empty_summary_has_no_experiment_digests(tmp_path):
     assert experiment_digests(tmp_path / "summary.csv") == {}
     (tmp_path / "summary.csv").write_text("")
     assert experiment_digests(tmp_path / "summary.csv") == {}
+
+
+def test_rounding_residues_of_an_exact_identity_are_listed_not_compared_but_their_verdict_is():
+    """[B2] B2e's lemma rows (relative difference of two exact expressions, the claim asks <= 1e-8): between two
+    CPUs they went 6.9e-17 -> 9.2e-16 (measured, 2026-12-04); that is rounding, listed as solver path. A residue
+    that breaks the identity still changes the claim's verdict."""
+    def table(v, holds):
+        return pd.DataFrame({"experiment": ["b2"] * 2, "claim": ["B2e"] * 2,
+                             "variant": ["lemma_5_1/nmp", "lemma_5_1/mp"], "metric": ["relative_difference"] * 2,
+                             "value": v, "paper_value": [None] * 2, "claim_holds": holds})
+    keys, summ = compare(table([6.889e-17, 5.33e-16], [True, True]), table([9.25e-16, 5.10e-16], [True, True]),
+                         rtol=0.02)
+    assert set(keys["category"]) == {"solver_path"}
+    s = summ.iloc[0]
+    assert (s["values"], s["n_above_rtol"], s["n_solver_path"], s["verdicts_changed"]) == (0, 0, 2, 0)
+    _, broken = compare(table([6.889e-17, 5.33e-16], [True, True]), table([3e-7, 5.10e-16], [False, True]),
+                        rtol=0.02)
+    assert broken.iloc[0]["verdicts_changed"] == 1

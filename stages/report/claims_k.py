@@ -165,22 +165,21 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
 def _k2_caps(mn: dict, mo: dict) -> str:
     """The K2 restarts' stop reasons (every restart feeds the spread of f_M): flagged if capped, each model
     with its own budget (its restarts screened or each run to its SK stop, ``identify.screen_restarts_of``)."""
-    parts = []
+    parts = []   # (name, capped, its stop reasons)
     for name, mk in (("none", mn), ("orthogonal", mo)):
         out, inner = mk.get("train/sk_not_converged_restarts"), mk.get("train/sk_inner_capped_restarts")
         if out is None:
             return "- stop reasons of the restarts: not logged (runs older than train VERSION 2)."
         cap = ("the screening budget (screened out: only the kept restart runs to its tolerance)"
                if mk.get("train/screened_restarts") else "the SK cap")
-        parts.append((name, out, inner, cap))
-    txt = lambda ps: "; ".join(f"{n}: {o:.0f} of the restarts stopped on {c}, {i:.0f} had an inner LM "  # noqa: E731
-                               "solve stopped on its cap" for n, o, i, c in ps)
-    capped = [p for p in parts if p[1] or p[2]]
+        parts.append((name, bool(out or inner), f"{name}: {out:.0f} of the restarts stopped on {cap}, {inner:.0f} "
+                      "had an inner LM solve stopped on its cap"))
+    capped = [txt for _, c, txt in parts if c]
     if capped:
-        ok = [n for n, o, i, _ in parts if not (o or i)]
+        ok = [name for name, c, _ in parts if not c]
         rest = f"; every {' and '.join(ok)} restart stopped on its tolerances" if ok else ""
-        return f"- **Flag: K2 is fed by fits that stopped on a cap** ({txt(capped)}{rest})."
-    return f"- every restart feeding K2 stopped on its tolerances ({txt(parts)})."
+        return f"- **Flag: K2 is fed by fits that stopped on a cap** ({'; '.join(capped)}{rest})."
+    return f"- every restart feeding K2 stopped on its tolerances ({'; '.join(txt for *_, txt in parts)})."
 
 
 def _k3(experiment: str, m: dict, found: dict, rows: list) -> list[str]:

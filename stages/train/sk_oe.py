@@ -4,8 +4,7 @@ Model (``model.kind``): ``rational`` ([K] VI-B parametrisation 1) or ``pgnn_shar
 parametrisation 2).  Data: every segment's reference r and optimal input f̂ (``f_opt``, else u).
 The PGNN is trained from ``identify.n_restarts`` Glorot initialisations (in ``identify.n_jobs``
 processes; the unregularised PGNN's screened, ``identify.screen_restarts_of``); the restart with
-the lowest training cost (J_OE, plus λR with the regulariser,
-[K] (30)) is the model.  Regulariser: ``regularizer.name``
+the lowest training cost (J_OE, plus λR with the regulariser, [K] (30)) is the model.  Regulariser: ``regularizer.name``
 orthogonal ([K] (29), λ = ``regularizer.lam``) or none.
 
 Logged (``train/…``): J_OE and the relative parameter change per SK iteration of the kept
@@ -208,16 +207,12 @@ def fit(ctx) -> dict:
     t0 = time.perf_counter()
     screen = (n_restarts > 1 and int(ident.screen_max_iter) > 0
               and (ident.screen_restarts_of == "all" or reg == "none"))
-    def bar(desc):   # progress over restarts (stderr, quiet in tests and logs)
-        return lambda it, n: ctx.progress(it, desc=desc, total=n)
-    if screen:   # every restart on a short budget; the best by training cost is then converged
-        outs = sk_restarts(models, rs, fs, n_jobs=min(int(ident.n_jobs), job_cores()),   # never more than free cores
-                           progress=bar("SK restarts (screening)"),
-                           **{**kw, "max_iter": int(ident.screen_max_iter),
-                              "lm_max_iter": int(ident.screen_lm_max_iter)})
-    else:
-        outs = sk_restarts(models, rs, fs, n_jobs=min(int(ident.n_jobs), job_cores()), progress=bar("SK restarts"),
-                           **kw)
+    # screened: every restart on a short budget, the best by training cost is then converged (below)
+    budget = {"max_iter": int(ident.screen_max_iter), "lm_max_iter": int(ident.screen_lm_max_iter)} if screen else {}
+    outs = sk_restarts(models, rs, fs, n_jobs=min(int(ident.n_jobs), job_cores()),   # never more than free cores
+                       progress=lambda it, n: ctx.progress(it, total=n,   # stderr, quiet in tests and logs
+                                                           desc="SK restarts" + (" (screening)" if screen else "")),
+                       **{**kw, **budget})
     ctx.metric("restarts_seconds", time.perf_counter() - t0)
 
     results = [o[0] for o in outs]

@@ -69,6 +69,12 @@ _SOLVER_PATH = ("iterations", "rel_change", "sk_tol", "oe_check_max_iter", "oe_c
 
 #: the categories of values the data (tiny, equal_fit) or the landscape (other_minimum) do not determine
 ILL_DETERMINED = ("tiny", "equal_fit", "other_minimum")
+#: a ratio of two fits named after both, variant ``A_over_B/...`` and metric ``S_ratio`` (K2's
+#: ``none_over_orthogonal`` spread ratio), is computed from the rows of metric S of fits A and B (a fit
+#: whose variant is A or ends in ``_A``). To first order its relative change is at most the sum of its
+#: inputs' largest changes; one that moved within that bound while an input is ill-determined is
+#: ill-determined like that input (its spread: both values)
+RATIO_SEP, RATIO_SUFFIX = "_over_", "_ratio"
 
 
 def is_timing(metric: str) -> bool:
@@ -91,6 +97,38 @@ def _fit_of(variants: pd.Series, fits: set[str]) -> list[str]:
                 break
         out.append(hit)
     return out
+
+
+def _ratio_sides(variant: str, metric: str, fits: set[str]) -> tuple[list[str], list[str]] | None:
+    """The fits of a ratio row named after both (``A_over_B/...``, metric ``S_ratio``), or None."""
+    head = variant.split("/")[0]
+    if not metric.endswith(RATIO_SUFFIX) or RATIO_SEP not in head:
+        return None
+    sides = [[f for f in sorted(fits) if f == n or f.endswith("_" + n)] for n in head.split(RATIO_SEP, 1)]
+    return (sides[0], sides[1]) if all(sides) else None
+
+
+def _inherit_from_inputs(m: pd.DataFrame, cat: np.ndarray) -> np.ndarray:
+    """Moved ratio rows of two fits (RATIO_SEP) that their inputs' changes explain, with an ill-determined
+    input: that input's category (the one of the largest change)."""
+    cat = cat.copy()
+    pos = {ix: i for i, ix in enumerate(m.index)}
+    for exp, g in m.groupby("experiment", sort=False):
+        fits = set(g["fit"]) - {""}
+        for ix, row in g[(cat[[pos[i] for i in g.index]] == "moved") & (g["fit"] == "")].iterrows():
+            sides = _ratio_sides(str(row["variant"]), str(row["metric"]), fits)
+            if sides is None:
+                continue
+            stem = str(row["metric"])[: -len(RATIO_SUFFIX)]
+            inputs = [g[(g["metric"] == stem) & g["fit"].isin(side)] for side in sides]
+            if any(i.empty for i in inputs):
+                continue
+            bound = sum(float(i["rel_change"].max()) for i in inputs)
+            both = pd.concat(inputs)
+            ill = both[both.index.map(lambda i: cat[pos[i]] in ILL_DETERMINED)]
+            if len(ill) and float(row["rel_change"]) <= bound * (1 + 1e-9):
+                cat[pos[ix]] = cat[pos[ill["rel_change"].idxmax()]]
+    return cat
 
 
 def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -149,6 +187,7 @@ def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02
     other_min = (cat == "moved") & (m["fit_rel_change"].to_numpy(float) > FIT_RTOL) & \
         np.array([(e, f) in converged for e, f in zip(m["experiment"], m["fit"])], dtype=bool)
     cat = np.where(other_min, "other_minimum", cat)
+    cat = _inherit_from_inputs(m, cat)
     cat = np.where(m["metric"].map(_is_solver_path).to_numpy(bool), "solver_path", cat)
     m["category"] = cat
     m["ill_determined"] = np.isin(cat, ILL_DETERMINED)
@@ -267,7 +306,9 @@ EXPLAIN = (f"A value below {SCALE_FLOOR:g} of the largest value of its metric fo
            "elsewhere; values of a fit that stopped on a cap on either side count as moved. Solver-path values "
            "(iteration counts, the last step's size, "
            "the tolerance itself, a check LM's remaining gain, rounding-level C/Python differences and residues of "
-           "exact identities) are listed, not compared. Ratios of two fits are attached to the first.")
+           "exact identities) are listed, not compared. Ratios of two fits are attached to the first; one named after "
+           f"both (`A{RATIO_SEP}B`) that moved no more than its inputs' changes add up to, with an ill-determined "
+           "input, is ill-determined like that input.")
 
 
 _WHAT = {"perturb": ("Perturbation check (a second machine, emulated)",

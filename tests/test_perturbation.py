@@ -319,3 +319,27 @@ def test_rounding_residues_of_an_exact_identity_are_listed_not_compared_but_thei
     _, broken = compare(table([6.889e-17, 5.33e-16], [True, True]), table([3e-7, 5.10e-16], [False, True]),
                         rtol=0.02)
     assert broken.iloc[0]["verdicts_changed"] == 1
+
+
+def test_a_ratio_of_two_fits_is_ill_determined_only_where_an_ill_determined_input_explains_its_move():
+    """K2's ratio ``none_over_orthogonal`` of the two PGNNs' f_M spreads: the orthogonal spreads move 3 %
+    at an equal training cost (ill-determined: equal fits), the unregularised ones 0.5 % (same). A ratio
+    that moved 2.5 % (within 3 % + 0.5 %) is ill-determined like its input; one that moved 10 % (more
+    than its inputs explain) and one whose inputs all held still count as moved."""
+    from pipeline.perturbation import FIT_METRIC
+
+    def table(ratio, so, sn=(0.04, 0.0402)):
+        rows = [("pgnn_none", FIT_METRIC, 1.0, 1.0), ("pgnn_orthogonal", FIT_METRIC, 1.4, 1.40001),
+                ("pgnn_none/r1", "spread_f_M", *sn), ("pgnn_orthogonal/r1", "spread_f_M", *so),
+                ("none_over_orthogonal/min", "spread_f_M_ratio", *ratio)]
+        return [pd.DataFrame({"experiment": "k", "claim": "K2", "variant": [r[0] for r in rows],
+                              "metric": [r[1] for r in rows], "value": [r[i] for r in rows],
+                              "paper_value": None, "claim_holds": "True"}) for i in (2, 3)]
+
+    def category(*args):
+        keys = compare(*table(*args), rtol=0.02)[0].set_index(["variant", "metric"])["category"]
+        return keys[("pgnn_orthogonal/r1", "spread_f_M")], keys[("none_over_orthogonal/min", "spread_f_M_ratio")]
+
+    assert category((800.0, 780.0), (5e-5, 5.15e-5)) == ("equal_fit", "equal_fit")
+    assert category((800.0, 720.0), (5e-5, 5.15e-5)) == ("equal_fit", "moved")
+    assert category((800.0, 780.0), (5e-5, 5.001e-5)) == ("same", "moved")

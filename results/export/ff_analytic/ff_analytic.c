@@ -30,25 +30,25 @@
  * [θ̂_phy (P) | θ*_phy, the physics start (P) | W, first layer with the input map folded in (H x NPHI) |
  *  b (H) | w2 = output weights x output scale (H) | b2 | physics map configuration] */
 static const double BLOB[89] = {
-    0.049879752733300926, 0.44226973944135406, 0.6033027560649281, 0.04973197666618535,
-    0.4422697394410392, 0.6033027560475183, 118.42891698218725, 107.89602207247073, 0.0,
-    -16.688011971045444, -6.615247456731634, 0.0, -150.0130762388491, -143.15248052338043, 0.0,
-    -59.53156544089567, -54.28226445478966, 0.0, 81.53041392758244, 81.07062427154908, 0.0,
-    -9.002297906587645, -3.5927752659401104, 0.0, 1.3563612151504039, -7.064273788500112, 0.0,
-    0.9538315882627757, 4.882738034269698, 0.0, -18.055852723408883, -9.299667232571709, 0.0,
-    44.078778312370666, 60.82595281069661, 0.0, -78.50051323271782, -91.03321315891068, 0.0,
-    16.522377928057793, 17.370562924617793, 0.0, 223.69833478121973, 226.88061213418237, 0.0,
-    93.38211565081954, 95.97563337804654, 0.0, 8.203456133393084, -1.9996566632625137, 0.0,
-    -7.229528594353912, -1.0888612220086205, 0.0, -16.363611345882532, 0.7816974507071992,
-    -22.41922361478925, -3.0526877936685253, -15.551732616648936, 1.2435992390666408,
-    -0.19503430816885411, 0.23199285021109634, 1.9436328561190332, -7.501852805538605,
-    15.726744283774615, 2.492864612471198, 23.344899150190184, 5.071866366006504,
-    0.3797680969804762, -0.6205886861709385, -1.3093792221419876e-06, -3.123768103103698e-06,
-    5.949120419811865e-07, -2.7881189281073857e-06, -1.273788700756612e-06,
-    2.1508576472819305e-06, 2.876293284468966e-06, -1.3673212076094287e-06,
-    1.6230874841560922e-06, 2.2913215119369038e-06, -1.551546160048551e-06,
-    3.116660326933013e-06, -3.5947947175721005e-07, -2.1999021376996042e-06,
-    -2.3303904160161713e-06, 1.7161229427333622e-06, -9.394342355780632e-08, 0.001, 2.0
+    0.04989668148211724, 0.4422697394407782, 0.6033027560600638, 0.04973197666618563,
+    0.44226973944061004, 0.603302756047546, 173.84726015699272, 99.25679996584205, 0.0,
+    -3.350938014117206, -1.2374163482367824, 0.0, -158.3155770557356, -118.19991397173129, 0.0,
+    -72.81841988346854, -68.64741076265003, 0.0, 97.48024156189645, 77.96030157531538, 0.0,
+    -8.866731748011029, 2.646056380362571, 0.0, 1.338806368047021, -5.5985492394760685, 0.0,
+    0.7515362968751021, 3.796059338424535, 0.0, -190.66082008642664, -183.48783452482607, 0.0,
+    -2.8741506298730513, 35.541935128250515, 0.0, -97.68987680836963, -141.9243613396045, 0.0,
+    18.83488889921287, 14.502413639204464, 0.0, 254.31725541967202, 237.15939149976126, 0.0,
+    94.47227824149844, 93.77701872926612, 0.0, 6.667446582363558, -4.328215548951722, 0.0,
+    -15.610383519765453, -10.992361322611384, 0.0, -19.88698188476618, 0.9595986422337661,
+    -21.20904479397764, -3.80681591085953, -16.54204258785156, 1.6122674571974347,
+    -0.12833410391678643, 0.2660901767456635, 18.400020591306948, -2.2354588547475815,
+    22.209661465417703, 2.7767133534738315, 25.431331166483858, 5.057116114634958,
+    0.23106047309863648, -3.0684999451071944, -5.87967995442016e-07, -2.769717364884741e-06,
+    6.34600012095502e-07, -3.547381611839025e-06, -1.8789952120961689e-06, 3.38239831451209e-06,
+    1.7209687083035426e-06, -5.873488865420826e-07, 3.8671514771797804e-07,
+    1.865798940439211e-06, -1.4196470213499147e-06, 3.3808948037926564e-06,
+    -3.6888631651644503e-07, -3.3164520314671307e-06, -1.776506506009766e-06,
+    3.5707641550299793e-06, 1.123701853302134e-06, 0.001, 2.0
 };
 #define TH (BLOB + 0)
 #define TS (BLOB + 3)
@@ -172,9 +172,9 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
     int flags = 0, i;
     double u = analytic_solve(phi, r_next, 1, 0);   /* physics start, θ*_phy */
     double a, psi, best_u, best_v = HUGE_VAL, first_v = NAN, last_v = NAN;
-    if (!isfinite(u)) { u = 0.0; flags |= FF_ANALYTIC_1E136E1D_SINGULAR; }
-    if (u < U_MIN) { u = U_MIN; flags |= FF_ANALYTIC_1E136E1D_BOUNDS; }
-    else if (u > U_MAX) { u = U_MAX; flags |= FF_ANALYTIC_1E136E1D_BOUNDS; }
+    if (!isfinite(u)) { u = 0.0; flags |= FF_ANALYTIC_03F4A3D9_SINGULAR; }
+    if (u < U_MIN) { u = U_MIN; flags |= FF_ANALYTIC_03F4A3D9_BOUNDS; }
+    else if (u > U_MAX) { u = U_MAX; flags |= FF_ANALYTIC_03F4A3D9_BOUNDS; }
     phi[UIDX] = 0.0;
     physics_affine(TH, phi, &a, &psi);              /* θ̂_phy: ŷ = a + ψ u + f_NN */
     best_u = u;
@@ -183,26 +183,26 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
         phi[UIDX] = u;
         nn = nn_affine(phi, &dnn);
         V = r_next - (a + psi * u + nn);             /* [B1] (23) */
-        if (!isfinite(V)) { flags |= FF_ANALYTIC_1E136E1D_SINGULAR; break; }
+        if (!isfinite(V)) { flags |= FF_ANALYTIC_03F4A3D9_SINGULAR; break; }
         av = fabs(V);
         if (i == 0) first_v = av;
         last_v = av;
         if (av < best_v) { best_u = u; best_v = av; }
         if (i == K_NEWTON || V == 0.0) break;
         dV = -(psi + dnn);                           /* [B1] (24), (25) */
-        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_ANALYTIC_1E136E1D_SINGULAR; break; }
+        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_ANALYTIC_03F4A3D9_SINGULAR; break; }
         u_new = u - V / dV;
-        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_ANALYTIC_1E136E1D_BOUNDS; break; }
+        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_ANALYTIC_03F4A3D9_BOUNDS; break; }
         u = u_new;
     }
-    if (last_v > first_v) flags |= FF_ANALYTIC_1E136E1D_DIVERGED;
+    if (last_v > first_v) flags |= FF_ANALYTIC_03F4A3D9_DIVERGED;
     if (best_v == HUGE_VAL) best_u = u;
     phi[UIDX] = 0.0;
     *flags_out = flags;
     return best_u;
 }
 
-static inline double law_w(ff_analytic_1e136e1d_state *s, const double *rp)
+static inline double law_w(ff_analytic_03f4a3d9_state *s, const double *rp)
 {   /* one sample of the law: the model input w(t) from r(t .. t+NK+1) and the state */
     double *x = s->x, *rh = x + XRH, *uh = x + XUH, *rw = x + XRW, *phi = x + XPHI;
     double w;
@@ -228,7 +228,7 @@ static inline double law_w(ff_analytic_1e136e1d_state *s, const double *rp)
 #else                                               /* LAW_PHYSICS on a forward model */
     w = analytic_solve(phi, rw[0], 1, 0);
 #endif
-    if (!isfinite(w)) flags |= FF_ANALYTIC_1E136E1D_SINGULAR;    /* as the kernels: kept (the guard falls back) */
+    if (!isfinite(w)) flags |= FF_ANALYTIC_03F4A3D9_SINGULAR;    /* as the kernels: kept (the guard falls back) */
     for (i = NB - 1; i > 0; --i) uh[i] = uh[i - 1];
     uh[0] = w;
     for (i = NRH - 1; i > 0; --i) rh[i] = rh[i - 1];
@@ -237,10 +237,10 @@ static inline double law_w(ff_analytic_1e136e1d_state *s, const double *rp)
     return w;
 }
 
-static void law_init(ff_analytic_1e136e1d_state *s, double r0)
+static void law_init(ff_analytic_03f4a3d9_state *s, double r0)
 {
     int i;
-    for (i = 0; i < FF_ANALYTIC_1E136E1D_NX; ++i) s->x[i] = 0.0;
+    for (i = 0; i < FF_ANALYTIC_03F4A3D9_NX; ++i) s->x[i] = 0.0;
     for (i = 0; i < NRH; ++i) s->x[XRH + i] = r0;
     s->w_prev = 0.0;
     s->primed = 0;
@@ -254,7 +254,7 @@ static void law_init(ff_analytic_1e136e1d_state *s, double r0)
     s->r_hist[1] = r0;
 }
 
-static double law_step(ff_analytic_1e136e1d_state *s, const double *r_preview)
+static double law_step(ff_analytic_03f4a3d9_state *s, const double *r_preview)
 {
     double u;
     s->status = 0;
@@ -272,7 +272,7 @@ static double law_step(ff_analytic_1e136e1d_state *s, const double *r_preview)
 }
 
 /* ---- guard (issue 22): input sanitation, training envelope, fallback, saturation, slew limit ---- */
-#define G_PREVIEW FF_ANALYTIC_1E136E1D_PREVIEW
+#define G_PREVIEW FF_ANALYTIC_03F4A3D9_PREVIEW
 #define G_TS (0.001)
 #define U_LO ((-HUGE_VAL))           /* saturation [N] */
 #define U_HI (HUGE_VAL)
@@ -280,18 +280,18 @@ static double law_step(ff_analytic_1e136e1d_state *s, const double *r_preview)
 #define FALLBACK_KIND 0        /* 0 hold, 1 physics, 2 ramp */
 #define ENVELOPE_FALLS_BACK 0  /* 1: out of the envelope is invalid; 0: flagged only */
 #define RAMP_N (100.0)         /* ramp_time / Ts: samples of the ramp to 0 */
-static const double ENV_LO[3] = {-0.12050561408939725, -0.10878271303569609, -15.696705526774268};   /* training envelope of r, dr/dt, d2r/dt2 */
-static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717171406};
+static const double ENV_LO[3] = {-0.1205056140893973, -0.10878271303569609, -15.696705526759004};   /* training envelope of r, dr/dt, d2r/dt2 */
+static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717170017};
 #if FALLBACK_KIND == 1
 static const double PHYS[3] = {0.0, 0.0, 0.0};    /* physics fallback: M, F_v, F_c */
 #endif
 
-void ff_analytic_1e136e1d_init(ff_analytic_1e136e1d_state *s, double r0)
+void ff_analytic_03f4a3d9_init(ff_analytic_03f4a3d9_state *s, double r0)
 {
     law_init(s, isfinite(r0) ? r0 : 0.0);
 }
 
-double ff_analytic_1e136e1d_step(ff_analytic_1e136e1d_state *s, const double *r_preview)
+double ff_analytic_03f4a3d9_step(ff_analytic_03f4a3d9_state *s, const double *r_preview)
 {
     double ext[G_PREVIEW + 3];   /* r(t-2), r(t-1), r(t) .. r(t+P) after sanitation */
     double x[3], u;
@@ -303,7 +303,7 @@ double ff_analytic_1e136e1d_step(ff_analytic_1e136e1d_state *s, const double *r_
             ext[i + 2] = r_preview[i];
         } else {
             ext[i + 2] = ext[i + 1];
-            flags |= FF_ANALYTIC_1E136E1D_NONFINITE_INPUT;
+            flags |= FF_ANALYTIC_03F4A3D9_NONFINITE_INPUT;
         }
     }
     x[0] = ext[G_PREVIEW + 2];                                   /* r(n), n = t + P */
@@ -312,12 +312,12 @@ double ff_analytic_1e136e1d_step(ff_analytic_1e136e1d_state *s, const double *r_
     for (i = 0; i < 3; ++i) {
         if (!((ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
     }
-    if (!inside) flags |= FF_ANALYTIC_1E136E1D_OUT_OF_RANGE;
+    if (!inside) flags |= FF_ANALYTIC_03F4A3D9_OUT_OF_RANGE;
     u = law_step(s, ext + 2);
     flags |= s->status;
-    invalid = ((flags & FF_ANALYTIC_1E136E1D_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
+    invalid = ((flags & FF_ANALYTIC_03F4A3D9_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
     if (invalid) {
-        flags |= FF_ANALYTIC_1E136E1D_FALLBACK;
+        flags |= FF_ANALYTIC_03F4A3D9_FALLBACK;
         if (s->n_invalid < UINT64_MAX) s->n_invalid++;
 #if FALLBACK_KIND == 2                /* ramp to 0 over RAMP_N samples */
         {
@@ -325,7 +325,7 @@ double ff_analytic_1e136e1d_step(ff_analytic_1e136e1d_state *s, const double *r_
             u = s->u_hold * (g > 0.0 ? g : 0.0);
         }
 #elif FALLBACK_KIND == 1              /* physics on a finite reference, else hold */
-        if ((flags & FF_ANALYTIC_1E136E1D_NONFINITE_INPUT) == 0) {
+        if ((flags & FF_ANALYTIC_03F4A3D9_NONFINITE_INPUT) == 0) {
             const double sg = x[1] > 0 ? 1.0 : (x[1] < 0 ? -1.0 : 0.0);
             u = PHYS[0] * x[2] + PHYS[1] * x[1] + PHYS[2] * sg;
             if (!isfinite(u)) u = s->u_hold;
@@ -338,10 +338,10 @@ double ff_analytic_1e136e1d_step(ff_analytic_1e136e1d_state *s, const double *r_
     } else {
         s->n_invalid = 0;
     }
-    if (u > U_HI) { u = U_HI; flags |= FF_ANALYTIC_1E136E1D_SATURATED; }
-    else if (u < U_LO) { u = U_LO; flags |= FF_ANALYTIC_1E136E1D_SATURATED; }
-    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_ANALYTIC_1E136E1D_RATE_LIMITED; }
-    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_ANALYTIC_1E136E1D_RATE_LIMITED; }
+    if (u > U_HI) { u = U_HI; flags |= FF_ANALYTIC_03F4A3D9_SATURATED; }
+    else if (u < U_LO) { u = U_LO; flags |= FF_ANALYTIC_03F4A3D9_SATURATED; }
+    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_ANALYTIC_03F4A3D9_RATE_LIMITED; }
+    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_ANALYTIC_03F4A3D9_RATE_LIMITED; }
     if (!invalid) s->u_hold = u;
     s->u_prev = u;
     s->r_hist[1] = s->r_hist[0];

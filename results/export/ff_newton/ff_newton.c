@@ -30,29 +30,29 @@
  * [θ̂_phy (P) | θ*_phy, the physics start (P) | W, first layer with the input map folded in (H x NPHI) |
  *  b (H) | w2 = output weights x output scale (H) | b2 | physics map configuration] */
 static const double BLOB[89] = {
-    0.04973197666634895, 0.44226973944131404, 0.6033027560652783, 0.04973197666618535,
-    0.4422697394410392, 0.6033027560475183, -6.770565106734197, 27.761698969920484,
-    0.018078572499431383, -45.87613291831551, -55.80873303400504, -0.0007323404261655933,
-    -36.30082889511413, 7.840081729558031, -0.022553959272369594, 19.45548446747779,
-    -4.829650824573239, 0.014510704405708954, 201.1626088529998, 217.5384832373323,
-    0.001049587633748893, -62.197699235008706, -103.6402927749856, -0.0006924895376254439,
-    -52.267872867709265, 3.6076282889762172, -0.0002662635530444229, 27.15830206065095,
-    17.65573775280247, 0.00032519829840345696, 26.39313980095789, 38.92965360762471,
-    0.0004418658908526629, -171.79141928708478, -178.05130501528328, -0.001506420126763772,
-    157.81579915607796, 113.34056430942205, 0.0009598501735597902, 17.49581333697947,
-    15.112739049764183, 0.0004326481168547341, -2.3212195717096455, 7.672115191354089,
-    0.010534251076192568, -171.63986692566326, -84.73417309374163, -0.00037730796242859874,
-    -139.8355434247663, -109.36521040695915, -0.0007508382502626285, 206.87712837978225,
-    145.77164592320582, -0.0011998909705814706, -0.602112248724873, -3.840469970653895,
-    0.7522721875307296, -0.47292742013862027, -9.883731154026805, 16.449707443703527,
-    -3.1777570717419006, 0.9915633692882582, 2.3816740287522946, 16.987595788650317,
-    20.64124902365111, -1.7574202596193687, -0.19980967288225085, -0.5142367697450676,
-    24.477403632831635, -25.722036081817144, 2.0738985668551643e-06, -5.820195712429704e-06,
-    7.920901447214022e-07, -1.6077310377960984e-06, -4.064804866989749e-07,
-    -2.6158338129867483e-06, -1.8472705733772784e-06, 4.0103526655296305e-06,
-    -1.0036131549479867e-05, 4.936780508853437e-07, -6.496850758951771e-07,
-    1.343629355994908e-06, 3.121553002631687e-07, 7.104342626384856e-07, 2.260311080848222e-06,
-    -4.394857735652153e-07, 2.5866142365649817e-07, 0.001, 2.0
+    0.049731976666349875, 0.4422697394408704, 0.6033027560647276, 0.04973197666618563,
+    0.44226973944061004, 0.603302756047546, -8.686862731752319, 30.987199840596706,
+    0.018791792808638377, -43.5002877487653, -56.66161054265498, -0.0007179694533776744,
+    -38.433231284560804, 8.778466855682904, -0.023200126015640116, 23.80274463827736,
+    -6.554494790988448, 0.015893772777858355, 205.24181726065308, 222.00880971231288,
+    0.0011010080523211647, -54.88472849528195, -100.89378454839317, -0.0006228795474772564,
+    -57.65363668811103, 10.241640605706946, -0.00024746890923295687, 27.385231608226352,
+    17.034950163101684, 0.0003134353018952446, 26.13916614825221, 38.92939176776301,
+    0.00043943715051819734, -169.7048155872102, -179.2569282535562, -0.0014913601498294333,
+    165.85111583295978, 108.04184490593276, 0.0009646672207276273, 19.741120103035847,
+    13.882442007966478, 0.0004095729166366846, -3.43255802593453, 5.630197272469386,
+    0.009884373666709039, -172.89723911046445, -82.72232174394362, -0.00039630895003536705,
+    -145.1183130071061, -106.01349981825126, -0.0007319963375153638, 212.68405592301232,
+    141.08772517889085, -0.0011948993857328772, -0.6610035716114154, -3.785740771438654,
+    0.807426063801043, -0.5624684434109081, -10.082945173072885, 15.569294193046614,
+    -3.047918981053712, 1.0089082884086569, 2.379604668366473, 16.948665837471296,
+    20.850207114112692, -1.809848478630933, -0.08761500736275438, -0.513568950565265,
+    24.707205026579384, -25.801833647505337, 2.331061515517271e-06, -6.2054154696862144e-06,
+    8.458621611432628e-07, -1.6313690885463952e-06, -4.029559169010445e-07,
+    -2.7416369963847186e-06, -1.9411360693117003e-06, 4.254491710518927e-06,
+    -1.0748318543106404e-05, 4.952310379122379e-07, -6.40677583141589e-07,
+    1.3087761602309732e-06, 1.3601614182847146e-07, 7.129425508408207e-07,
+    2.1539284346859292e-06, -4.3668748165487907e-07, 4.696370623967982e-07, 0.001, 2.0
 };
 #define TH (BLOB + 0)
 #define TS (BLOB + 3)
@@ -176,9 +176,9 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
     int flags = 0, i;
     double u = analytic_solve(phi, r_next, 1, 0);   /* physics start, θ*_phy */
     double a, psi, best_u, best_v = HUGE_VAL, first_v = NAN, last_v = NAN;
-    if (!isfinite(u)) { u = 0.0; flags |= FF_NEWTON_3CDBD4C8_SINGULAR; }
-    if (u < U_MIN) { u = U_MIN; flags |= FF_NEWTON_3CDBD4C8_BOUNDS; }
-    else if (u > U_MAX) { u = U_MAX; flags |= FF_NEWTON_3CDBD4C8_BOUNDS; }
+    if (!isfinite(u)) { u = 0.0; flags |= FF_NEWTON_6D09E9A8_SINGULAR; }
+    if (u < U_MIN) { u = U_MIN; flags |= FF_NEWTON_6D09E9A8_BOUNDS; }
+    else if (u > U_MAX) { u = U_MAX; flags |= FF_NEWTON_6D09E9A8_BOUNDS; }
     phi[UIDX] = 0.0;
     physics_affine(TH, phi, &a, &psi);              /* θ̂_phy: ŷ = a + ψ u + f_NN */
     best_u = u;
@@ -187,26 +187,26 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
         phi[UIDX] = u;
         nn = nn_affine(phi, &dnn);
         V = r_next - (a + psi * u + nn);             /* [B1] (23) */
-        if (!isfinite(V)) { flags |= FF_NEWTON_3CDBD4C8_SINGULAR; break; }
+        if (!isfinite(V)) { flags |= FF_NEWTON_6D09E9A8_SINGULAR; break; }
         av = fabs(V);
         if (i == 0) first_v = av;
         last_v = av;
         if (av < best_v) { best_u = u; best_v = av; }
         if (i == K_NEWTON || V == 0.0) break;
         dV = -(psi + dnn);                           /* [B1] (24), (25) */
-        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_NEWTON_3CDBD4C8_SINGULAR; break; }
+        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_NEWTON_6D09E9A8_SINGULAR; break; }
         u_new = u - V / dV;
-        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_NEWTON_3CDBD4C8_BOUNDS; break; }
+        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_NEWTON_6D09E9A8_BOUNDS; break; }
         u = u_new;
     }
-    if (last_v > first_v) flags |= FF_NEWTON_3CDBD4C8_DIVERGED;
+    if (last_v > first_v) flags |= FF_NEWTON_6D09E9A8_DIVERGED;
     if (best_v == HUGE_VAL) best_u = u;
     phi[UIDX] = 0.0;
     *flags_out = flags;
     return best_u;
 }
 
-static inline double law_w(ff_newton_3cdbd4c8_state *s, const double *rp)
+static inline double law_w(ff_newton_6d09e9a8_state *s, const double *rp)
 {   /* one sample of the law: the model input w(t) from r(t .. t+NK+1) and the state */
     double *x = s->x, *rh = x + XRH, *uh = x + XUH, *rw = x + XRW, *phi = x + XPHI;
     double w;
@@ -232,7 +232,7 @@ static inline double law_w(ff_newton_3cdbd4c8_state *s, const double *rp)
 #else                                               /* LAW_PHYSICS on a forward model */
     w = analytic_solve(phi, rw[0], 1, 0);
 #endif
-    if (!isfinite(w)) flags |= FF_NEWTON_3CDBD4C8_SINGULAR;    /* as the kernels: kept (the guard falls back) */
+    if (!isfinite(w)) flags |= FF_NEWTON_6D09E9A8_SINGULAR;    /* as the kernels: kept (the guard falls back) */
     for (i = NB - 1; i > 0; --i) uh[i] = uh[i - 1];
     uh[0] = w;
     for (i = NRH - 1; i > 0; --i) rh[i] = rh[i - 1];
@@ -241,10 +241,10 @@ static inline double law_w(ff_newton_3cdbd4c8_state *s, const double *rp)
     return w;
 }
 
-static void law_init(ff_newton_3cdbd4c8_state *s, double r0)
+static void law_init(ff_newton_6d09e9a8_state *s, double r0)
 {
     int i;
-    for (i = 0; i < FF_NEWTON_3CDBD4C8_NX; ++i) s->x[i] = 0.0;
+    for (i = 0; i < FF_NEWTON_6D09E9A8_NX; ++i) s->x[i] = 0.0;
     for (i = 0; i < NRH; ++i) s->x[XRH + i] = r0;
     s->w_prev = 0.0;
     s->primed = 0;
@@ -258,7 +258,7 @@ static void law_init(ff_newton_3cdbd4c8_state *s, double r0)
     s->r_hist[1] = r0;
 }
 
-static double law_step(ff_newton_3cdbd4c8_state *s, const double *r_preview)
+static double law_step(ff_newton_6d09e9a8_state *s, const double *r_preview)
 {
     double u;
     s->status = 0;
@@ -276,7 +276,7 @@ static double law_step(ff_newton_3cdbd4c8_state *s, const double *r_preview)
 }
 
 /* ---- guard (issue 22): input sanitation, training envelope, fallback, saturation, slew limit ---- */
-#define G_PREVIEW FF_NEWTON_3CDBD4C8_PREVIEW
+#define G_PREVIEW FF_NEWTON_6D09E9A8_PREVIEW
 #define G_TS (0.001)
 #define U_LO ((-HUGE_VAL))           /* saturation [N] */
 #define U_HI (HUGE_VAL)
@@ -284,18 +284,18 @@ static double law_step(ff_newton_3cdbd4c8_state *s, const double *r_preview)
 #define FALLBACK_KIND 0        /* 0 hold, 1 physics, 2 ramp */
 #define ENVELOPE_FALLS_BACK 0  /* 1: out of the envelope is invalid; 0: flagged only */
 #define RAMP_N (100.0)         /* ramp_time / Ts: samples of the ramp to 0 */
-static const double ENV_LO[3] = {-0.12050561408939725, -0.10878271303569609, -15.696705526774268};   /* training envelope of r, dr/dt, d2r/dt2 */
-static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717171406};
+static const double ENV_LO[3] = {-0.1205056140893973, -0.10878271303569609, -15.696705526759004};   /* training envelope of r, dr/dt, d2r/dt2 */
+static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717170017};
 #if FALLBACK_KIND == 1
 static const double PHYS[3] = {0.0, 0.0, 0.0};    /* physics fallback: M, F_v, F_c */
 #endif
 
-void ff_newton_3cdbd4c8_init(ff_newton_3cdbd4c8_state *s, double r0)
+void ff_newton_6d09e9a8_init(ff_newton_6d09e9a8_state *s, double r0)
 {
     law_init(s, isfinite(r0) ? r0 : 0.0);
 }
 
-double ff_newton_3cdbd4c8_step(ff_newton_3cdbd4c8_state *s, const double *r_preview)
+double ff_newton_6d09e9a8_step(ff_newton_6d09e9a8_state *s, const double *r_preview)
 {
     double ext[G_PREVIEW + 3];   /* r(t-2), r(t-1), r(t) .. r(t+P) after sanitation */
     double x[3], u;
@@ -307,7 +307,7 @@ double ff_newton_3cdbd4c8_step(ff_newton_3cdbd4c8_state *s, const double *r_prev
             ext[i + 2] = r_preview[i];
         } else {
             ext[i + 2] = ext[i + 1];
-            flags |= FF_NEWTON_3CDBD4C8_NONFINITE_INPUT;
+            flags |= FF_NEWTON_6D09E9A8_NONFINITE_INPUT;
         }
     }
     x[0] = ext[G_PREVIEW + 2];                                   /* r(n), n = t + P */
@@ -316,12 +316,12 @@ double ff_newton_3cdbd4c8_step(ff_newton_3cdbd4c8_state *s, const double *r_prev
     for (i = 0; i < 3; ++i) {
         if (!((ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
     }
-    if (!inside) flags |= FF_NEWTON_3CDBD4C8_OUT_OF_RANGE;
+    if (!inside) flags |= FF_NEWTON_6D09E9A8_OUT_OF_RANGE;
     u = law_step(s, ext + 2);
     flags |= s->status;
-    invalid = ((flags & FF_NEWTON_3CDBD4C8_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
+    invalid = ((flags & FF_NEWTON_6D09E9A8_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
     if (invalid) {
-        flags |= FF_NEWTON_3CDBD4C8_FALLBACK;
+        flags |= FF_NEWTON_6D09E9A8_FALLBACK;
         if (s->n_invalid < UINT64_MAX) s->n_invalid++;
 #if FALLBACK_KIND == 2                /* ramp to 0 over RAMP_N samples */
         {
@@ -329,7 +329,7 @@ double ff_newton_3cdbd4c8_step(ff_newton_3cdbd4c8_state *s, const double *r_prev
             u = s->u_hold * (g > 0.0 ? g : 0.0);
         }
 #elif FALLBACK_KIND == 1              /* physics on a finite reference, else hold */
-        if ((flags & FF_NEWTON_3CDBD4C8_NONFINITE_INPUT) == 0) {
+        if ((flags & FF_NEWTON_6D09E9A8_NONFINITE_INPUT) == 0) {
             const double sg = x[1] > 0 ? 1.0 : (x[1] < 0 ? -1.0 : 0.0);
             u = PHYS[0] * x[2] + PHYS[1] * x[1] + PHYS[2] * sg;
             if (!isfinite(u)) u = s->u_hold;
@@ -342,10 +342,10 @@ double ff_newton_3cdbd4c8_step(ff_newton_3cdbd4c8_state *s, const double *r_prev
     } else {
         s->n_invalid = 0;
     }
-    if (u > U_HI) { u = U_HI; flags |= FF_NEWTON_3CDBD4C8_SATURATED; }
-    else if (u < U_LO) { u = U_LO; flags |= FF_NEWTON_3CDBD4C8_SATURATED; }
-    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_NEWTON_3CDBD4C8_RATE_LIMITED; }
-    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_NEWTON_3CDBD4C8_RATE_LIMITED; }
+    if (u > U_HI) { u = U_HI; flags |= FF_NEWTON_6D09E9A8_SATURATED; }
+    else if (u < U_LO) { u = U_LO; flags |= FF_NEWTON_6D09E9A8_SATURATED; }
+    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_NEWTON_6D09E9A8_RATE_LIMITED; }
+    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_NEWTON_6D09E9A8_RATE_LIMITED; }
     if (!invalid) s->u_hold = u;
     s->u_prev = u;
     s->r_hist[1] = s->r_hist[0];

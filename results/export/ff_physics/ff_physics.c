@@ -30,8 +30,8 @@
  * [θ̂_phy (P) | θ*_phy, the physics start (P) | W, first layer with the input map folded in (H x NPHI) |
  *  b (H) | w2 = output weights x output scale (H) | b2 | physics map configuration] */
 static const double BLOB[8] = {
-    20.10024386128005, 8.795315568590485, 12.190681381301255, 20.10024386128005,
-    8.795315568590485, 12.190681381301255, 0.0, 0.001
+    20.100243861280035, 8.795315568588403, 12.190681381301424, 20.100243861280035,
+    8.795315568588403, 12.190681381301424, 0.0, 0.001
 };
 #define TH (BLOB + 0)
 #define TS (BLOB + 3)
@@ -155,9 +155,9 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
     int flags = 0, i;
     double u = analytic_solve(phi, r_next, 1, 0);   /* physics start, θ*_phy */
     double a, psi, best_u, best_v = HUGE_VAL, first_v = NAN, last_v = NAN;
-    if (!isfinite(u)) { u = 0.0; flags |= FF_PHYSICS_711E6CE4_SINGULAR; }
-    if (u < U_MIN) { u = U_MIN; flags |= FF_PHYSICS_711E6CE4_BOUNDS; }
-    else if (u > U_MAX) { u = U_MAX; flags |= FF_PHYSICS_711E6CE4_BOUNDS; }
+    if (!isfinite(u)) { u = 0.0; flags |= FF_PHYSICS_899989E9_SINGULAR; }
+    if (u < U_MIN) { u = U_MIN; flags |= FF_PHYSICS_899989E9_BOUNDS; }
+    else if (u > U_MAX) { u = U_MAX; flags |= FF_PHYSICS_899989E9_BOUNDS; }
     phi[UIDX] = 0.0;
     physics_affine(TH, phi, &a, &psi);              /* θ̂_phy: ŷ = a + ψ u + f_NN */
     best_u = u;
@@ -166,26 +166,26 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
         phi[UIDX] = u;
         nn = nn_affine(phi, &dnn);
         V = r_next - (a + psi * u + nn);             /* [B1] (23) */
-        if (!isfinite(V)) { flags |= FF_PHYSICS_711E6CE4_SINGULAR; break; }
+        if (!isfinite(V)) { flags |= FF_PHYSICS_899989E9_SINGULAR; break; }
         av = fabs(V);
         if (i == 0) first_v = av;
         last_v = av;
         if (av < best_v) { best_u = u; best_v = av; }
         if (i == K_NEWTON || V == 0.0) break;
         dV = -(psi + dnn);                           /* [B1] (24), (25) */
-        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_PHYSICS_711E6CE4_SINGULAR; break; }
+        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_PHYSICS_899989E9_SINGULAR; break; }
         u_new = u - V / dV;
-        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_PHYSICS_711E6CE4_BOUNDS; break; }
+        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_PHYSICS_899989E9_BOUNDS; break; }
         u = u_new;
     }
-    if (last_v > first_v) flags |= FF_PHYSICS_711E6CE4_DIVERGED;
+    if (last_v > first_v) flags |= FF_PHYSICS_899989E9_DIVERGED;
     if (best_v == HUGE_VAL) best_u = u;
     phi[UIDX] = 0.0;
     *flags_out = flags;
     return best_u;
 }
 
-static inline double law_w(ff_physics_711e6ce4_state *s, const double *rp)
+static inline double law_w(ff_physics_899989e9_state *s, const double *rp)
 {   /* one sample of the law: the model input w(t) from r(t .. t+NK+1) and the state */
     double *x = s->x, *rh = x + XRH, *uh = x + XUH, *rw = x + XRW, *phi = x + XPHI;
     double w;
@@ -211,7 +211,7 @@ static inline double law_w(ff_physics_711e6ce4_state *s, const double *rp)
 #else                                               /* LAW_PHYSICS on a forward model */
     w = analytic_solve(phi, rw[0], 1, 0);
 #endif
-    if (!isfinite(w)) flags |= FF_PHYSICS_711E6CE4_SINGULAR;    /* as the kernels: kept (the guard falls back) */
+    if (!isfinite(w)) flags |= FF_PHYSICS_899989E9_SINGULAR;    /* as the kernels: kept (the guard falls back) */
     for (i = NB - 1; i > 0; --i) uh[i] = uh[i - 1];
     uh[0] = w;
     for (i = NRH - 1; i > 0; --i) rh[i] = rh[i - 1];
@@ -220,10 +220,10 @@ static inline double law_w(ff_physics_711e6ce4_state *s, const double *rp)
     return w;
 }
 
-static void law_init(ff_physics_711e6ce4_state *s, double r0)
+static void law_init(ff_physics_899989e9_state *s, double r0)
 {
     int i;
-    for (i = 0; i < FF_PHYSICS_711E6CE4_NX; ++i) s->x[i] = 0.0;
+    for (i = 0; i < FF_PHYSICS_899989E9_NX; ++i) s->x[i] = 0.0;
     for (i = 0; i < NRH; ++i) s->x[XRH + i] = r0;
     s->w_prev = 0.0;
     s->primed = 0;
@@ -237,7 +237,7 @@ static void law_init(ff_physics_711e6ce4_state *s, double r0)
     s->r_hist[1] = r0;
 }
 
-static double law_step(ff_physics_711e6ce4_state *s, const double *r_preview)
+static double law_step(ff_physics_899989e9_state *s, const double *r_preview)
 {
     double u;
     s->status = 0;
@@ -255,7 +255,7 @@ static double law_step(ff_physics_711e6ce4_state *s, const double *r_preview)
 }
 
 /* ---- guard (issue 22): input sanitation, training envelope, fallback, saturation, slew limit ---- */
-#define G_PREVIEW FF_PHYSICS_711E6CE4_PREVIEW
+#define G_PREVIEW FF_PHYSICS_899989E9_PREVIEW
 #define G_TS (0.001)
 #define U_LO ((-HUGE_VAL))           /* saturation [N] */
 #define U_HI (HUGE_VAL)
@@ -263,18 +263,18 @@ static double law_step(ff_physics_711e6ce4_state *s, const double *r_preview)
 #define FALLBACK_KIND 0        /* 0 hold, 1 physics, 2 ramp */
 #define ENVELOPE_FALLS_BACK 0  /* 1: out of the envelope is invalid; 0: flagged only */
 #define RAMP_N (100.0)         /* ramp_time / Ts: samples of the ramp to 0 */
-static const double ENV_LO[3] = {-0.12050561408939725, -0.10878271303569609, -15.696705526774268};   /* training envelope of r, dr/dt, d2r/dt2 */
-static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717171406};
+static const double ENV_LO[3] = {-0.1205056140893973, -0.10878271303569609, -15.696705526759004};   /* training envelope of r, dr/dt, d2r/dt2 */
+static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717170017};
 #if FALLBACK_KIND == 1
 static const double PHYS[3] = {0.0, 0.0, 0.0};    /* physics fallback: M, F_v, F_c */
 #endif
 
-void ff_physics_711e6ce4_init(ff_physics_711e6ce4_state *s, double r0)
+void ff_physics_899989e9_init(ff_physics_899989e9_state *s, double r0)
 {
     law_init(s, isfinite(r0) ? r0 : 0.0);
 }
 
-double ff_physics_711e6ce4_step(ff_physics_711e6ce4_state *s, const double *r_preview)
+double ff_physics_899989e9_step(ff_physics_899989e9_state *s, const double *r_preview)
 {
     double ext[G_PREVIEW + 3];   /* r(t-2), r(t-1), r(t) .. r(t+P) after sanitation */
     double x[3], u;
@@ -286,7 +286,7 @@ double ff_physics_711e6ce4_step(ff_physics_711e6ce4_state *s, const double *r_pr
             ext[i + 2] = r_preview[i];
         } else {
             ext[i + 2] = ext[i + 1];
-            flags |= FF_PHYSICS_711E6CE4_NONFINITE_INPUT;
+            flags |= FF_PHYSICS_899989E9_NONFINITE_INPUT;
         }
     }
     x[0] = ext[G_PREVIEW + 2];                                   /* r(n), n = t + P */
@@ -295,12 +295,12 @@ double ff_physics_711e6ce4_step(ff_physics_711e6ce4_state *s, const double *r_pr
     for (i = 0; i < 3; ++i) {
         if (!((ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
     }
-    if (!inside) flags |= FF_PHYSICS_711E6CE4_OUT_OF_RANGE;
+    if (!inside) flags |= FF_PHYSICS_899989E9_OUT_OF_RANGE;
     u = law_step(s, ext + 2);
     flags |= s->status;
-    invalid = ((flags & FF_PHYSICS_711E6CE4_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
+    invalid = ((flags & FF_PHYSICS_899989E9_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
     if (invalid) {
-        flags |= FF_PHYSICS_711E6CE4_FALLBACK;
+        flags |= FF_PHYSICS_899989E9_FALLBACK;
         if (s->n_invalid < UINT64_MAX) s->n_invalid++;
 #if FALLBACK_KIND == 2                /* ramp to 0 over RAMP_N samples */
         {
@@ -308,7 +308,7 @@ double ff_physics_711e6ce4_step(ff_physics_711e6ce4_state *s, const double *r_pr
             u = s->u_hold * (g > 0.0 ? g : 0.0);
         }
 #elif FALLBACK_KIND == 1              /* physics on a finite reference, else hold */
-        if ((flags & FF_PHYSICS_711E6CE4_NONFINITE_INPUT) == 0) {
+        if ((flags & FF_PHYSICS_899989E9_NONFINITE_INPUT) == 0) {
             const double sg = x[1] > 0 ? 1.0 : (x[1] < 0 ? -1.0 : 0.0);
             u = PHYS[0] * x[2] + PHYS[1] * x[1] + PHYS[2] * sg;
             if (!isfinite(u)) u = s->u_hold;
@@ -321,10 +321,10 @@ double ff_physics_711e6ce4_step(ff_physics_711e6ce4_state *s, const double *r_pr
     } else {
         s->n_invalid = 0;
     }
-    if (u > U_HI) { u = U_HI; flags |= FF_PHYSICS_711E6CE4_SATURATED; }
-    else if (u < U_LO) { u = U_LO; flags |= FF_PHYSICS_711E6CE4_SATURATED; }
-    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_PHYSICS_711E6CE4_RATE_LIMITED; }
-    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_PHYSICS_711E6CE4_RATE_LIMITED; }
+    if (u > U_HI) { u = U_HI; flags |= FF_PHYSICS_899989E9_SATURATED; }
+    else if (u < U_LO) { u = U_LO; flags |= FF_PHYSICS_899989E9_SATURATED; }
+    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_PHYSICS_899989E9_RATE_LIMITED; }
+    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_PHYSICS_899989E9_RATE_LIMITED; }
     if (!invalid) s->u_hold = u;
     s->u_prev = u;
     s->r_hist[1] = s->r_hist[0];

@@ -82,16 +82,16 @@ static double *read_columns(const char *path, int ncol, long *n)
 
 static double run(const double *r, long n, long stride, double *u, int *flags)
 {   /* the reference sample by sample, as a real-time loop feeds it; returns the sum of u */
-    ff_physics_711e6ce4_state s;
-    ff_physics_711e6ce4_real rp[FF_PHYSICS_711E6CE4_PREVIEW + 1];
+    ff_physics_899989e9_state s;
+    ff_physics_899989e9_real rp[FF_PHYSICS_899989E9_PREVIEW + 1];
     double sum = 0.0;
     long t;
     int i;
-    ff_physics_711e6ce4_init(&s, (ff_physics_711e6ce4_real)(FF_PHYSICS_711E6CE4_REST_AT_ZERO ? 0.0 : r[0]));
+    ff_physics_899989e9_init(&s, (ff_physics_899989e9_real)(FF_PHYSICS_899989E9_REST_AT_ZERO ? 0.0 : r[0]));
     for (t = 0; t < n; ++t) {
         double v;
-        for (i = 0; i <= FF_PHYSICS_711E6CE4_PREVIEW; ++i) rp[i] = (ff_physics_711e6ce4_real)r[(t + i < n ? t + i : n - 1) * stride];
-        v = ff_physics_711e6ce4_step(&s, rp);
+        for (i = 0; i <= FF_PHYSICS_899989E9_PREVIEW; ++i) rp[i] = (ff_physics_899989e9_real)r[(t + i < n ? t + i : n - 1) * stride];
+        v = ff_physics_899989e9_step(&s, rp);
         if (u) u[t] = v;
         if (flags) flags[t] = s.status;
         sum += v;

@@ -279,7 +279,8 @@ def capped_lines(keys: pd.DataFrame, check: str) -> list[str]:
 
 def table_lines(summary: pd.DataFrame) -> list[str]:
     """The per-experiment table of a check (check-<check>.md and REPORT.md show the same one)."""
-    lines = ["| experiment | values | largest relative change (of the moved values; of all where none moved) | at | moved > rtol "
+    lines = ["| experiment | values | largest relative change (of the moved values; of all where none moved) "
+             "| at | moved > rtol "
              "| ill-determined: tiny | ill-determined: equal fits | ill-determined: other minimum "
              "| fits moved > 0.1 % | claim verdicts changed (claim rows) | solver-path values (not compared) |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]

@@ -382,8 +382,8 @@ def _peak_diagnosis(table, rows, experiment, failing=("newton", "analytic"), m_t
     # smaller than the direct's where the reference accelerates, growing >= 2x with speed at constant
     # velocity to within +-50 % of the direct's there, and its peak in the constant-velocity phase
     peak_at = {mt: max(PHASE_LABEL, key=lambda k: get(mt, f"evaluate/{ref}/max_abs_{k}")) for mt in ind}
-    mass_ok = {mt: (m := get(mt, "train/theta_phy/m")) is not None and m_true == m_true
-               and abs(m - m_true) <= 0.02 * m_true for mt in ind}
+    mass_ok = {mt: (mass := get(mt, "train/theta_phy/m")) is not None and m_true == m_true
+               and abs(mass - m_true) <= 0.02 * m_true for mt in ind}
     held = [mt for mt in ind if acc[mt] >= 2.0 and grow[mt] >= 2.0 and 0.7 <= alike[mt] <= 1.5 and mass_ok[mt]
             and peak_at[mt] == "constvel"]
     if held:

@@ -111,11 +111,10 @@ def _ratio_sides(variant: str, metric: str, fits: set[str]) -> tuple[list[str], 
 def _inherit_from_inputs(m: pd.DataFrame, cat: np.ndarray) -> np.ndarray:
     """Moved ratio rows of two fits (RATIO_SEP) that their inputs' changes explain, with an ill-determined
     input: that input's category (the one of the largest change)."""
-    cat = cat.copy()
-    pos = {ix: i for i, ix in enumerate(m.index)}
-    for exp, g in m.groupby("experiment", sort=False):
+    cat = pd.Series(cat, index=m.index)
+    for _, g in m.groupby("experiment", sort=False):
         fits = set(g["fit"]) - {""}
-        for ix, row in g[(cat[[pos[i] for i in g.index]] == "moved") & (g["fit"] == "")].iterrows():
+        for ix, row in g[(cat[g.index] == "moved") & (g["fit"] == "")].iterrows():
             sides = _ratio_sides(str(row["variant"]), str(row["metric"]), fits)
             if sides is None:
                 continue
@@ -123,12 +122,12 @@ def _inherit_from_inputs(m: pd.DataFrame, cat: np.ndarray) -> np.ndarray:
             inputs = [g[(g["metric"] == stem) & g["fit"].isin(side)] for side in sides]
             if any(i.empty for i in inputs):
                 continue
-            bound = sum(float(i["rel_change"].max()) for i in inputs)
+            bound = sum(float(i["rel_change"].max()) for i in inputs)   # first order, for a quotient
             both = pd.concat(inputs)
-            ill = both[both.index.map(lambda i: cat[pos[i]] in ILL_DETERMINED)]
+            ill = both[cat[both.index].isin(ILL_DETERMINED)]
             if len(ill) and float(row["rel_change"]) <= bound * (1 + 1e-9):
-                cat[pos[ix]] = cat[pos[ill["rel_change"].idxmax()]]
-    return cat
+                cat[ix] = cat[ill["rel_change"].idxmax()]
+    return cat.to_numpy()
 
 
 def compare(reference: pd.DataFrame, perturbed: pd.DataFrame, rtol: float = 0.02) -> tuple[pd.DataFrame, pd.DataFrame]:

@@ -174,7 +174,10 @@ def _linear_motor(experiment, runs, figdir):
             fig = _mae_figure(table, noise, refs, figdir / f"{experiment}-{noise}-mae.png")
             if fig:
                 lines += [f"![MAE vs v_max]({fig})", ""]
-    fig = _fig3(ids, figdir / f"{experiment}-equation-fig3.png")
+    # every `equation` run's evaluate/errors.npz, read once: Fig. 3, the MAE by phase, the peaks' lags
+    errors = {mt: z for mt in METHODS if ("equation", mt) in ids
+              and (z := load_errors(ids[("equation", mt)])) is not None}
+    fig = _fig3(errors, figdir / f"{experiment}-equation-fig3.png")
     if fig:
         lines += [f"![tracking error at 0.15 m/s, every method]({fig})", ""]
     for key in (("equation", "direct"), ("equation", "newton"), ("equation", "analytic")):
@@ -189,12 +192,12 @@ def _linear_motor(experiment, runs, figdir):
                   f"{len(verdicts)} hold."]
         if failed:
             lines += ["Failed: " + "; ".join(f"{t} (value {x:.3g})" for t, _, x in failed) + ".", ""]
-            lines += _mae_diagnosis(failed, table, refs, _phase_mae(ids, refs))
+            lines += _mae_diagnosis(failed, table, refs, _phase_mae(errors, refs))
             if any("peak" in t for t, _, _ in failed):
                 lines += _peak_diagnosis(table, rows, experiment,
                                          failing=[mt for mt in METHODS if any(t.startswith(f"{mt} peak")
                                                                              for t, _, _ in failed)],
-                                         m_true=_first_param(runs, "system.m"), lags=_peak_lags(ids))
+                                         m_true=_first_param(runs, "system.m"), lags=_peak_lags(errors))
         lines.append("")
     return rows, "\n".join(lines) + "\n"
 
@@ -260,14 +263,14 @@ def _ratio(a, b) -> float:
     return a / b if b else float("nan")
 
 
-def _phase_mae(ids, refs) -> dict[tuple[str, str], dict[str, tuple[float, float]]]:
+def _phase_mae(errors, refs) -> dict[tuple[str, str], dict[str, tuple[float, float]]]:
     """{(method, ref): {phase: (share of the samples, its part of the MAE: Σ_phase |e| / N)}} of the
-    `equation` runs, from their evaluate/errors.npz: which motion phase an MAE comes from."""
+    `equation` runs, from their evaluate/errors.npz (``errors``: {method: arrays}): which motion phase an
+    MAE comes from."""
     out = {}
-    for mt in METHODS:
-        z = load_errors(ids[("equation", mt)]) if ("equation", mt) in ids else None
+    for mt, z in errors.items():
         for r in refs:
-            if z is None or f"{r}/e" not in z:
+            if f"{r}/e" not in z:
                 continue
             e = np.abs(z[f"{r}/e"])
             out[(mt, r)] = {k: (float(m.mean()), float(e[m].sum()) / e.size)
@@ -397,13 +400,12 @@ def _peak_diagnosis(table, rows, experiment, failing=("newton", "analytic"), m_t
     return out
 
 
-def _peak_lags(ids, ref: str = "v0.15") -> dict[str, float]:
+def _peak_lags(errors, ref: str = "v0.15") -> dict[str, float]:
     """{method: seconds from the end of the last acceleration phase before |e|'s peak to the peak}
-    (0 when the peak is inside an acceleration phase), from the runs' evaluate/errors.npz."""
+    (0 when the peak is inside an acceleration phase), from the runs' evaluate/errors.npz (``errors``)."""
     out = {}
-    for mt in METHODS:
-        z = load_errors(ids[("equation", mt)]) if ("equation", mt) in ids else None
-        if z is None or f"{ref}/e" not in z:
+    for mt, z in errors.items():
+        if f"{ref}/e" not in z:
             continue
         acc = np.flatnonzero(motion_phases(z[f"{ref}/r"])["accel"])
         i = int(np.argmax(np.abs(z[f"{ref}/e"])))
@@ -413,13 +415,12 @@ def _peak_lags(ids, ref: str = "v0.15") -> dict[str, float]:
     return out
 
 
-def _fig3(ids, path: Path, ref: str = "v0.15"):
+def _fig3(errors, path: Path, ref: str = "v0.15"):
     """[B1] Fig. 3: the tracking error of every method at 0.15 m/s in one plot, accelerating
-    phases shaded (from each run's evaluate/errors.npz artifact)."""
+    phases shaded (from each run's evaluate/errors.npz artifact, ``errors``)."""
     plt = pyplot()
 
-    sig = {mt: load_errors(ids[("equation", mt)]) for mt in METHODS if ("equation", mt) in ids}
-    sig = {mt: z for mt, z in sig.items() if z is not None and f"{ref}/e" in z}
+    sig = {mt: z for mt, z in errors.items() if f"{ref}/e" in z}
     if not sig:
         return None
     fig, ax = plt.subplots(figsize=(8, 3.5))

@@ -8,6 +8,7 @@ direct LM from the SK result gains O(‖e‖²/‖f̂‖²) ≈ 1e-8 relative; t
 The regularised check's cost J_OE + λR (R frozen at the last SK step's weighting, [K] (30)) is
 cross-checked against a dense evaluation (SVD of the weighted model matrix built here).
 """
+import copy
 import warnings
 
 import numpy as np
@@ -15,8 +16,8 @@ import pytest
 import scipy.signal
 import torch
 
-from pipeline.identify.sk import (SKNotConvergedWarning, frozen_regularizer, oe_cost,
-                                  output_error_lm, prepare_data, sk_iterations)
+from pipeline.identify.sk import (SKNotConvergedWarning, _frozen_subspace, frozen_regularizer, oe_cost,
+                                  output_error_lm, output_error_problem, prepare_data, sk_iterations)
 from pipeline.models.rational import ar_polynomial
 from pipeline.models.shared_ar import MLP, ReferenceWindow, SharedARPGNN
 
@@ -146,6 +147,42 @@ def test_regularised_check_needs_a_weighting(problem):
     rs, fs = problem
     with pytest.raises(ValueError, match="weighting"):
         output_error_lm(_pgnn(rs, seed=3), rs, fs, lam=1.0)
+
+
+class _GenericJacobian(SharedARPGNN):
+    """The same model on the generic path: ∂g/∂φ by torch's per-sample Jacobian, filtered by lfilter."""
+    closed_form_jacobian = False
+
+
+def test_oe_check_jacobian_in_closed_form_equals_the_generic_path(problem):
+    """The K3 check's exact Jacobian of J_OE + λR (tanh MLP: W ∂g/∂φ from the residual's activations
+    in one numba pass per filter) equals the generic path's (torch per-sample Jacobian, each column
+    filtered by lfilter) to rounding, and central differences to their O(h²) error; the residual
+    is the same to the bit (g_forward has the bits of g_value)."""
+    rs, fs = problem
+    model = _pgnn(rs, seed=5)
+    c = np.real(np.poly([0.6 + 0.3j, 0.6 - 0.3j]))
+    model.set_theta(np.r_[0.9, -0.4, c[1:]])
+    generic = copy.deepcopy(model)
+    generic.__class__ = _GenericJacobian
+    data = prepare_data(model, rs, fs)
+    w = np.real(np.poly([0.75, 0.5]))                        # the frozen weighting B_w
+    sub = _frozen_subspace(model, data, w, column_scale=True, rank_rtol=None)
+    res_c, jac_c, x0 = output_error_problem(model, data, lam=0.3, sub=sub, weighting=w)
+    res_g, jac_g, _ = output_error_problem(generic, data, lam=0.3, sub=sub, weighting=w)
+    assert model.closed_form_jacobian and not generic.closed_form_jacobian
+    x = x0 * (1.0 + 0.01 * torch.linspace(-1.0, 1.0, x0.numel(), dtype=torch.float64))
+    assert torch.equal(res_c(x), res_g(x))
+    Jc, Jg = jac_c(x).numpy(), jac_g(x).numpy()
+    assert Jc.shape == (data["segments"].n + sub.p, x0.numel())
+    assert np.max(np.abs(Jc - Jg) / np.abs(Jg).max(axis=0)) < 1e-13        # per column, to rounding
+    h = 1e-6 * np.maximum(np.abs(x.numpy()), 1.0)
+    J_fd = np.column_stack([(res_c(x + torch.from_numpy(e)) - res_c(x - torch.from_numpy(e))).numpy() / (2 * e[i])
+                            for i, e in enumerate(np.diag(h))])
+    np.testing.assert_allclose(Jc, J_fd, rtol=0, atol=1e-6 * np.abs(Jc).max())
+    # the Jacobian at a φ other than the last residual's recomputes its activations
+    res_c(x0)
+    np.testing.assert_allclose(jac_c(x).numpy(), Jc, rtol=0, atol=0)
 
 
 def test_sk_cost_stop_fires_where_the_parameter_test_cannot(problem, sk_none):

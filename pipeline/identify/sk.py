@@ -761,12 +761,25 @@ def output_error_problem(model: RationalFeedforward, data: dict, *, lam: float =
     sq = math.sqrt(lam) if reg else 0.0
     w_den = np.asarray(weighting, dtype=np.float64) if reg else None
 
+    # a tanh MLP g_φ: the residual keeps its layer outputs (g_forward: the bits of g_value), and
+    # W ∂g/∂φ is formed from them in one numba pass per filter (SharedARPGNN.filtered_jacobian)
+    # instead of torch's per-sample Jacobian filtered column by column by lfilter
+    closed = has_g and bool(getattr(model, "closed_form_jacobian", False))
+    acts: dict = {}     # the activations of the last g and its x
+
     def split(x: torch.Tensor):
         xn = x.detach().numpy()
         trial = RationalFeedforward(model.n_a, model.n_b, model.basis, model.Ts, b=xn[model.n_a:n_th])
         u = R @ xn[:model.n_a]
         g = None
-        if has_g:
+        if closed:
+            key = xn.tobytes()
+            if acts.get("key") != key:
+                g_t, a = model.g_forward(inp, x[n_th:])
+                acts.update(key=key, g=g_t.numpy(), acts=a)
+            g = acts["g"]
+            u = u + g
+        elif has_g:
             g = model.g_value(inp, x[n_th:]).numpy()
             u = u + g
         return trial, u, g
@@ -786,6 +799,16 @@ def output_error_problem(model: RationalFeedforward, data: dict, *, lam: float =
         den = trial.denominator()
         fsim = filter_segments(u, [1.0], den, seg)
         cols = [-R, trial.ar_regressors(fsim, seg)]
+        if closed:                                             # x is the last residual's: acts kept
+            phi, a = x[n_th:], acts["acts"]
+            J = np.empty((seg.n + (sub.p if reg else 0), x.numel()))
+            J[:seg.n, :n_th] = filter_segments(np.hstack(cols), [1.0], den, seg)
+            J[:seg.n, n_th:] = model.filtered_jacobian(inp, phi, [1.0], den, seg, a)
+            np.negative(J[:seg.n, n_th:], out=J[:seg.n, n_th:])   # ∂e/∂φ = −(∂g/∂φ)/B
+            if reg:
+                J[seg.n:, :n_th] = 0.0
+                J[seg.n:, n_th:] = sq * sub.coordinates(model.filtered_jacobian(inp, phi, [1.0], w_den, seg, a))
+            return torch.from_numpy(J)
         Jg = None
         if has_g:
             Jg = model.g_and_jacobian(inp, x[n_th:])[1].numpy()

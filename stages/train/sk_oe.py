@@ -117,8 +117,9 @@ class Params:
     output_tol: float = spec(0.0, ge=0, lt=1)
 
 
-VERSION = 4   # 2: SK and the OE check stop on tolerances (stop reasons logged); regularised check on J_OE + λR;
-              # 3: the 'stalled' stop of SK without a fixed point; 4: the regularised PGNN's restarts unscreened
+VERSION = 5   # 2: SK and the OE check stop on tolerances (stop reasons logged); regularised check on J_OE + λR;
+              # 3: the 'stalled' stop of SK without a fixed point; 4: the regularised PGNN's restarts unscreened;
+              # 5: the OE check's W ∂g/∂φ in closed form (numba, equal to rounding: the check's path moves)
 
 
 KINDS = ("rational", "pgnn_shared_ar")

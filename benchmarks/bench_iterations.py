@@ -425,7 +425,46 @@ def bench_k(args) -> dict:
         out["ratio before"] = t["before: iteration"] / floor
         line += f", before {out['ratio before']:.2f}x"
     print(line + " (target <= 1.5x)")
+    out["oe_check"] = bench_oe_check(args, model, data, den, lam)
     return out
+
+
+class _GenericJacobian:
+    """Mixin: the model on the generic path (torch's per-sample ∂g/∂φ, each column filtered by lfilter)."""
+    closed_form_jacobian = False
+
+
+def bench_oe_check(args, model, data, den, lam) -> dict:
+    """The K3 check's Jacobian (``sk.output_error_problem``, J_OE + λR over θ and φ, R frozen at the
+    weighting 1/B): the generic path (the code before 3e1c67b) against the closed form from the residual's
+    activations, at the same x (residual first, as LM calls them)."""
+    import copy
+    sub = sk._frozen_subspace(model, data, den, column_scale=True, rank_rtol=None)
+    generic = copy.deepcopy(model)
+    generic.__class__ = type("Generic" + type(model).__name__, (_GenericJacobian, type(model)), {})
+    res_c, jac_c, x0 = sk.output_error_problem(model, data, lam=lam, sub=sub, weighting=den)
+    res_g, jac_g, _ = sk.output_error_problem(generic, data, lam=lam, sub=sub, weighting=den)
+    xs = [x0 * (1.0 + 1e-9 * (i + 1)) for i in range(args.repeats + 1)]
+    J_c, J_g = jac_c(x0).numpy(), jac_g(x0).numpy()
+    diff = float(np.max(np.abs(J_c - J_g) / np.abs(J_g).max(axis=0)))
+
+    def it(res, jac):
+        def run(i=0):
+            jac(xs[i % len(xs)])
+        return per_repeat(run, lambda i: res(xs[i % len(xs)]))
+    t = timed({"generic": it(res_g, jac_g), "closed": it(res_c, jac_c),
+               "gram": lambda: _gram_np(J_c)}, args.repeats)
+    show(f"[K] K3 check: Jacobian of J_OE + λR over (θ, φ), {J_c.shape[0]} × {J_c.shape[1]}; CPU ms, median of "
+         f"{args.repeats}", [("Jacobian (generic: per-sample ∂g/∂φ, lfilter per column | closed form)",
+                              t["generic"], t["closed"]),
+                             ("JᵀJ of it (numpy, syrk), for scale", None, t["gram"])])
+    print(f"  closed form vs generic: max |ΔJ| / column max {diff:.1e} (equal to rounding); "
+          f"{t['generic'] / t['closed']:.1f}x faster")
+    return {"generic [ms]": t["generic"], "closed [ms]": t["closed"], "gram [ms]": t["gram"], "max_rel_diff": diff}
+
+
+def _gram_np(J):
+    return J.T @ J
 
 
 def main(argv=None) -> dict:

@@ -183,6 +183,17 @@ def test_oe_check_jacobian_in_closed_form_equals_the_generic_path(problem):
     # the Jacobian at a φ other than the last residual's recomputes its activations
     res_c(x0)
     np.testing.assert_allclose(jac_c(x).numpy(), Jc, rtol=0, atol=0)
+    # with a gain on g (a root of B reflected, SPEC §5) both paths carry it
+    for m in (model, generic):
+        m.g_gain.fill_(-0.7)
+    res_c, jac_c, _ = output_error_problem(model, data, lam=0.3, sub=sub, weighting=w)
+    res_g, jac_g, _ = output_error_problem(generic, data, lam=0.3, sub=sub, weighting=w)
+    assert torch.equal(res_c(x), res_g(x))
+    Jc7, Jg7 = jac_c(x).numpy(), jac_g(x).numpy()
+    assert np.max(np.abs(Jc7 - Jg7) / np.abs(Jg7).max(axis=0)) < 1e-13
+    n_th = model.n_a + model.n_b
+    # ∂e/∂φ is proportional to the gain
+    np.testing.assert_allclose(Jc7[:, n_th:], -0.7 * Jc[:, n_th:], rtol=1e-12, atol=1e-14 * np.abs(Jc).max())
 
 
 def test_sk_cost_stop_fires_where_the_parameter_test_cannot(problem, sk_none):

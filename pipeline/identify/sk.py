@@ -799,7 +799,7 @@ def output_error_problem(model: RationalFeedforward, data: dict, *, lam: float =
         den = trial.denominator()
         fsim = filter_segments(u, [1.0], den, seg)
         cols = [-R, trial.ar_regressors(fsim, seg)]
-        if closed:                                             # x is the last residual's: acts kept
+        if closed:                          # acts of x: split above kept them from the residual at x
             phi, a = x[n_th:], acts["acts"]
             J = np.empty((seg.n + (sub.p if reg else 0), x.numel()))
             J[:seg.n, :n_th] = filter_segments(np.hstack(cols), [1.0], den, seg)

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import copy
 import importlib.util
 import json
 import os
@@ -438,7 +439,6 @@ def bench_oe_check(args, model, data, den, lam) -> dict:
     """The K3 check's Jacobian (``sk.output_error_problem``, J_OE + λR over θ and φ, R frozen at the
     weighting 1/B): the generic path (the code before 3e1c67b) against the closed form from the residual's
     activations, at the same x (residual first, as LM calls them)."""
-    import copy
     sub = sk._frozen_subspace(model, data, den, column_scale=True, rank_rtol=None)
     generic = copy.deepcopy(model)
     generic.__class__ = type("Generic" + type(model).__name__, (_GenericJacobian, type(model)), {})
@@ -453,7 +453,7 @@ def bench_oe_check(args, model, data, den, lam) -> dict:
             jac(xs[i % len(xs)])
         return per_repeat(run, lambda i: res(xs[i % len(xs)]))
     t = timed({"generic": it(res_g, jac_g), "closed": it(res_c, jac_c),
-               "gram": lambda: _gram_np(J_c)}, args.repeats)
+               "gram": lambda: J_c.T @ J_c}, args.repeats)
     show(f"[K] K3 check: Jacobian of J_OE + λR over (θ, φ), {J_c.shape[0]} × {J_c.shape[1]}; CPU ms, median of "
          f"{args.repeats}", [("Jacobian (generic: per-sample ∂g/∂φ, lfilter per column | closed form)",
                               t["generic"], t["closed"]),
@@ -461,10 +461,6 @@ def bench_oe_check(args, model, data, den, lam) -> dict:
     print(f"  closed form vs generic: max |ΔJ| / column max {diff:.1e} (equal to rounding); "
           f"{t['generic'] / t['closed']:.1f}x faster")
     return {"generic [ms]": t["generic"], "closed [ms]": t["closed"], "gram [ms]": t["gram"], "max_rel_diff": diff}
-
-
-def _gram_np(J):
-    return J.T @ J
 
 
 def main(argv=None) -> dict:

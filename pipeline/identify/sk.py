@@ -262,6 +262,26 @@ def _restore(model, theta, phi, gain) -> None:
 
 
 # ----------------------------------------------------------------------------- SK step
+class _LastForward:
+    """g_φ(r) of a tanh MLP at the last φ evaluated, with its layer outputs (SharedARPGNN.g_forward: the
+    bits of g_value), so that W ∂g/∂φ at that φ (filtered_jacobian[_gram], g_jvp, g_vjp) reuses them."""
+
+    def __init__(self, model, inputs: dict):
+        self.model, self.inputs = model, inputs
+        self.key, self.g, self.acts = None, None, None
+
+    def __call__(self, phi: torch.Tensor) -> torch.Tensor:
+        key = phi.numpy().tobytes()
+        if key != self.key:
+            self.g, self.acts = self.model.g_forward(self.inputs, phi)
+            self.key = key
+        return self.g
+
+    def at(self, phi: torch.Tensor):
+        """The layer outputs at ``phi`` if it is the last φ evaluated, else None."""
+        return self.acts if self.key == phi.numpy().tobytes() else None
+
+
 def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.ndarray,
                  lam: float, lm_kw: dict) -> tuple[torch.Tensor, LMResult]:
     """φ^j of [K] (30) with θ eliminated (variable projection), by LM with exact Jacobian."""
@@ -273,23 +293,15 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
     # form and filtered in one numba pass (SharedARPGNN.filtered_jacobian[_gram]); otherwise ∂g/∂φ by
     # per-sample backpropagation (torch) and filter_segments column by column
     closed = bool(getattr(model, "closed_form_jacobian", False))
-    acts: dict = {}     # the activations of the last residual and its φ
+    fwd = _LastForward(model, inp) if closed else None
 
     def residual(phi: torch.Tensor) -> torch.Tensor:
-        acts.clear()
-        if closed:
-            g, a = model.g_forward(inp, phi)                   # the bits of g_value
-            acts.update(key=phi.numpy().tobytes(), acts=a)
-        else:
-            g = model.g_value(inp, phi)
+        g = fwd(phi) if closed else model.g_value(inp, phi)
         Wg = filter_segments(g.numpy(), [1.0], den, seg)
         res = Wf_perp - sub.project_out(Wg)                    # (I − U1U1ᵀ) W (f̂ − g)
         if lam > 0:   # [K] (23): extra rows √λ (ΣVᵀ)^{-1} U1ᵀ W g_φ
             res = np.concatenate([res, sq * sub.coordinates(Wg)])
         return torch.from_numpy(res)
-
-    def activations(key: bytes):
-        return acts["acts"] if acts.get("key") == key else None
 
     last: dict = {}     # the filtered Jacobian of g (and J) at the last φ asked for
     zeroed: dict = {}   # the flat columns normal_equations zeroed, and at which φ
@@ -299,7 +311,7 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
         if last.get("key") != key:
             last.clear()
             if closed:
-                WJ = model.filtered_jacobian(inp, phi, [1.0], den, seg, activations(key))
+                WJ = model.filtered_jacobian(inp, phi, [1.0], den, seg, fwd.at(phi))
             else:
                 _, Jg = model.g_and_jacobian(inp, phi)
                 WJ = filter_segments(Jg.numpy(), [1.0], den, seg)     # W ∂g/∂φ, column by column
@@ -331,7 +343,7 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
         key = phi.numpy().tobytes()
         if closed and last.get("key") != key:
             # G, C and WJᵀr block by block while the filtered rows are in cache (WJ is not stored)
-            G, C, WJr = model.filtered_jacobian_gram(inp, phi, [1.0], den, seg, U1, r1, activations(key))
+            G, C, WJr = model.filtered_jacobian_gram(inp, phi, [1.0], den, seg, U1, r1, fwd.at(phi))
         else:
             WJ, C = filtered(phi)
             G = WJ.T @ WJ                                     # syrk
@@ -340,7 +352,7 @@ def _varpro_step(model, data: dict, sub: ModelSubspace, Wf: np.ndarray, den: np.
         g = C.T @ (U1.T @ r1) - WJr
         full2 = np.diag(G).copy()
         sus = np.flatnonzero(np.diag(A) <= _CANCEL_RTOL2 * full2)
-        zeroed.update(key=key, flat=sus[:0], acts=activations(key) if closed else None)
+        zeroed.update(key=key, flat=sus[:0], acts=fwd.at(phi) if closed else None)
         if sus.size:
             WJ = filtered(phi)[0]                             # the explicit columns (rare)
             WJt = WJ.T
@@ -765,22 +777,15 @@ def output_error_problem(model: RationalFeedforward, data: dict, *, lam: float =
     # W ∂g/∂φ is formed from them in one numba pass per filter (SharedARPGNN.filtered_jacobian)
     # instead of torch's per-sample Jacobian filtered column by column by lfilter
     closed = has_g and bool(getattr(model, "closed_form_jacobian", False))
-    acts: dict = {}     # the activations of the last g and its x
+    fwd = _LastForward(model, inp) if closed else None
 
     def split(x: torch.Tensor):
         xn = x.detach().numpy()
         trial = RationalFeedforward(model.n_a, model.n_b, model.basis, model.Ts, b=xn[model.n_a:n_th])
         u = R @ xn[:model.n_a]
         g = None
-        if closed:
-            key = xn.tobytes()
-            if acts.get("key") != key:
-                g_t, a = model.g_forward(inp, x[n_th:])
-                acts.update(key=key, g=g_t.numpy(), acts=a)
-            g = acts["g"]
-            u = u + g
-        elif has_g:
-            g = model.g_value(inp, x[n_th:]).numpy()
+        if has_g:
+            g = (fwd(x[n_th:]) if closed else model.g_value(inp, x[n_th:])).numpy()
             u = u + g
         return trial, u, g
 
@@ -799,8 +804,9 @@ def output_error_problem(model: RationalFeedforward, data: dict, *, lam: float =
         den = trial.denominator()
         fsim = filter_segments(u, [1.0], den, seg)
         cols = [-R, trial.ar_regressors(fsim, seg)]
-        if closed:                          # acts of x: split above kept them from the residual at x
-            phi, a = x[n_th:], acts["acts"]
+        if closed:                          # split above: g and its layer outputs at this φ
+            phi = x[n_th:]
+            a = fwd.at(phi)
             J = np.empty((seg.n + (sub.p if reg else 0), x.numel()))
             J[:seg.n, :n_th] = filter_segments(np.hstack(cols), [1.0], den, seg)
             J[:seg.n, n_th:] = model.filtered_jacobian(inp, phi, [1.0], den, seg, a)

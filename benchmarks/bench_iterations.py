@@ -203,10 +203,10 @@ def bench_b1(args) -> dict:
     floor = min(t["floor: scipy dsyrk of J"], t["floor: numpy J.T @ J"])
     g = lambda k: t.get(k)                               # noqa: E731
     rows = [("residual (prediction, hidden activations kept)", g("before: residual"), g("after: residual")),
-            (f"  of which tanh of the {M} x {m.hidden[0]} hidden layer (torch)", None,
-             t["part: tanh of the hidden layer, torch"]),
-            ("  (numpy's tanh of the same, other bits: for reference)", None,
+            (f"  of which tanh of the {M} x {m.hidden[0]} hidden layer (numpy's, the model's)", None,
              t["part: tanh of the hidden layer, numpy"]),
+            ("  (torch's float64 tanh of the same, used before: for reference)", None,
+             t["part: tanh of the hidden layer, torch"]),
             ("normal equations JᵀJ, Jᵀr (Jacobian rows, syrk, gemv)", g("before: normal equations"),
              g("after: normal equations")),
             ("iteration = residual + normal equations", g("before: iteration"), g("after: iteration")),
@@ -426,6 +426,14 @@ def bench_k(args) -> dict:
         out["ratio before"] = t["before: iteration"] / floor
         line += f", before {out['ratio before']:.2f}x"
     print(line + " (target <= 1.5x)")
+    if args.gram_blocks:
+        # the kernel's rows per syrk (shared_ar.filtered_jacobian_gram's block): OpenBLAS's syrk on this
+        # CPU was ~20 % slower at 256 and 512 rows than at any other size from 96 to 1536 (issue 19)
+        tb = timed({b: (lambda b=b: model.filtered_jacobian_gram(inp, phi0, [1.0], den, seg, U1c, r1, acts,
+                                                                  block=b)) for b in args.gram_blocks},
+                   args.repeats)
+        print("  one kernel by rows per block: " + ", ".join(f"{b}: {v:.2f}" for b, v in tb.items()) + " ms")
+        out["gram ms by block"] = tb
     out["oe_check"] = bench_oe_check(args, model, data, den, lam)
     return out
 
@@ -474,6 +482,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--before", type=str, default="93e3768",
                     help="git revision of the code before these kernels (default 93e3768)")
     ap.add_argument("--no-before", action="store_true", help="skip the code before")
+    ap.add_argument("--gram-blocks", type=int, nargs="*", default=[128, 192, 240, 256, 320, 512, 1024],
+                    help="K: rows per block of the fused kernel to time (none: skip)")
     ap.add_argument("--json", type=str, default=None)
     args = ap.parse_args(argv)
     sys.stdout.reconfigure(line_buffering=True)

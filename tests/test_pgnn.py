@@ -399,3 +399,29 @@ def test_mirror_jitter_moves_twins_off_the_overlap_singularity():
     for bad in (-0.1, float("nan")):
         with pytest.raises(ValueError, match="mirror_jitter"):
             made(bad)
+
+
+def test_tanh_is_numpys_on_plain_data_and_torchs_where_traced():
+    """pipeline/models/activations.py: one tanh for every plain forward pass (numpy's: the same bits
+    in the training residual, its kept activations and g_value), torch's where autograd or torch.func
+    traces the tensor, so derivatives stay exact (1 - tanh² to rounding) and never see numpy."""
+    from pipeline.models.activations import Tanh, tanh, tanh_
+    z = torch.linspace(-20.0, 20.0, 4001, dtype=torch.float64).reshape(-1, 1) * torch.tensor([[1.0, 0.01]],
+                                                                                             dtype=torch.float64)
+    t = tanh(z)
+    assert np.array_equal(t.numpy(), np.tanh(z.numpy()))
+    # ≤ 1 ulp from torch's tanh (both claim ≤ 1 ulp from the exact value)
+    assert np.all(np.abs(t.numpy() - torch.tanh(z).numpy()) <= np.spacing(np.abs(t.numpy())))
+    w = z.clone()
+    assert tanh_(w) is w and torch.equal(w, t)
+    with torch.no_grad():                                  # data of a parameter, not traced
+        p = z.clone().requires_grad_()
+        assert np.array_equal(Tanh()(p * 1.0).numpy(), t.numpy())
+    x = z[::400, 0].clone()
+    d = 1.0 - torch.tanh(x) ** 2
+    for J in (torch.func.jacfwd(tanh)(x), torch.func.jacrev(tanh)(x),
+              torch.func.jacfwd(lambda v: tanh_(v * 1.0))(x)):
+        torch.testing.assert_close(J, torch.diag(d), rtol=1e-15, atol=2e-16)   # 1 - tanh² ≤ 1: ulps of 1
+    xr = x.clone().requires_grad_()
+    Tanh()(xr).sum().backward()
+    torch.testing.assert_close(xr.grad, d, rtol=1e-15, atol=2e-16)

@@ -41,6 +41,7 @@ from numba.extending import get_cython_function_address as _cython_address
 from scipy.linalg.blas import dsyrk as _dsyrk
 from torch import nn
 
+from pipeline.models import activations
 from pipeline.models.physics_maps import PhysicsFeatures
 from pipeline.params import schema, spec
 
@@ -85,7 +86,7 @@ class Params:
 __all__ = ["PGNN", "Prepared", "blas_syrk_lower", "blas_gemv_n"]
 
 _ACTIVATIONS = {
-    "tanh": torch.tanh,
+    "tanh": activations.tanh,
     "sigmoid": torch.sigmoid,
     "relu": torch.relu,
     "softplus": nn.functional.softplus,
@@ -94,7 +95,7 @@ _ACTIVATIONS = {
     "identity": lambda x: x,
 }
 #: in-place forms of the activations that have one (the same elementwise function)
-_ACTIVATIONS_INPLACE = {"tanh": torch.tanh_, "sigmoid": torch.sigmoid_, "relu": torch.relu_}
+_ACTIVATIONS_INPLACE = {"tanh": activations.tanh_, "sigmoid": torch.sigmoid_, "relu": torch.relu_}
 _STRUCTURES = ("forward", "inverse", "invertible")
 
 

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from pipeline.models.activations import Tanh, tanh
 from pipeline.models.pgnn import blas_syrk_lower
 from pipeline.models.rational import BASES, RationalFeedforward, Segments, basis_columns
 from pipeline.params import schema, spec
@@ -62,7 +63,7 @@ class Params:
 __all__ = ["ReferenceWindow", "MLP", "ResidualMLP", "SharedARPGNN", "make_approximator",
            "per_sample_jacobian"]
 
-_ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "sigmoid": nn.Sigmoid, "softplus": nn.Softplus}
+_ACTIVATIONS = {"tanh": Tanh, "relu": nn.ReLU, "sigmoid": nn.Sigmoid, "softplus": nn.Softplus}
 
 
 def _activation(name: str) -> nn.Module:
@@ -620,7 +621,7 @@ class SharedARPGNN(RationalFeedforward):
         mods = list(self.g.net)
         lin, act = mods[0::2], mods[1::2]
         if len(lin) != len(act) + 1 or len(act) < 1 or not all(type(m) is nn.Linear for m in lin) \
-                or not all(type(m) is nn.Tanh for m in act) or lin[-1].out_features != 1 \
+                or not all(type(m) is Tanh for m in act) or lin[-1].out_features != 1 \
                 or any(m.bias is None for m in lin[:-1]):
             return None
         return lin
@@ -649,7 +650,7 @@ class SharedARPGNN(RationalFeedforward):
         acts = [x]
         with torch.no_grad():
             for W, b in params[:-1]:
-                x = torch.tanh(nn.functional.linear(x, W, b))
+                x = tanh(nn.functional.linear(x, W, b))
                 acts.append(x)
             W, b = params[-1]
             g = self.g_gain * nn.functional.linear(x, W, b).squeeze(-1).reshape(-1)
@@ -684,11 +685,15 @@ class SharedARPGNN(RationalFeedforward):
         return WJ
 
     def filtered_jacobian_gram(self, inputs: dict, phi: torch.Tensor, num, den, segments: Segments,
-                               U1: np.ndarray, r: np.ndarray, acts=None, block: int = 256):
+                               U1: np.ndarray, r: np.ndarray, acts=None, block: int = 240):
         """(G, C, WJᵀr) of WJ = :meth:`filtered_jacobian` without storing WJ: G = WJᵀWJ [n_φ, n_φ]
         (symmetric), C = U1ᵀ WJ [p, n_φ], WJᵀr [n_φ], reduced ``block`` rows at a time while they are
         in cache (:func:`_mlp_filtered_gram`: one BLAS syrk per block of the rows [WJ, U1, r]).  None
-        when g_φ has no closed form."""
+        when g_φ has no closed form.
+
+        ``block``: 240, not a power of two. On the AVX-512 EPYC (OpenBLAS SkylakeX kernels, 21167 × 188)
+        blocks of 256 and 512 rows took 27.3–27.8 ms and every other size from 96 to 1536 22.5–23.9 ms
+        (``benchmarks/bench_iterations.py --case k`` prints the kernel by block size; issue 19)."""
         if not self.closed_form_jacobian:
             return None
         args = self._filtered_jacobian_args(inputs, phi, num, den, segments, acts)

@@ -46,7 +46,8 @@ class Orthogonal:
 
 UPSTREAM = ("generate", "baseline")
 DEPENDS = ("model", "identify", "regularizer", "seed")
-VERSION = 2   # 2: stop reasons (stop_reason tags, stopped_on_cap) in every fit's record
+VERSION = 3   # 2: stop reasons (stop_reason tags, stopped_on_cap) in every fit's record; 3: numpy's tanh in the
+              # forward passes (pipeline/models/activations.py, issue 19)
 KIND_KEY = "identify.kind"
 
 

@@ -63,6 +63,7 @@ import yaml  # noqa: E402
 from scipy.linalg.blas import dsyrk  # noqa: E402
 
 from pipeline.identify import narx, sk  # noqa: E402
+from pipeline.models import activations  # noqa: E402
 from pipeline.models.pgnn import PGNN  # noqa: E402
 from pipeline.models.physics_maps import RigidBodyForward  # noqa: E402
 from pipeline.models.rational import filter_segments  # noqa: E402
@@ -203,9 +204,9 @@ def bench_b1(args) -> dict:
     floor = min(t["floor: scipy dsyrk of J"], t["floor: numpy J.T @ J"])
     g = lambda k: t.get(k)                               # noqa: E731
     rows = [("residual (prediction, hidden activations kept)", g("before: residual"), g("after: residual")),
-            (f"  of which tanh of the {M} x {m.hidden[0]} hidden layer (numpy's, the model's)", None,
+            (f"  tanh of the {M} x {m.hidden[0]} hidden layer, numpy's", None,
              t["part: tanh of the hidden layer, numpy"]),
-            ("  (torch's float64 tanh of the same, used before: for reference)", None,
+            (f"  tanh of the same, torch's (the model's here: {activations.IMPLEMENTATION})", None,
              t["part: tanh of the hidden layer, torch"]),
             ("normal equations JᵀJ, Jᵀr (Jacobian rows, syrk, gemv)", g("before: normal equations"),
              g("after: normal equations")),

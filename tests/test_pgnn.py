@@ -401,15 +401,20 @@ def test_mirror_jitter_moves_twins_off_the_overlap_singularity():
             made(bad)
 
 
-def test_tanh_is_numpys_on_plain_data_and_torchs_where_traced():
-    """pipeline/models/activations.py: one tanh for every plain forward pass (numpy's: the same bits
-    in the training residual, its kept activations and g_value), torch's where autograd or torch.func
-    traces the tensor, so derivatives stay exact (1 - tanh² to rounding) and never see numpy."""
+@pytest.mark.parametrize("use_numpy", [True, False])
+def test_tanh_is_numpys_on_plain_data_and_torchs_where_traced(use_numpy, monkeypatch):
+    """pipeline/models/activations.py: one tanh for every plain forward pass (numpy's where it runs
+    its AVX-512 loop, else torch's: the same bits in the training residual, its kept activations and
+    g_value), torch's where autograd or torch.func traces the tensor, so derivatives stay exact
+    (1 - tanh² to rounding) and never see numpy."""
+    from pipeline.models import activations
     from pipeline.models.activations import Tanh, tanh, tanh_
+    monkeypatch.setattr(activations, "_NUMPY", use_numpy)
+    assert activations.IMPLEMENTATION.startswith("numpy (") == (activations._TARGET in activations._SIMD_TARGETS)
     z = torch.linspace(-20.0, 20.0, 4001, dtype=torch.float64).reshape(-1, 1) * torch.tensor([[1.0, 0.01]],
                                                                                              dtype=torch.float64)
     t = tanh(z)
-    assert np.array_equal(t.numpy(), np.tanh(z.numpy()))
+    assert np.array_equal(t.numpy(), np.tanh(z.numpy()) if use_numpy else torch.tanh(z).numpy())
     # ≤ 1 ulp from torch's tanh (both claim ≤ 1 ulp from the exact value)
     assert np.all(np.abs(t.numpy() - torch.tanh(z).numpy()) <= np.spacing(np.abs(t.numpy())))
     w = z.clone()

@@ -58,6 +58,8 @@ def validate(cfg, system) -> None:
 
 
 def run(ctx) -> dict:
+    from pipeline.models.activations import IMPLEMENTATION
+    ctx.tag("tanh", IMPLEMENTATION)          # numpy's or torch's on this machine (the last bits of every NN fit)
     return implementation("train", str(ctx.cfg.identify.kind)).fit(ctx)
 
 

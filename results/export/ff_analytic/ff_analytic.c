@@ -30,25 +30,25 @@
  * [θ̂_phy (P) | θ*_phy, the physics start (P) | W, first layer with the input map folded in (H x NPHI) |
  *  b (H) | w2 = output weights x output scale (H) | b2 | physics map configuration] */
 static const double BLOB[89] = {
-    0.04989668148211724, 0.4422697394407782, 0.6033027560600638, 0.04973197666618563,
-    0.44226973944061004, 0.603302756047546, 173.84726015699272, 99.25679996584205, 0.0,
-    -3.350938014117206, -1.2374163482367824, 0.0, -158.3155770557356, -118.19991397173129, 0.0,
-    -72.81841988346854, -68.64741076265003, 0.0, 97.48024156189645, 77.96030157531538, 0.0,
-    -8.866731748011029, 2.646056380362571, 0.0, 1.338806368047021, -5.5985492394760685, 0.0,
-    0.7515362968751021, 3.796059338424535, 0.0, -190.66082008642664, -183.48783452482607, 0.0,
-    -2.8741506298730513, 35.541935128250515, 0.0, -97.68987680836963, -141.9243613396045, 0.0,
-    18.83488889921287, 14.502413639204464, 0.0, 254.31725541967202, 237.15939149976126, 0.0,
-    94.47227824149844, 93.77701872926612, 0.0, 6.667446582363558, -4.328215548951722, 0.0,
-    -15.610383519765453, -10.992361322611384, 0.0, -19.88698188476618, 0.9595986422337661,
-    -21.20904479397764, -3.80681591085953, -16.54204258785156, 1.6122674571974347,
-    -0.12833410391678643, 0.2660901767456635, 18.400020591306948, -2.2354588547475815,
-    22.209661465417703, 2.7767133534738315, 25.431331166483858, 5.057116114634958,
-    0.23106047309863648, -3.0684999451071944, -5.87967995442016e-07, -2.769717364884741e-06,
-    6.34600012095502e-07, -3.547381611839025e-06, -1.8789952120961689e-06, 3.38239831451209e-06,
-    1.7209687083035426e-06, -5.873488865420826e-07, 3.8671514771797804e-07,
-    1.865798940439211e-06, -1.4196470213499147e-06, 3.3808948037926564e-06,
-    -3.6888631651644503e-07, -3.3164520314671307e-06, -1.776506506009766e-06,
-    3.5707641550299793e-06, 1.123701853302134e-06, 0.001, 2.0
+    0.04987963007290453, 0.44226973944092485, 0.6033027560649488, 0.04973197666618563,
+    0.44226973944061004, 0.603302756047546, 121.3715537982124, 111.8618456759972, 0.0,
+    -16.945320042569, -6.862004481917552, 0.0, -150.0991295571034, -143.5985627303383, 0.0,
+    -59.41158616652126, -54.15557858416439, 0.0, 81.12135634323168, 80.8708199304312, 0.0,
+    -9.058968310463914, -3.8804175113745956, 0.0, 1.3825460561347125, -7.054626473754057, 0.0,
+    0.9294518439007738, 4.906988095372224, 0.0, -17.089977289260602, -8.660427834901013, 0.0,
+    43.57789044618593, 60.041739201991724, 0.0, -78.30400516066967, -90.3542856923544, 0.0,
+    16.562807268295753, 17.479458861228476, 0.0, 221.48005290562264, 224.87964118073114, 0.0,
+    93.73246818268215, 96.36129955502929, 0.0, 8.162822412462212, -2.0428159312634406, 0.0,
+    -7.168865809737601, -0.9754076843369707, 0.0, -16.866249089146805, 0.7820095820308862,
+    -22.459185157534648, -3.0458842304947247, -15.499954759265858, 1.2268158439687384,
+    -0.19013436574864748, 0.22974297712577063, 1.8431150831325274, -7.40651189996915,
+    15.640659957372135, 2.5015853916410538, 23.12566837703325, 5.091562724577509,
+    0.376534355625755, -0.6046197427119193, -1.2222497815776203e-06, -3.052052331573669e-06,
+    5.938884810265226e-07, -2.7559712837337674e-06, -1.2486775118656705e-06,
+    2.143208606244628e-06, 2.8353585587885726e-06, -1.3442232097822332e-06,
+    1.5750428469590649e-06, 2.18823835024958e-06, -1.5342422526384282e-06, 3.062735726007069e-06,
+    -3.6067533933394883e-07, -2.170157969570021e-06, -2.2946429411705304e-06,
+    1.6817753621456445e-06, -1.034505293081487e-07, 0.001, 2.0
 };
 #define TH (BLOB + 0)
 #define TS (BLOB + 3)
@@ -172,9 +172,9 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
     int flags = 0, i;
     double u = analytic_solve(phi, r_next, 1, 0);   /* physics start, θ*_phy */
     double a, psi, best_u, best_v = HUGE_VAL, first_v = NAN, last_v = NAN;
-    if (!isfinite(u)) { u = 0.0; flags |= FF_ANALYTIC_03F4A3D9_SINGULAR; }
-    if (u < U_MIN) { u = U_MIN; flags |= FF_ANALYTIC_03F4A3D9_BOUNDS; }
-    else if (u > U_MAX) { u = U_MAX; flags |= FF_ANALYTIC_03F4A3D9_BOUNDS; }
+    if (!isfinite(u)) { u = 0.0; flags |= FF_ANALYTIC_8B1DFF27_SINGULAR; }
+    if (u < U_MIN) { u = U_MIN; flags |= FF_ANALYTIC_8B1DFF27_BOUNDS; }
+    else if (u > U_MAX) { u = U_MAX; flags |= FF_ANALYTIC_8B1DFF27_BOUNDS; }
     phi[UIDX] = 0.0;
     physics_affine(TH, phi, &a, &psi);              /* θ̂_phy: ŷ = a + ψ u + f_NN */
     best_u = u;
@@ -183,26 +183,26 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
         phi[UIDX] = u;
         nn = nn_affine(phi, &dnn);
         V = r_next - (a + psi * u + nn);             /* [B1] (23) */
-        if (!isfinite(V)) { flags |= FF_ANALYTIC_03F4A3D9_SINGULAR; break; }
+        if (!isfinite(V)) { flags |= FF_ANALYTIC_8B1DFF27_SINGULAR; break; }
         av = fabs(V);
         if (i == 0) first_v = av;
         last_v = av;
         if (av < best_v) { best_u = u; best_v = av; }
         if (i == K_NEWTON || V == 0.0) break;
         dV = -(psi + dnn);                           /* [B1] (24), (25) */
-        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_ANALYTIC_03F4A3D9_SINGULAR; break; }
+        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_ANALYTIC_8B1DFF27_SINGULAR; break; }
         u_new = u - V / dV;
-        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_ANALYTIC_03F4A3D9_BOUNDS; break; }
+        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_ANALYTIC_8B1DFF27_BOUNDS; break; }
         u = u_new;
     }
-    if (last_v > first_v) flags |= FF_ANALYTIC_03F4A3D9_DIVERGED;
+    if (last_v > first_v) flags |= FF_ANALYTIC_8B1DFF27_DIVERGED;
     if (best_v == HUGE_VAL) best_u = u;
     phi[UIDX] = 0.0;
     *flags_out = flags;
     return best_u;
 }
 
-static inline double law_w(ff_analytic_03f4a3d9_state *s, const double *rp)
+static inline double law_w(ff_analytic_8b1dff27_state *s, const double *rp)
 {   /* one sample of the law: the model input w(t) from r(t .. t+NK+1) and the state */
     double *x = s->x, *rh = x + XRH, *uh = x + XUH, *rw = x + XRW, *phi = x + XPHI;
     double w;
@@ -228,7 +228,7 @@ static inline double law_w(ff_analytic_03f4a3d9_state *s, const double *rp)
 #else                                               /* LAW_PHYSICS on a forward model */
     w = analytic_solve(phi, rw[0], 1, 0);
 #endif
-    if (!isfinite(w)) flags |= FF_ANALYTIC_03F4A3D9_SINGULAR;    /* as the kernels: kept (the guard falls back) */
+    if (!isfinite(w)) flags |= FF_ANALYTIC_8B1DFF27_SINGULAR;    /* as the kernels: kept (the guard falls back) */
     for (i = NB - 1; i > 0; --i) uh[i] = uh[i - 1];
     uh[0] = w;
     for (i = NRH - 1; i > 0; --i) rh[i] = rh[i - 1];
@@ -237,10 +237,10 @@ static inline double law_w(ff_analytic_03f4a3d9_state *s, const double *rp)
     return w;
 }
 
-static void law_init(ff_analytic_03f4a3d9_state *s, double r0)
+static void law_init(ff_analytic_8b1dff27_state *s, double r0)
 {
     int i;
-    for (i = 0; i < FF_ANALYTIC_03F4A3D9_NX; ++i) s->x[i] = 0.0;
+    for (i = 0; i < FF_ANALYTIC_8B1DFF27_NX; ++i) s->x[i] = 0.0;
     for (i = 0; i < NRH; ++i) s->x[XRH + i] = r0;
     s->w_prev = 0.0;
     s->primed = 0;
@@ -254,7 +254,7 @@ static void law_init(ff_analytic_03f4a3d9_state *s, double r0)
     s->r_hist[1] = r0;
 }
 
-static double law_step(ff_analytic_03f4a3d9_state *s, const double *r_preview)
+static double law_step(ff_analytic_8b1dff27_state *s, const double *r_preview)
 {
     double u;
     s->status = 0;
@@ -272,7 +272,7 @@ static double law_step(ff_analytic_03f4a3d9_state *s, const double *r_preview)
 }
 
 /* ---- guard (issue 22): input sanitation, training envelope, fallback, saturation, slew limit ---- */
-#define G_PREVIEW FF_ANALYTIC_03F4A3D9_PREVIEW
+#define G_PREVIEW FF_ANALYTIC_8B1DFF27_PREVIEW
 #define G_TS (0.001)
 #define U_LO ((-HUGE_VAL))           /* saturation [N] */
 #define U_HI (HUGE_VAL)
@@ -286,12 +286,12 @@ static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.53
 static const double PHYS[3] = {0.0, 0.0, 0.0};    /* physics fallback: M, F_v, F_c */
 #endif
 
-void ff_analytic_03f4a3d9_init(ff_analytic_03f4a3d9_state *s, double r0)
+void ff_analytic_8b1dff27_init(ff_analytic_8b1dff27_state *s, double r0)
 {
     law_init(s, isfinite(r0) ? r0 : 0.0);
 }
 
-double ff_analytic_03f4a3d9_step(ff_analytic_03f4a3d9_state *s, const double *r_preview)
+double ff_analytic_8b1dff27_step(ff_analytic_8b1dff27_state *s, const double *r_preview)
 {
     double ext[G_PREVIEW + 3];   /* r(t-2), r(t-1), r(t) .. r(t+P) after sanitation */
     double x[3], u;
@@ -303,7 +303,7 @@ double ff_analytic_03f4a3d9_step(ff_analytic_03f4a3d9_state *s, const double *r_
             ext[i + 2] = r_preview[i];
         } else {
             ext[i + 2] = ext[i + 1];
-            flags |= FF_ANALYTIC_03F4A3D9_NONFINITE_INPUT;
+            flags |= FF_ANALYTIC_8B1DFF27_NONFINITE_INPUT;
         }
     }
     x[0] = ext[G_PREVIEW + 2];                                   /* r(n), n = t + P */
@@ -312,12 +312,12 @@ double ff_analytic_03f4a3d9_step(ff_analytic_03f4a3d9_state *s, const double *r_
     for (i = 0; i < 3; ++i) {
         if (!((ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
     }
-    if (!inside) flags |= FF_ANALYTIC_03F4A3D9_OUT_OF_RANGE;
+    if (!inside) flags |= FF_ANALYTIC_8B1DFF27_OUT_OF_RANGE;
     u = law_step(s, ext + 2);
     flags |= s->status;
-    invalid = ((flags & FF_ANALYTIC_03F4A3D9_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
+    invalid = ((flags & FF_ANALYTIC_8B1DFF27_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
     if (invalid) {
-        flags |= FF_ANALYTIC_03F4A3D9_FALLBACK;
+        flags |= FF_ANALYTIC_8B1DFF27_FALLBACK;
         if (s->n_invalid < UINT64_MAX) s->n_invalid++;
 #if FALLBACK_KIND == 2                /* ramp to 0 over RAMP_N samples */
         {
@@ -325,7 +325,7 @@ double ff_analytic_03f4a3d9_step(ff_analytic_03f4a3d9_state *s, const double *r_
             u = s->u_hold * (g > 0.0 ? g : 0.0);
         }
 #elif FALLBACK_KIND == 1              /* physics on a finite reference, else hold */
-        if ((flags & FF_ANALYTIC_03F4A3D9_NONFINITE_INPUT) == 0) {
+        if ((flags & FF_ANALYTIC_8B1DFF27_NONFINITE_INPUT) == 0) {
             const double sg = x[1] > 0 ? 1.0 : (x[1] < 0 ? -1.0 : 0.0);
             u = PHYS[0] * x[2] + PHYS[1] * x[1] + PHYS[2] * sg;
             if (!isfinite(u)) u = s->u_hold;
@@ -338,10 +338,10 @@ double ff_analytic_03f4a3d9_step(ff_analytic_03f4a3d9_state *s, const double *r_
     } else {
         s->n_invalid = 0;
     }
-    if (u > U_HI) { u = U_HI; flags |= FF_ANALYTIC_03F4A3D9_SATURATED; }
-    else if (u < U_LO) { u = U_LO; flags |= FF_ANALYTIC_03F4A3D9_SATURATED; }
-    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_ANALYTIC_03F4A3D9_RATE_LIMITED; }
-    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_ANALYTIC_03F4A3D9_RATE_LIMITED; }
+    if (u > U_HI) { u = U_HI; flags |= FF_ANALYTIC_8B1DFF27_SATURATED; }
+    else if (u < U_LO) { u = U_LO; flags |= FF_ANALYTIC_8B1DFF27_SATURATED; }
+    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_ANALYTIC_8B1DFF27_RATE_LIMITED; }
+    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_ANALYTIC_8B1DFF27_RATE_LIMITED; }
     if (!invalid) s->u_hold = u;
     s->u_prev = u;
     s->r_hist[1] = s->r_hist[0];

@@ -82,16 +82,16 @@ static double *read_columns(const char *path, int ncol, long *n)
 
 static double run(const double *r, long n, long stride, double *u, int *flags)
 {   /* the reference sample by sample, as a real-time loop feeds it; returns the sum of u */
-    ff_analytic_03f4a3d9_state s;
-    ff_analytic_03f4a3d9_real rp[FF_ANALYTIC_03F4A3D9_PREVIEW + 1];
+    ff_analytic_8b1dff27_state s;
+    ff_analytic_8b1dff27_real rp[FF_ANALYTIC_8B1DFF27_PREVIEW + 1];
     double sum = 0.0;
     long t;
     int i;
-    ff_analytic_03f4a3d9_init(&s, (ff_analytic_03f4a3d9_real)(FF_ANALYTIC_03F4A3D9_REST_AT_ZERO ? 0.0 : r[0]));
+    ff_analytic_8b1dff27_init(&s, (ff_analytic_8b1dff27_real)(FF_ANALYTIC_8B1DFF27_REST_AT_ZERO ? 0.0 : r[0]));
     for (t = 0; t < n; ++t) {
         double v;
-        for (i = 0; i <= FF_ANALYTIC_03F4A3D9_PREVIEW; ++i) rp[i] = (ff_analytic_03f4a3d9_real)r[(t + i < n ? t + i : n - 1) * stride];
-        v = ff_analytic_03f4a3d9_step(&s, rp);
+        for (i = 0; i <= FF_ANALYTIC_8B1DFF27_PREVIEW; ++i) rp[i] = (ff_analytic_8b1dff27_real)r[(t + i < n ? t + i : n - 1) * stride];
+        v = ff_analytic_8b1dff27_step(&s, rp);
         if (u) u[t] = v;
         if (flags) flags[t] = s.status;
         sum += v;

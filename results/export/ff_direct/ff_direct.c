@@ -30,28 +30,28 @@
  * [θ̂_phy (P) | θ*_phy, the physics start (P) | W, first layer with the input map folded in (H x NPHI) |
  *  b (H) | w2 = output weights x output scale (H) | b2 | physics map configuration] */
 static const double BLOB[88] = {
-    17.659415607806398, 6.748044879120446, 12.0485106592809, 17.66002608221686,
-    6.747834680232088, 12.007639933283246, 86.88343909722758, 77.72843848606448,
-    50.244123529140325, 20.18667392768715, 22.819034509502305, 12.680095625834452,
-    -55.17602420986604, -50.90207225020781, -47.13881235718826, -101.66968335454516,
-    -84.60294329523096, -53.222469000153616, -12.044838474054933, -13.5936776703869,
-    0.2829028455717366, -2.401182210072895, 15.041526360908795, 22.931561966246566,
-    -111.91860400796745, -124.68465122378387, -124.2399103656352, 111.70161964691886,
-    125.80841724506462, 160.44304492213794, 100.00903998654447, 104.32097121850894,
-    92.95543031575765, -2.604330753124171, 10.292482599808867, 10.84214821058799,
-    28.245040337103834, 44.21965636987366, 60.81998099177954, -64.57738907480561,
-    -70.93081233163994, -65.80221557534789, -34.28593178223448, -56.68429016112697,
-    -63.38840666244519, 102.02156933381498, 114.59944972635459, 117.74879858501298,
-    -74.25448989244818, -80.30194821653717, -73.42378745000867, -40.591795244900304,
-    -38.547466266739214, -14.786383207229916, 12.508582788676682, 3.5152158714309243,
-    -12.209944788510649, 17.3972200870219, 0.007672768709045048, -3.886024149203065,
-    -0.5680602759830404, -9.382257563850784, -29.09780880741447, -0.7662610805870262,
-    7.66699313005726, -16.531790074229608, 8.171910351342824, 8.910267113094857,
-    12.209276352968628, 5.026768627605043, -46.86182615006964, -68.86580973666538,
-    -50.33528385001742, -12.002208107326839, 40.9841026250137, -50.00367819133805,
-    -10.127153654997766, 7.864789280079297, 12.193937273799303, 20.097668935693257,
-    91.75065746852782, 29.177478227951855, -116.89355598935647, 10.424278575870646,
-    51.3621572937783, 74.47801958809241, -23.730553430254687, 0.001
+    17.659366857779908, 6.748095795329704, 12.050123442759228, 17.66002608221686,
+    6.747834680232088, 12.007639933283246, 87.02235658183194, 77.4180302434932,
+    49.431640307671266, 20.511132191117664, 22.668758420389086, 12.04455161127621,
+    -55.411813838937384, -51.10640507214002, -47.30286567793829, -103.79306361080614,
+    -86.29770731383981, -54.44200443100794, -12.411252195429608, -13.933183386857305,
+    -0.03629144466459864, -2.1945413991231746, 15.44199437925198, 23.505313788866697,
+    -111.1883637053906, -123.89576598774912, -123.38896284370075, 116.18223228657627,
+    130.3450636220178, 165.0610895745903, 102.51697164003312, 106.7164401128084,
+    95.28097205013114, -1.946842416304451, 10.795215666115636, 11.179916201694219,
+    27.730543917579777, 44.01899247087712, 60.973034554847985, -64.75148749888344,
+    -71.07409295107936, -65.94871555729699, -34.554460548192736, -57.299308147539314,
+    -64.3867092215626, 103.15896337720162, 115.7700592281093, 118.94925718249928,
+    -75.36279419399855, -81.22954796045558, -74.15281229689995, -40.965440081575785,
+    -38.6566876585299, -14.611526960700491, 12.44977830939618, 3.474541776604013,
+    -12.26211592308759, 17.76011789230396, 0.05015236007434848, -4.007621669865278,
+    -0.5574478019862392, -9.684776574332796, -29.783387832113497, -0.8410653549685789,
+    7.6320942158575376, -16.567630524288603, 8.253880249062892, 9.00848203240472,
+    12.334314782942341, 5.022429063672858, -47.06901555545531, -70.14577123885199,
+    -50.534923179404196, -11.50013707458192, 41.346986657612646, -51.35113208220527,
+    -10.215623975184537, 7.647068528395158, 12.253965170287517, 23.88394571071524,
+    92.52789147973918, 29.47169678535564, -117.99431746564456, 10.309237557650103,
+    51.771115446049215, 76.77383867540469, -24.73876755384357, 0.001
 };
 #define TH (BLOB + 0)
 #define TS (BLOB + 3)
@@ -175,9 +175,9 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
     int flags = 0, i;
     double u = analytic_solve(phi, r_next, 1, 0);   /* physics start, θ*_phy */
     double a, psi, best_u, best_v = HUGE_VAL, first_v = NAN, last_v = NAN;
-    if (!isfinite(u)) { u = 0.0; flags |= FF_DIRECT_ED57E810_SINGULAR; }
-    if (u < U_MIN) { u = U_MIN; flags |= FF_DIRECT_ED57E810_BOUNDS; }
-    else if (u > U_MAX) { u = U_MAX; flags |= FF_DIRECT_ED57E810_BOUNDS; }
+    if (!isfinite(u)) { u = 0.0; flags |= FF_DIRECT_2A4C7F0E_SINGULAR; }
+    if (u < U_MIN) { u = U_MIN; flags |= FF_DIRECT_2A4C7F0E_BOUNDS; }
+    else if (u > U_MAX) { u = U_MAX; flags |= FF_DIRECT_2A4C7F0E_BOUNDS; }
     phi[UIDX] = 0.0;
     physics_affine(TH, phi, &a, &psi);              /* θ̂_phy: ŷ = a + ψ u + f_NN */
     best_u = u;
@@ -186,26 +186,26 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
         phi[UIDX] = u;
         nn = nn_affine(phi, &dnn);
         V = r_next - (a + psi * u + nn);             /* [B1] (23) */
-        if (!isfinite(V)) { flags |= FF_DIRECT_ED57E810_SINGULAR; break; }
+        if (!isfinite(V)) { flags |= FF_DIRECT_2A4C7F0E_SINGULAR; break; }
         av = fabs(V);
         if (i == 0) first_v = av;
         last_v = av;
         if (av < best_v) { best_u = u; best_v = av; }
         if (i == K_NEWTON || V == 0.0) break;
         dV = -(psi + dnn);                           /* [B1] (24), (25) */
-        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_DIRECT_ED57E810_SINGULAR; break; }
+        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_DIRECT_2A4C7F0E_SINGULAR; break; }
         u_new = u - V / dV;
-        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_DIRECT_ED57E810_BOUNDS; break; }
+        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_DIRECT_2A4C7F0E_BOUNDS; break; }
         u = u_new;
     }
-    if (last_v > first_v) flags |= FF_DIRECT_ED57E810_DIVERGED;
+    if (last_v > first_v) flags |= FF_DIRECT_2A4C7F0E_DIVERGED;
     if (best_v == HUGE_VAL) best_u = u;
     phi[UIDX] = 0.0;
     *flags_out = flags;
     return best_u;
 }
 
-static inline double law_w(ff_direct_ed57e810_state *s, const double *rp)
+static inline double law_w(ff_direct_2a4c7f0e_state *s, const double *rp)
 {   /* one sample of the law: the model input w(t) from r(t .. t+NK+1) and the state */
     double *x = s->x, *rh = x + XRH, *uh = x + XUH, *rw = x + XRW, *phi = x + XPHI;
     double w;
@@ -231,7 +231,7 @@ static inline double law_w(ff_direct_ed57e810_state *s, const double *rp)
 #else                                               /* LAW_PHYSICS on a forward model */
     w = analytic_solve(phi, rw[0], 1, 0);
 #endif
-    if (!isfinite(w)) flags |= FF_DIRECT_ED57E810_SINGULAR;    /* as the kernels: kept (the guard falls back) */
+    if (!isfinite(w)) flags |= FF_DIRECT_2A4C7F0E_SINGULAR;    /* as the kernels: kept (the guard falls back) */
     for (i = NB - 1; i > 0; --i) uh[i] = uh[i - 1];
     uh[0] = w;
     for (i = NRH - 1; i > 0; --i) rh[i] = rh[i - 1];
@@ -240,10 +240,10 @@ static inline double law_w(ff_direct_ed57e810_state *s, const double *rp)
     return w;
 }
 
-static void law_init(ff_direct_ed57e810_state *s, double r0)
+static void law_init(ff_direct_2a4c7f0e_state *s, double r0)
 {
     int i;
-    for (i = 0; i < FF_DIRECT_ED57E810_NX; ++i) s->x[i] = 0.0;
+    for (i = 0; i < FF_DIRECT_2A4C7F0E_NX; ++i) s->x[i] = 0.0;
     for (i = 0; i < NRH; ++i) s->x[XRH + i] = r0;
     s->w_prev = 0.0;
     s->primed = 0;
@@ -257,7 +257,7 @@ static void law_init(ff_direct_ed57e810_state *s, double r0)
     s->r_hist[1] = r0;
 }
 
-static double law_step(ff_direct_ed57e810_state *s, const double *r_preview)
+static double law_step(ff_direct_2a4c7f0e_state *s, const double *r_preview)
 {
     double u;
     s->status = 0;
@@ -275,7 +275,7 @@ static double law_step(ff_direct_ed57e810_state *s, const double *r_preview)
 }
 
 /* ---- guard (issue 22): input sanitation, training envelope, fallback, saturation, slew limit ---- */
-#define G_PREVIEW FF_DIRECT_ED57E810_PREVIEW
+#define G_PREVIEW FF_DIRECT_2A4C7F0E_PREVIEW
 #define G_TS (0.001)
 #define U_LO ((-HUGE_VAL))           /* saturation [N] */
 #define U_HI (HUGE_VAL)
@@ -289,12 +289,12 @@ static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.53
 static const double PHYS[3] = {0.0, 0.0, 0.0};    /* physics fallback: M, F_v, F_c */
 #endif
 
-void ff_direct_ed57e810_init(ff_direct_ed57e810_state *s, double r0)
+void ff_direct_2a4c7f0e_init(ff_direct_2a4c7f0e_state *s, double r0)
 {
     law_init(s, isfinite(r0) ? r0 : 0.0);
 }
 
-double ff_direct_ed57e810_step(ff_direct_ed57e810_state *s, const double *r_preview)
+double ff_direct_2a4c7f0e_step(ff_direct_2a4c7f0e_state *s, const double *r_preview)
 {
     double ext[G_PREVIEW + 3];   /* r(t-2), r(t-1), r(t) .. r(t+P) after sanitation */
     double x[3], u;
@@ -306,7 +306,7 @@ double ff_direct_ed57e810_step(ff_direct_ed57e810_state *s, const double *r_prev
             ext[i + 2] = r_preview[i];
         } else {
             ext[i + 2] = ext[i + 1];
-            flags |= FF_DIRECT_ED57E810_NONFINITE_INPUT;
+            flags |= FF_DIRECT_2A4C7F0E_NONFINITE_INPUT;
         }
     }
     x[0] = ext[G_PREVIEW + 2];                                   /* r(n), n = t + P */
@@ -315,12 +315,12 @@ double ff_direct_ed57e810_step(ff_direct_ed57e810_state *s, const double *r_prev
     for (i = 0; i < 3; ++i) {
         if (!((ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
     }
-    if (!inside) flags |= FF_DIRECT_ED57E810_OUT_OF_RANGE;
+    if (!inside) flags |= FF_DIRECT_2A4C7F0E_OUT_OF_RANGE;
     u = law_step(s, ext + 2);
     flags |= s->status;
-    invalid = ((flags & FF_DIRECT_ED57E810_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
+    invalid = ((flags & FF_DIRECT_2A4C7F0E_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
     if (invalid) {
-        flags |= FF_DIRECT_ED57E810_FALLBACK;
+        flags |= FF_DIRECT_2A4C7F0E_FALLBACK;
         if (s->n_invalid < UINT64_MAX) s->n_invalid++;
 #if FALLBACK_KIND == 2                /* ramp to 0 over RAMP_N samples */
         {
@@ -328,7 +328,7 @@ double ff_direct_ed57e810_step(ff_direct_ed57e810_state *s, const double *r_prev
             u = s->u_hold * (g > 0.0 ? g : 0.0);
         }
 #elif FALLBACK_KIND == 1              /* physics on a finite reference, else hold */
-        if ((flags & FF_DIRECT_ED57E810_NONFINITE_INPUT) == 0) {
+        if ((flags & FF_DIRECT_2A4C7F0E_NONFINITE_INPUT) == 0) {
             const double sg = x[1] > 0 ? 1.0 : (x[1] < 0 ? -1.0 : 0.0);
             u = PHYS[0] * x[2] + PHYS[1] * x[1] + PHYS[2] * sg;
             if (!isfinite(u)) u = s->u_hold;
@@ -341,10 +341,10 @@ double ff_direct_ed57e810_step(ff_direct_ed57e810_state *s, const double *r_prev
     } else {
         s->n_invalid = 0;
     }
-    if (u > U_HI) { u = U_HI; flags |= FF_DIRECT_ED57E810_SATURATED; }
-    else if (u < U_LO) { u = U_LO; flags |= FF_DIRECT_ED57E810_SATURATED; }
-    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_DIRECT_ED57E810_RATE_LIMITED; }
-    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_DIRECT_ED57E810_RATE_LIMITED; }
+    if (u > U_HI) { u = U_HI; flags |= FF_DIRECT_2A4C7F0E_SATURATED; }
+    else if (u < U_LO) { u = U_LO; flags |= FF_DIRECT_2A4C7F0E_SATURATED; }
+    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_DIRECT_2A4C7F0E_RATE_LIMITED; }
+    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_DIRECT_2A4C7F0E_RATE_LIMITED; }
     if (!invalid) s->u_hold = u;
     s->u_prev = u;
     s->r_hist[1] = s->r_hist[0];

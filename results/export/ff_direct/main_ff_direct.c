@@ -82,16 +82,16 @@ static double *read_columns(const char *path, int ncol, long *n)
 
 static double run(const double *r, long n, long stride, double *u, int *flags)
 {   /* the reference sample by sample, as a real-time loop feeds it; returns the sum of u */
-    ff_direct_ed57e810_state s;
-    ff_direct_ed57e810_real rp[FF_DIRECT_ED57E810_PREVIEW + 1];
+    ff_direct_2a4c7f0e_state s;
+    ff_direct_2a4c7f0e_real rp[FF_DIRECT_2A4C7F0E_PREVIEW + 1];
     double sum = 0.0;
     long t;
     int i;
-    ff_direct_ed57e810_init(&s, (ff_direct_ed57e810_real)(FF_DIRECT_ED57E810_REST_AT_ZERO ? 0.0 : r[0]));
+    ff_direct_2a4c7f0e_init(&s, (ff_direct_2a4c7f0e_real)(FF_DIRECT_2A4C7F0E_REST_AT_ZERO ? 0.0 : r[0]));
     for (t = 0; t < n; ++t) {
         double v;
-        for (i = 0; i <= FF_DIRECT_ED57E810_PREVIEW; ++i) rp[i] = (ff_direct_ed57e810_real)r[(t + i < n ? t + i : n - 1) * stride];
-        v = ff_direct_ed57e810_step(&s, rp);
+        for (i = 0; i <= FF_DIRECT_2A4C7F0E_PREVIEW; ++i) rp[i] = (ff_direct_2a4c7f0e_real)r[(t + i < n ? t + i : n - 1) * stride];
+        v = ff_direct_2a4c7f0e_step(&s, rp);
         if (u) u[t] = v;
         if (flags) flags[t] = s.status;
         sum += v;

@@ -30,29 +30,29 @@
  * [θ̂_phy (P) | θ*_phy, the physics start (P) | W, first layer with the input map folded in (H x NPHI) |
  *  b (H) | w2 = output weights x output scale (H) | b2 | physics map configuration] */
 static const double BLOB[89] = {
-    0.049731976666349875, 0.4422697394408704, 0.6033027560647276, 0.04973197666618563,
-    0.44226973944061004, 0.603302756047546, -8.686862731752319, 30.987199840596706,
-    0.018791792808638377, -43.5002877487653, -56.66161054265498, -0.0007179694533776744,
-    -38.433231284560804, 8.778466855682904, -0.023200126015640116, 23.80274463827736,
-    -6.554494790988448, 0.015893772777858355, 205.24181726065308, 222.00880971231288,
-    0.0011010080523211647, -54.88472849528195, -100.89378454839317, -0.0006228795474772564,
-    -57.65363668811103, 10.241640605706946, -0.00024746890923295687, 27.385231608226352,
-    17.034950163101684, 0.0003134353018952446, 26.13916614825221, 38.92939176776301,
-    0.00043943715051819734, -169.7048155872102, -179.2569282535562, -0.0014913601498294333,
-    165.85111583295978, 108.04184490593276, 0.0009646672207276273, 19.741120103035847,
-    13.882442007966478, 0.0004095729166366846, -3.43255802593453, 5.630197272469386,
-    0.009884373666709039, -172.89723911046445, -82.72232174394362, -0.00039630895003536705,
-    -145.1183130071061, -106.01349981825126, -0.0007319963375153638, 212.68405592301232,
-    141.08772517889085, -0.0011948993857328772, -0.6610035716114154, -3.785740771438654,
-    0.807426063801043, -0.5624684434109081, -10.082945173072885, 15.569294193046614,
-    -3.047918981053712, 1.0089082884086569, 2.379604668366473, 16.948665837471296,
-    20.850207114112692, -1.809848478630933, -0.08761500736275438, -0.513568950565265,
-    24.707205026579384, -25.801833647505337, 2.331061515517271e-06, -6.2054154696862144e-06,
-    8.458621611432628e-07, -1.6313690885463952e-06, -4.029559169010445e-07,
-    -2.7416369963847186e-06, -1.9411360693117003e-06, 4.254491710518927e-06,
-    -1.0748318543106404e-05, 4.952310379122379e-07, -6.40677583141589e-07,
-    1.3087761602309732e-06, 1.3601614182847146e-07, 7.129425508408207e-07,
-    2.1539284346859292e-06, -4.3668748165487907e-07, 4.696370623967982e-07, 0.001, 2.0
+    0.04973197666640182, 0.44226973944085685, 0.6033027560642179, 0.04973197666618563,
+    0.44226973944061004, 0.603302756047546, -8.023285976786875, 30.018496444381043,
+    0.018162334641412096, -43.573804581957475, -56.78155642293847, -0.0007225890621219983,
+    -39.93183651261783, 10.480499763385087, -0.02257350319089225, 23.09110976315033,
+    -6.365679749780962, 0.015183719363286836, 203.16658816418726, 219.99097428210573,
+    0.0010609474653250632, -59.86396901090975, -106.03676635026153, -0.0007076868839498617,
+    -57.57551432919463, 9.913941486699482, -0.0002631439324662384, 29.190668316088477,
+    15.698567635785116, 0.0003245181479828258, 26.19774941789768, 38.87154622916514,
+    0.0004409303815173318, -171.62632325009375, -181.6369606121568, -0.0015062722641955206,
+    164.8304605071433, 108.38402178540764, 0.0009676003189766091, 17.240446151010275,
+    14.935527145610724, 0.00042418339012893075, -2.9622347566011205, 6.3132499958578405,
+    0.009816944690913938, -175.61503492935378, -81.27321928453568, -0.00037549483312795663,
+    -143.5136074359868, -106.9541995211113, -0.0007990541686086622, 212.0382516986646,
+    138.33622817062815, -0.0011768430432801626, -0.6358575447354732, -3.7912677344564236,
+    0.7869650343382255, -0.5300302955589571, -9.988231433176185, 16.50566555423345,
+    -3.073738309486378, 1.0182750147211057, 2.3756089795306634, 17.154230942532454,
+    20.79814819548679, -1.7404782991018974, -0.11298913309385308, -0.5161607190316585,
+    24.62741711057743, -25.55777115835868, 2.38063522082688e-06, -6.1510756092342844e-06,
+    8.641793767542879e-07, -1.698831126353032e-06, -4.0547914051191326e-07,
+    -2.797370381132643e-06, -1.928449034058789e-06, 4.216206183775997e-06,
+    -1.0662811897326996e-05, 4.908502004459281e-07, -6.427454085827631e-07,
+    1.3550478978876197e-06, 1.6607869803333284e-07, 7.084569358371975e-07,
+    2.3459853037767214e-06, -4.418563477537266e-07, 3.564792444845963e-07, 0.001, 2.0
 };
 #define TH (BLOB + 0)
 #define TS (BLOB + 3)
@@ -176,9 +176,9 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
     int flags = 0, i;
     double u = analytic_solve(phi, r_next, 1, 0);   /* physics start, θ*_phy */
     double a, psi, best_u, best_v = HUGE_VAL, first_v = NAN, last_v = NAN;
-    if (!isfinite(u)) { u = 0.0; flags |= FF_NEWTON_6D09E9A8_SINGULAR; }
-    if (u < U_MIN) { u = U_MIN; flags |= FF_NEWTON_6D09E9A8_BOUNDS; }
-    else if (u > U_MAX) { u = U_MAX; flags |= FF_NEWTON_6D09E9A8_BOUNDS; }
+    if (!isfinite(u)) { u = 0.0; flags |= FF_NEWTON_FE1CD98B_SINGULAR; }
+    if (u < U_MIN) { u = U_MIN; flags |= FF_NEWTON_FE1CD98B_BOUNDS; }
+    else if (u > U_MAX) { u = U_MAX; flags |= FF_NEWTON_FE1CD98B_BOUNDS; }
     phi[UIDX] = 0.0;
     physics_affine(TH, phi, &a, &psi);              /* θ̂_phy: ŷ = a + ψ u + f_NN */
     best_u = u;
@@ -187,26 +187,26 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
         phi[UIDX] = u;
         nn = nn_affine(phi, &dnn);
         V = r_next - (a + psi * u + nn);             /* [B1] (23) */
-        if (!isfinite(V)) { flags |= FF_NEWTON_6D09E9A8_SINGULAR; break; }
+        if (!isfinite(V)) { flags |= FF_NEWTON_FE1CD98B_SINGULAR; break; }
         av = fabs(V);
         if (i == 0) first_v = av;
         last_v = av;
         if (av < best_v) { best_u = u; best_v = av; }
         if (i == K_NEWTON || V == 0.0) break;
         dV = -(psi + dnn);                           /* [B1] (24), (25) */
-        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_NEWTON_6D09E9A8_SINGULAR; break; }
+        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_NEWTON_FE1CD98B_SINGULAR; break; }
         u_new = u - V / dV;
-        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_NEWTON_6D09E9A8_BOUNDS; break; }
+        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_NEWTON_FE1CD98B_BOUNDS; break; }
         u = u_new;
     }
-    if (last_v > first_v) flags |= FF_NEWTON_6D09E9A8_DIVERGED;
+    if (last_v > first_v) flags |= FF_NEWTON_FE1CD98B_DIVERGED;
     if (best_v == HUGE_VAL) best_u = u;
     phi[UIDX] = 0.0;
     *flags_out = flags;
     return best_u;
 }
 
-static inline double law_w(ff_newton_6d09e9a8_state *s, const double *rp)
+static inline double law_w(ff_newton_fe1cd98b_state *s, const double *rp)
 {   /* one sample of the law: the model input w(t) from r(t .. t+NK+1) and the state */
     double *x = s->x, *rh = x + XRH, *uh = x + XUH, *rw = x + XRW, *phi = x + XPHI;
     double w;
@@ -232,7 +232,7 @@ static inline double law_w(ff_newton_6d09e9a8_state *s, const double *rp)
 #else                                               /* LAW_PHYSICS on a forward model */
     w = analytic_solve(phi, rw[0], 1, 0);
 #endif
-    if (!isfinite(w)) flags |= FF_NEWTON_6D09E9A8_SINGULAR;    /* as the kernels: kept (the guard falls back) */
+    if (!isfinite(w)) flags |= FF_NEWTON_FE1CD98B_SINGULAR;    /* as the kernels: kept (the guard falls back) */
     for (i = NB - 1; i > 0; --i) uh[i] = uh[i - 1];
     uh[0] = w;
     for (i = NRH - 1; i > 0; --i) rh[i] = rh[i - 1];
@@ -241,10 +241,10 @@ static inline double law_w(ff_newton_6d09e9a8_state *s, const double *rp)
     return w;
 }
 
-static void law_init(ff_newton_6d09e9a8_state *s, double r0)
+static void law_init(ff_newton_fe1cd98b_state *s, double r0)
 {
     int i;
-    for (i = 0; i < FF_NEWTON_6D09E9A8_NX; ++i) s->x[i] = 0.0;
+    for (i = 0; i < FF_NEWTON_FE1CD98B_NX; ++i) s->x[i] = 0.0;
     for (i = 0; i < NRH; ++i) s->x[XRH + i] = r0;
     s->w_prev = 0.0;
     s->primed = 0;
@@ -258,7 +258,7 @@ static void law_init(ff_newton_6d09e9a8_state *s, double r0)
     s->r_hist[1] = r0;
 }
 
-static double law_step(ff_newton_6d09e9a8_state *s, const double *r_preview)
+static double law_step(ff_newton_fe1cd98b_state *s, const double *r_preview)
 {
     double u;
     s->status = 0;
@@ -276,7 +276,7 @@ static double law_step(ff_newton_6d09e9a8_state *s, const double *r_preview)
 }
 
 /* ---- guard (issue 22): input sanitation, training envelope, fallback, saturation, slew limit ---- */
-#define G_PREVIEW FF_NEWTON_6D09E9A8_PREVIEW
+#define G_PREVIEW FF_NEWTON_FE1CD98B_PREVIEW
 #define G_TS (0.001)
 #define U_LO ((-HUGE_VAL))           /* saturation [N] */
 #define U_HI (HUGE_VAL)
@@ -290,12 +290,12 @@ static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.53
 static const double PHYS[3] = {0.0, 0.0, 0.0};    /* physics fallback: M, F_v, F_c */
 #endif
 
-void ff_newton_6d09e9a8_init(ff_newton_6d09e9a8_state *s, double r0)
+void ff_newton_fe1cd98b_init(ff_newton_fe1cd98b_state *s, double r0)
 {
     law_init(s, isfinite(r0) ? r0 : 0.0);
 }
 
-double ff_newton_6d09e9a8_step(ff_newton_6d09e9a8_state *s, const double *r_preview)
+double ff_newton_fe1cd98b_step(ff_newton_fe1cd98b_state *s, const double *r_preview)
 {
     double ext[G_PREVIEW + 3];   /* r(t-2), r(t-1), r(t) .. r(t+P) after sanitation */
     double x[3], u;
@@ -307,7 +307,7 @@ double ff_newton_6d09e9a8_step(ff_newton_6d09e9a8_state *s, const double *r_prev
             ext[i + 2] = r_preview[i];
         } else {
             ext[i + 2] = ext[i + 1];
-            flags |= FF_NEWTON_6D09E9A8_NONFINITE_INPUT;
+            flags |= FF_NEWTON_FE1CD98B_NONFINITE_INPUT;
         }
     }
     x[0] = ext[G_PREVIEW + 2];                                   /* r(n), n = t + P */
@@ -316,12 +316,12 @@ double ff_newton_6d09e9a8_step(ff_newton_6d09e9a8_state *s, const double *r_prev
     for (i = 0; i < 3; ++i) {
         if (!((ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
     }
-    if (!inside) flags |= FF_NEWTON_6D09E9A8_OUT_OF_RANGE;
+    if (!inside) flags |= FF_NEWTON_FE1CD98B_OUT_OF_RANGE;
     u = law_step(s, ext + 2);
     flags |= s->status;
-    invalid = ((flags & FF_NEWTON_6D09E9A8_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
+    invalid = ((flags & FF_NEWTON_FE1CD98B_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
     if (invalid) {
-        flags |= FF_NEWTON_6D09E9A8_FALLBACK;
+        flags |= FF_NEWTON_FE1CD98B_FALLBACK;
         if (s->n_invalid < UINT64_MAX) s->n_invalid++;
 #if FALLBACK_KIND == 2                /* ramp to 0 over RAMP_N samples */
         {
@@ -329,7 +329,7 @@ double ff_newton_6d09e9a8_step(ff_newton_6d09e9a8_state *s, const double *r_prev
             u = s->u_hold * (g > 0.0 ? g : 0.0);
         }
 #elif FALLBACK_KIND == 1              /* physics on a finite reference, else hold */
-        if ((flags & FF_NEWTON_6D09E9A8_NONFINITE_INPUT) == 0) {
+        if ((flags & FF_NEWTON_FE1CD98B_NONFINITE_INPUT) == 0) {
             const double sg = x[1] > 0 ? 1.0 : (x[1] < 0 ? -1.0 : 0.0);
             u = PHYS[0] * x[2] + PHYS[1] * x[1] + PHYS[2] * sg;
             if (!isfinite(u)) u = s->u_hold;
@@ -342,10 +342,10 @@ double ff_newton_6d09e9a8_step(ff_newton_6d09e9a8_state *s, const double *r_prev
     } else {
         s->n_invalid = 0;
     }
-    if (u > U_HI) { u = U_HI; flags |= FF_NEWTON_6D09E9A8_SATURATED; }
-    else if (u < U_LO) { u = U_LO; flags |= FF_NEWTON_6D09E9A8_SATURATED; }
-    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_NEWTON_6D09E9A8_RATE_LIMITED; }
-    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_NEWTON_6D09E9A8_RATE_LIMITED; }
+    if (u > U_HI) { u = U_HI; flags |= FF_NEWTON_FE1CD98B_SATURATED; }
+    else if (u < U_LO) { u = U_LO; flags |= FF_NEWTON_FE1CD98B_SATURATED; }
+    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_NEWTON_FE1CD98B_RATE_LIMITED; }
+    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_NEWTON_FE1CD98B_RATE_LIMITED; }
     if (!invalid) s->u_hold = u;
     s->u_prev = u;
     s->r_hist[1] = s->r_hist[0];

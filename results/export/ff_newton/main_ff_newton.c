@@ -82,16 +82,16 @@ static double *read_columns(const char *path, int ncol, long *n)
 
 static double run(const double *r, long n, long stride, double *u, int *flags)
 {   /* the reference sample by sample, as a real-time loop feeds it; returns the sum of u */
-    ff_newton_6d09e9a8_state s;
-    ff_newton_6d09e9a8_real rp[FF_NEWTON_6D09E9A8_PREVIEW + 1];
+    ff_newton_fe1cd98b_state s;
+    ff_newton_fe1cd98b_real rp[FF_NEWTON_FE1CD98B_PREVIEW + 1];
     double sum = 0.0;
     long t;
     int i;
-    ff_newton_6d09e9a8_init(&s, (ff_newton_6d09e9a8_real)(FF_NEWTON_6D09E9A8_REST_AT_ZERO ? 0.0 : r[0]));
+    ff_newton_fe1cd98b_init(&s, (ff_newton_fe1cd98b_real)(FF_NEWTON_FE1CD98B_REST_AT_ZERO ? 0.0 : r[0]));
     for (t = 0; t < n; ++t) {
         double v;
-        for (i = 0; i <= FF_NEWTON_6D09E9A8_PREVIEW; ++i) rp[i] = (ff_newton_6d09e9a8_real)r[(t + i < n ? t + i : n - 1) * stride];
-        v = ff_newton_6d09e9a8_step(&s, rp);
+        for (i = 0; i <= FF_NEWTON_FE1CD98B_PREVIEW; ++i) rp[i] = (ff_newton_fe1cd98b_real)r[(t + i < n ? t + i : n - 1) * stride];
+        v = ff_newton_fe1cd98b_step(&s, rp);
         if (u) u[t] = v;
         if (flags) flags[t] = s.status;
         sum += v;

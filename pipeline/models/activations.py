@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from numpy.lib.introspect import opt_func_info
 from torch import nn
 
 __all__ = ["IMPLEMENTATION", "tanh", "tanh_", "Tanh"]
@@ -29,9 +30,8 @@ _SIMD_TARGETS = ("X86_V4", "AVX512_SKX", "AVX512_ICL", "AVX512_SPR")
 def _numpy_target() -> str | None:
     """The target numpy's float64 tanh dispatches on this machine (numpy.lib.introspect), or None."""
     try:
-        from numpy.lib.introspect import opt_func_info
         return str(opt_func_info(func_name="^tanh$", signature="^d")["tanh"]["dd"]["current"])
-    except (ImportError, KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError):
         return None
 
 

@@ -419,6 +419,8 @@ def test_tanh_is_numpys_on_plain_data_and_torchs_where_traced(use_numpy, monkeyp
     assert np.all(np.abs(t.numpy() - torch.tanh(z).numpy()) <= np.spacing(np.abs(t.numpy())))
     w = z.clone()
     assert tanh_(w) is w and torch.equal(w, t)
+    for s in (z[7, 0], z[::3, 1]):                           # a 0-d tensor, a strided view
+        assert torch.equal(tanh(s), t[7, 0] if s.dim() == 0 else t[::3, 1])
     with torch.no_grad():                                  # data of a parameter, not traced
         p = z.clone().requires_grad_()
         assert np.array_equal(Tanh()(p * 1.0).numpy(), t.numpy())

@@ -55,7 +55,11 @@ def _plain(z: torch.Tensor) -> np.ndarray | None:
 def tanh(z: torch.Tensor) -> torch.Tensor:
     """tanh(z): :data:`IMPLEMENTATION`'s on plain data, torch's where z is traced."""
     a = _plain(z)
-    return torch.tanh(z) if a is None else torch.from_numpy(np.tanh(a))
+    if a is None:
+        return torch.tanh(z)
+    out = np.empty_like(a)                  # an array also for a 0-d z (np.tanh of one returns a scalar)
+    np.tanh(a, out=out)
+    return torch.from_numpy(out)
 
 
 def tanh_(z: torch.Tensor) -> torch.Tensor:

@@ -803,26 +803,23 @@ def output_error_problem(model: RationalFeedforward, data: dict, *, lam: float =
         trial, u, _ = split(x)
         den = trial.denominator()
         fsim = filter_segments(u, [1.0], den, seg)
-        cols = [-R, trial.ar_regressors(fsim, seg)]
-        if closed:                          # split above: g and its layer outputs at this φ
-            phi = x[n_th:]
-            a = fwd.at(phi)
-            J = np.empty((seg.n + (sub.p if reg else 0), x.numel()))
-            J[:seg.n, :n_th] = filter_segments(np.hstack(cols), [1.0], den, seg)
-            J[:seg.n, n_th:] = model.filtered_jacobian(inp, phi, [1.0], den, seg, a)
-            np.negative(J[:seg.n, n_th:], out=J[:seg.n, n_th:])   # ∂e/∂φ = −(∂g/∂φ)/B
-            if reg:
-                J[seg.n:, :n_th] = 0.0
-                J[seg.n:, n_th:] = sq * sub.coordinates(model.filtered_jacobian(inp, phi, [1.0], w_den, seg, a))
-            return torch.from_numpy(J)
-        Jg = None
+        J = np.empty((seg.n + (sub.p if reg else 0), x.numel()))
+        J[:seg.n, :n_th] = filter_segments(np.hstack([-R, trial.ar_regressors(fsim, seg)]), [1.0], den, seg)
         if has_g:
-            Jg = model.g_and_jacobian(inp, x[n_th:])[1].numpy()
-            cols.append(-Jg)
-        J = np.ascontiguousarray(filter_segments(np.hstack(cols), [1.0], den, seg))
-        if reg:
-            Jr = sq * sub.coordinates(filter_segments(Jg, [1.0], w_den, seg))   # [p, n_φ]
-            J = np.vstack([J, np.hstack([np.zeros((sub.p, n_th)), Jr])])
+            # (1/D)(q) ∂g/∂φ for a filter denominator D: closed form from the layer outputs split kept,
+            # else torch's per-sample ∂g/∂φ filtered column by column
+            phi = x[n_th:]
+            if closed:
+                a = fwd.at(phi)
+                filtered = lambda d: model.filtered_jacobian(inp, phi, [1.0], d, seg, a)   # noqa: E731
+            else:
+                Jg = model.g_and_jacobian(inp, phi)[1].numpy()
+                filtered = lambda d: filter_segments(Jg, [1.0], d, seg)                    # noqa: E731
+            J[:seg.n, n_th:] = filtered(den)
+            np.negative(J[:seg.n, n_th:], out=J[:seg.n, n_th:])   # ∂e/∂φ = −(∂g/∂φ)/B
+            if reg:                                               # R's rows: φ only, [p, n_φ]
+                J[seg.n:, :n_th] = 0.0
+                J[seg.n:, n_th:] = sq * sub.coordinates(filtered(w_den))
         return torch.from_numpy(J)
 
     x0 = [torch.from_numpy(model.theta)]

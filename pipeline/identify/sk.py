@@ -464,7 +464,10 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
         than ``stall_tol`` of itself for ``stall_window`` iterations whose inner solves converged:
         SK without a fixed point (the rational model, whose roots of B are reflected at every
         step, SPEC §5) has searched to its end; the best iterate is kept, as always, and
-        ``converged`` stays False (it is not a fixed point).  0 = off.
+        ``converged`` stays False (it is not a fixed point).  Also when the criterion is out of
+        reach of that: falling steadily since the iterate after the best, but too slowly, even at
+        its fastest fall so far, to come within ``stall_tol`` of the best before ``max_iter``
+        (the regularised PGNN crawling along a valley, thousands of LM steps per SK step).  0 = off.
     regularizer : {'orthogonal', 'none'}
         Orthogonal projection-based regulariser [K] (29) or none ([K] Alg. 5).  Ignored for
         the rational model (no approximator).
@@ -602,7 +605,8 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
             break
         # ... or, without a fixed point, the best criterion stopped improving (stall_window > 0 only)
         if stall_window > 0 and _stalled([x.J_OE + lam_eff * x.regularizer for x in iterates],
-                                         [x.lm_converged for x in iterates], int(stall_window), stall_tol):
+                                         [x.lm_converged for x in iterates], int(stall_window), stall_tol,
+                                         max_iter=int(max_iter)):
             message = "stalled"
             break
 
@@ -624,13 +628,26 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
                     message=message, reflected=reflected, tol=float(tol), lam=lam_eff)
 
 
-def _stalled(J: list, inner_ok: list, window: int, tol: float) -> bool:
+def _stalled(J: list, inner_ok: list, window: int, tol: float, max_iter: int | None = None) -> bool:
     """The last ``window`` iterates (inner solves converged) did not lower the best J by more
-    than ``tol`` of the best before them."""
-    if len(J) <= window or not all(inner_ok[-window:]):
+    than ``tol`` of the best before them; or (``max_iter`` given) J is out of reach of that: it
+    has fallen at every iterate since the one after the best (at least two steps, inner solves
+    converged), and even at its fastest fall so far the iterations left to ``max_iter`` cannot
+    bring it below ``(1 − tol)`` of the best (a steady crawl along a valley, no fixed point: the
+    best iterate stays the result whichever rule stops it)."""
+    if len(J) > window and all(inner_ok[-window:]) and not min(J[-window:]) < min(J[:-window]) * (1.0 - tol):
+        return True
+    if max_iter is None:
         return False
-    before = min(J[:-window])
-    return not min(J[-window:]) < before * (1.0 - tol)
+    b = int(np.argmin(J))
+    tail = np.asarray(J[b + 1:], dtype=float)
+    if tail.size < 3 or not all(inner_ok[b + 1:]):
+        return False
+    fall = -np.diff(tail)                               # decrease per SK iteration since the best's successor
+    if not np.all(fall > 0):
+        return False
+    left = int(max_iter) - (len(J) - 1)                 # iterations still allowed (J[0] is j = 0)
+    return left * float(fall.max()) < tail[-1] - J[b] * (1.0 - tol)
 
 
 def _sk_restart(job: tuple) -> tuple[SKResult, float, bool]:

@@ -224,23 +224,27 @@ def test_stalled_rule():
 
 
 def test_stalled_rule_out_of_reach():
-    """A steady crawl above the best stops when, at its fastest fall so far, the iterations left to
-    max_iter cannot bring it within tol of the best (k_two_mass, regularised PGNN, restart 4: J + λR
-    1.4686 at j = 1, then 1.47379, 1.47374, 1.4737 falling by ≤ 5e-5 per SK iteration, 2700 LM steps
-    each; it now stops at j = 4 instead of j = 11 with the same kept iterate)."""
+    """Three iterates after the best, J stops when at the pace of its last two steps the iterations left to
+    max_iter cannot bring it within tol of the best (k_two_mass, regularised PGNN, restart 4: J + λR 1.4686 at
+    j = 1, then 1.47379, 1.47374, 1.4737, ~1000-1600 LM steps per SK step; it now stops at j = 4 instead of
+    j = 11, the same kept iterate)."""
     from pipeline.identify.sk import _stalled
-    ok = [True] * 6
+    ok = [True] * 8
     crawl = [7000.0, 1.4686, 1.47379, 1.47374, 1.4737]
     assert _stalled(crawl, ok[:5], 10, 1e-3, max_iter=30)                      # 26 x 5e-5 << 0.0066
     assert not _stalled(crawl, ok[:5], 10, 1e-3)                               # the window rule alone: 10 more
-    assert not _stalled(crawl[:4], ok[:4], 10, 1e-3, max_iter=30)              # one fall: no rate yet
-    assert not _stalled(crawl, ok[:4] + [False], 10, 1e-3, max_iter=30)        # an inner solve capped
-    # the fall would reach the best within the iterations left: go on (26 x 3e-4 = 0.0078 > 0.0070)
-    assert not _stalled([7000.0, 1.4686, 1.4747, 1.4744, 1.4741], ok[:5], 10, 1e-3, max_iter=30)
-    # it reaches it, with fewer iterations left: stop (3 x 3e-4 < 0.0070)
-    assert _stalled([7000.0, 1.4686, 1.4747, 1.4744, 1.4741], ok[:5], 10, 1e-3, max_iter=7)
-    # not a steady fall (up, then down): the window rule decides
-    assert not _stalled([7000.0, 1.4686, 1.4737, 1.4740, 1.4738], ok[:5], 10, 1e-3, max_iter=30)
+    assert not _stalled(crawl[:4], ok[:4], 10, 1e-3, max_iter=30)              # two after the best: too few
+    assert not _stalled(crawl, ok[:4] + [False], 10, 1e-3, max_iter=30)        # the last inner solve capped
+    assert _stalled(crawl, [True, True, False, True, True], 10, 1e-3, max_iter=30)   # an earlier one: fine
+    # at that pace it would come within tol of the best before max_iter: go on (26 x 3e-4 = 0.0078 > 0.0070)
+    fast = [7000.0, 1.4686, 1.4747, 1.4744, 1.4741]
+    assert not _stalled(fast, ok[:5], 10, 1e-3, max_iter=30)
+    assert _stalled(fast, ok[:5], 10, 1e-3, max_iter=7)                        # fewer left: 3 x 3e-4 < 0.0070
+    # the pace is the larger of the last two falls: a pause does not stop a crawl that just fell fast
+    assert not _stalled([7000.0, 1.4686, 1.4760, 1.4740, 1.4740], ok[:5], 10, 1e-3, max_iter=30)
+    # rising since the best: no pace at all, stop (the rational model's drift after its best iterate)
+    assert _stalled([9.0, 5.0, 5.2, 5.3, 5.5], ok[:5], 10, 1e-3, max_iter=30)
+    assert not _stalled([9.0, 5.0, 5.2, 5.3, 5.5, 4.0], ok[:6], 10, 1e-3, max_iter=30)   # a new best: go on
 
 
 def test_rational_sk_without_fixed_point_stops_stalled_on_its_best_iterate(store, cfg_of):

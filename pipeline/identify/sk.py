@@ -465,8 +465,8 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
         SK without a fixed point (the rational model, whose roots of B are reflected at every
         step, SPEC §5) has searched to its end; the best iterate is kept, as always, and
         ``converged`` stays False (it is not a fixed point).  Also when the criterion is out of
-        reach of that: falling steadily since the iterate after the best, but too slowly, even at
-        its fastest fall so far, to come within ``stall_tol`` of the best before ``max_iter``
+        reach of that: three or more iterates after the best, falling (if at all) too slowly at the
+        pace of its last two steps to come within ``stall_tol`` of the best before ``max_iter``
         (the regularised PGNN crawling along a valley, thousands of LM steps per SK step).  0 = off.
     regularizer : {'orthogonal', 'none'}
         Orthogonal projection-based regulariser [K] (29) or none ([K] Alg. 5).  Ignored for
@@ -630,24 +630,21 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
 
 def _stalled(J: list, inner_ok: list, window: int, tol: float, max_iter: int | None = None) -> bool:
     """The last ``window`` iterates (inner solves converged) did not lower the best J by more
-    than ``tol`` of the best before them; or (``max_iter`` given) J is out of reach of that: it
-    has fallen at every iterate since the one after the best (at least two steps, inner solves
-    converged), and even at its fastest fall so far the iterations left to ``max_iter`` cannot
-    bring it below ``(1 − tol)`` of the best (a steady crawl along a valley, no fixed point: the
-    best iterate stays the result whichever rule stops it)."""
+    than ``tol`` of the best before them; or (``max_iter`` given) J is out of reach of that: at
+    least three iterates after the best, the last one's inner solve converged, and at the pace of
+    its last two steps (the larger fall of the two, none if J rose) the iterations left to
+    ``max_iter`` cannot bring it below ``(1 − tol)`` of the best. A crawl along a valley with no
+    fixed point: whichever rule stops it, the best iterate is the result."""
     if len(J) > window and all(inner_ok[-window:]) and not min(J[-window:]) < min(J[:-window]) * (1.0 - tol):
         return True
     if max_iter is None:
         return False
     b = int(np.argmin(J))
-    tail = np.asarray(J[b + 1:], dtype=float)
-    if tail.size < 3 or not all(inner_ok[b + 1:]):
+    if len(J) - 1 - b < 3 or not inner_ok[-1]:
         return False
-    fall = -np.diff(tail)                               # decrease per SK iteration since the best's successor
-    if not np.all(fall > 0):
-        return False
+    pace = max(0.0, J[-3] - J[-2], J[-2] - J[-1])        # fall per SK iteration, recent
     left = int(max_iter) - (len(J) - 1)                 # iterations still allowed (J[0] is j = 0)
-    return left * float(fall.max()) < tail[-1] - J[b] * (1.0 - tol)
+    return left * pace < J[-1] - J[b] * (1.0 - tol)
 
 
 def _sk_restart(job: tuple) -> tuple[SKResult, float, bool]:

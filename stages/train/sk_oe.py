@@ -110,10 +110,11 @@ class Params:
     stall_window: int = spec(10, ge=0, le=ITER_MAX)
     # J_OE (+ λR) has not fallen by more than stall_tol of itself over stall_window SK iterations (reason 'stalled',
     # not a cap; the best iterate is kept). k_two_mass rational: best at j = 5 (1957.7), J_OE then drifts up to 2217
-    # by j = 30; stops at j = 14 with the same kept model. Also 'stalled' when J_OE (+ λR) falls steadily since the
-    # iterate after the best but, at its fastest fall so far, cannot come within stall_tol of the best before max_iter
-    # (regularised PGNN restart 4: 1.4686 at j = 1, then 1.47379, 1.47374, 1.4737 at ~1000-1600 LM steps per SK step;
-    # stops at j = 4 instead of j = 11, the same kept iterate, 1717 LM steps and ~60 s less)
+    # by j = 30. Also 'stalled' three iterates after the best when, at the pace of its last two steps, J_OE (+ λR)
+    # cannot come within stall_tol of the best before max_iter (sk._stalled): the rational model then stops at j = 8
+    # (J_OE rising since j = 5), the regularised PGNN's restart 4 at j = 4 (1.4686 at j = 1, then 1.47379, 1.47374,
+    # 1.4737 at ~1000-1600 LM steps per SK step) instead of j = 11; the same kept iterates. Its perturbed twin (issue 19
+    # check) crawled 15 SK iterations, 614 s, with two inner solves on their cap
     stall_tol: float = spec(1e-3, ge=0, lt=1)
     # with > 0, 'tol' and 'cost_tol' also need the model's training output to have moved by at most this fraction of
     # its own error over the step (‖Δŷ‖/√J_OE): what is computed from it has settled
@@ -123,7 +124,7 @@ class Params:
 VERSION = 6   # 2: SK and the OE check stop on tolerances (stop reasons logged); regularised check on J_OE + λR;
               # 3: the 'stalled' stop of SK without a fixed point; 4: the regularised PGNN's restarts unscreened;
               # 5: the OE check's W ∂g/∂φ in closed form (numba, equal to rounding: the check's path moves)
-              # 6: 'stalled' also when the criterion is out of reach of the best before max_iter
+              # 6: 'stalled' also when the criterion is out of reach of the best before max_iter (at its recent pace)
 
 
 KINDS = ("rational", "pgnn_shared_ar")

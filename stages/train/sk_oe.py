@@ -121,10 +121,10 @@ class Params:
     output_tol: float = spec(0.0, ge=0, lt=1)
 
 
-VERSION = 6   # 2: SK and the OE check stop on tolerances (stop reasons logged); regularised check on J_OE + λR;
+VERSION = 7   # 2: SK and the OE check stop on tolerances (stop reasons logged); regularised check on J_OE + λR;
               # 3: the 'stalled' stop of SK without a fixed point; 4: the regularised PGNN's restarts unscreened;
               # 5: the OE check's W ∂g/∂φ in closed form (numba, equal to rounding: the check's path moves)
-              # 6: 'stalled' also when the criterion is out of reach of the best before max_iter (at its recent pace)
+              # 6: 'stalled' also when the criterion is out of reach of the best before max_iter; 7: at its recent pace
 
 
 KINDS = ("rational", "pgnn_shared_ar")

@@ -111,8 +111,8 @@ class Params:
     # J_OE (+ λR) has not fallen by more than stall_tol of itself over stall_window SK iterations (reason 'stalled',
     # not a cap; the best iterate is kept). k_two_mass rational: best at j = 5 (1957.7), J_OE then drifts up to 2217
     # by j = 30. Also 'stalled' three iterates after the best when, at the pace of its last two steps, J_OE (+ λR)
-    # cannot come within stall_tol of the best before max_iter (sk._stalled): the rational model then stops at j = 8
-    # (J_OE rising since j = 5), the regularised PGNN's restart 4 at j = 4 (1.4686 at j = 1, then 1.47379, 1.47374,
+    # cannot come within stall_tol of the best before max_iter (sk._stalled): the rational model then stops at j = 10
+    # (best at j = 5), the regularised PGNN's restart 4 at j = 4 (1.4686 at j = 1, then 1.47379, 1.47374,
     # 1.4737 at ~1000-1600 LM steps per SK step) instead of j = 11; the same kept iterates. Its perturbed twin (issue 19
     # check) crawled 15 SK iterations, 614 s, with two inner solves on their cap
     stall_tol: float = spec(1e-3, ge=0, lt=1)

@@ -59,11 +59,12 @@ FIT_CAP_METRIC = "fit_stopped_on_cap"
 #: metrics that measure the machine, not the result
 _TIMING = ("seconds", "time", "wall", "_ms", "per_sample_ns", "ns_per_sample")
 #: metrics that describe the solver's path, not its result: iteration counts, the last step's size, the
-#: tolerance itself (a setting: tightened on purpose), a check LM's remaining gain, and rounding-level
-#: differences of the exported C/Python laws from the study (1e-15 -> 2e-15 is not a result moving) and of
-#: exact identities ([B2] Lemmas 5.1/5.2, B2e: 6.9e-17 -> 9.2e-16 between two CPUs; the claim's verdict on
-#: them, <= 1e-8, is still compared)
-_SOLVER_PATH = ("iterations", "rel_change", "sk_tol", "oe_check_max_iter", "oe_check_improvement",
+#: tolerance itself (a setting: tightened on purpose), which SK rule stopped a fit whose result is its best
+#: iterate either way (``sk_stopped_on_tol``: its fixed-point test or the stall), a check LM's remaining gain,
+#: and rounding-level differences of the exported C/Python laws from the study (1e-15 -> 2e-15 is not a
+#: result moving) and of exact identities ([B2] Lemmas 5.1/5.2, B2e: 6.9e-17 -> 9.2e-16 between two CPUs;
+#: the claim's verdict on them, <= 1e-8, is still compared)
+_SOLVER_PATH = ("iterations", "rel_change", "sk_tol", "sk_stopped_on_tol", "oe_check_max_iter", "oe_check_improvement",
                 "c_max_rel_diff", "python_max_rel_diff", "relative_difference")
 
 

@@ -305,3 +305,22 @@ def test_sk_output_change_is_the_output_step_over_the_output_error(problem):
     assert not any(it.change < 1e-4 and it.lm_converged and it.output_change <= 1e-6 for it in its[1:-1])
     plain = sk_iterations(_pgnn(rs, seed=4), rs, fs, regularizer="none", lam=0.0, max_iter=50, tol=1e-4, **LM)
     assert len(plain.iterates) <= len(its)
+
+
+def test_stalled_rule_slow_crawl_of_new_bests():
+    """A new best at every step, but at a pace that would gain less than tol over the next window iterations:
+    the window rule's verdict foreseen (k_two_mass, regularised PGNN, the perturbed twin of restart 4, J + λR
+    as measured at 8947e96: it crawled on to j = 15, 1.46971, at up to 3000 LM steps per SK step)."""
+    from pipeline.identify.sk import _stalled
+    J = [7000.23, 1.47051, 1.47136, 1.47042, 1.47018, 1.47, 1.46992, 1.46984, 1.46981, 1.46979]
+    ok = [True, True, True, False, True, False, True, True, True, True]      # j = 3 and 5 stopped on the LM cap
+    stops = [j for j in range(1, len(J)) if _stalled(J[:j + 1], ok[:j + 1], 10, 1e-3, max_iter=30)]
+    # j = 3, 5: capped; j = 4: pace 9.4e-4 x 10 > 1.47e-3; j = 6: 1.8e-4 x 10 > 1.47e-3; j = 7: 8e-5 x 10 < 1.47e-3
+    assert stops[0] == 7
+    assert not _stalled(J[:8], ok[:8], 10, 1e-3)                               # the window rule alone: j >= 11
+    assert not _stalled(J[:8], ok[:7] + [False], 10, 1e-3, max_iter=30)        # the last inner solve capped
+    assert not _stalled(J[:8], ok[:8], 10, 1e-4, max_iter=30)                  # tightened 10x: 8e-4 > 1.47e-4
+    # a fast new best is not a crawl, whatever came before it
+    assert not _stalled(J[:7] + [1.4690], ok[:8], 10, 1e-3, max_iter=30)
+    # the pace is the larger of the last two falls: a pause after a fast fall goes on
+    assert not _stalled([9.0, 5.0, 4.0, 3.9999], [True] * 4, 10, 1e-3, max_iter=30)

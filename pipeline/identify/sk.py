@@ -467,7 +467,10 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
         ``converged`` stays False (it is not a fixed point).  Also when the criterion is out of
         reach of that: three or more iterates after the best, falling (if at all) too slowly at the
         pace of its last two steps to come within ``stall_tol`` of the best before ``max_iter``
-        (the regularised PGNN crawling along a valley, thousands of LM steps per SK step).  0 = off.
+        (the regularised PGNN crawling along a valley, thousands of LM steps per SK step); and when
+        the last iterate is the best but at that pace the next ``stall_window`` iterations would
+        gain less than ``stall_tol`` of it (the window rule's verdict, foreseen: the same PGNN
+        setting a new best by ~1e-5 at every step).  0 = off.
     regularizer : {'orthogonal', 'none'}
         Orthogonal projection-based regulariser [K] (29) or none ([K] Alg. 5).  Ignored for
         the rational model (no approximator).
@@ -630,19 +633,27 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
 
 def _stalled(J: list, inner_ok: list, window: int, tol: float, max_iter: int | None = None) -> bool:
     """The last ``window`` iterates (inner solves converged) did not lower the best J by more
-    than ``tol`` of the best before them; or (``max_iter`` given) J is out of reach of that: at
-    least three iterates after the best, the last one's inner solve converged, and at the pace of
-    its last two steps (the larger fall of the two, none if J rose) the iterations left to
-    ``max_iter`` cannot bring it below ``(1 − tol)`` of the best. A crawl along a valley with no
-    fixed point: whichever rule stops it, the best iterate is the result."""
+    than ``tol`` of the best before them; or (``max_iter`` given) that verdict is foreseen from
+    the pace of the last two steps (the larger fall of the two, none if J rose), the last inner
+    solve converged and j >= 3:
+
+    - out of reach: at least three iterates after the best, and the iterations left to
+      ``max_iter`` cannot bring J below ``(1 − tol)`` of the best at that pace;
+    - a slow crawl: the last iterate is the best, and at that pace the next ``window``
+      iterations would lower it by less than ``tol`` of itself (the window rule, foreseen).
+
+    A crawl along a valley with no fixed point: whichever rule stops it, the best iterate is
+    the result."""
     if len(J) > window and all(inner_ok[-window:]) and not min(J[-window:]) < min(J[:-window]) * (1.0 - tol):
         return True
-    if max_iter is None:
-        return False
-    b = int(np.argmin(J))
-    if len(J) - 1 - b < 3 or not inner_ok[-1]:
+    if max_iter is None or len(J) < 4 or not inner_ok[-1]:
         return False
     pace = max(0.0, J[-3] - J[-2], J[-2] - J[-1])        # fall per SK iteration, recent
+    b = int(np.argmin(J))
+    if b == len(J) - 1:                                 # a new best: is it still worth a window?
+        return window * pace < tol * J[-1]
+    if len(J) - 1 - b < 3:
+        return False
     left = int(max_iter) - (len(J) - 1)                 # iterations still allowed (J[0] is j = 0)
     return left * pace < J[-1] - J[b] * (1.0 - tol)
 

@@ -113,18 +113,21 @@ class Params:
     # by j = 30. Also 'stalled' three iterates after the best when, at the pace of its last two steps, J_OE (+ λR)
     # cannot come within stall_tol of the best before max_iter (sk._stalled): the rational model then stops at j = 10
     # (best at j = 5), the regularised PGNN's restart 4 at j = 4 (1.4686 at j = 1, then 1.47379, 1.47374,
-    # 1.4737 at ~1000-1600 LM steps per SK step) instead of j = 11; the same kept iterates. Its perturbed twin (issue 19
-    # check) still crawls 15 SK iterations, 616 s, to the window rule (measured at 8947e96)
+    # 1.4737 at ~1000-1600 LM steps per SK step) instead of j = 11; the same kept iterates. And 'stalled' when the last
+    # iterate is the best but at that pace the next stall_window iterations would gain less than stall_tol: restart 4's
+    # perturbed twin (issue 19 check; new bests 1.47042, 1.47018, 1.47, 1.46992, 1.46984 at j = 3..7, inner solves up to
+    # 3000 LM steps) then stops at j = 7 instead of crawling to the window rule at j = 15 (1.46971; 616 s at 8947e96)
     stall_tol: float = spec(1e-3, ge=0, lt=1)
     # with > 0, 'tol' and 'cost_tol' also need the model's training output to have moved by at most this fraction of
     # its own error over the step (‖Δŷ‖/√J_OE): what is computed from it has settled
     output_tol: float = spec(0.0, ge=0, lt=1)
 
 
-VERSION = 7   # 2: SK and the OE check stop on tolerances (stop reasons logged); regularised check on J_OE + λR;
+VERSION = 8   # 2: SK and the OE check stop on tolerances (stop reasons logged); regularised check on J_OE + λR;
               # 3: the 'stalled' stop of SK without a fixed point; 4: the regularised PGNN's restarts unscreened;
               # 5: the OE check's W ∂g/∂φ in closed form (numba, equal to rounding: the check's path moves)
-              # 6: 'stalled' also when the criterion is out of reach of the best before max_iter; 7: at its recent pace
+              # 6: 'stalled' also when the criterion is out of reach of the best before max_iter; 7: at its recent pace;
+              # 8: 'stalled' when a new best's recent pace would gain < stall_tol over stall_window iterations
 
 
 KINDS = ("rational", "pgnn_shared_ar")

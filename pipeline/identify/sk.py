@@ -468,9 +468,10 @@ def sk_iterations(model: RationalFeedforward, r, f_hat, *, max_iter: int = 20, t
         reach of that: three or more iterates after the best, falling (if at all) too slowly at the
         pace of its last two steps to come within ``stall_tol`` of the best before ``max_iter``
         (the regularised PGNN crawling along a valley, thousands of LM steps per SK step); and when
-        the last iterate is the best but at that pace the next ``stall_window`` iterations would
-        gain less than ``stall_tol`` of it (the window rule's verdict, foreseen: the same PGNN
-        setting a new best by ~1e-5 at every step).  0 = off.
+        the last iterate is the best, falling at a steady pace (its last fall at least half the
+        one before) at which the next ``stall_window`` iterations would gain less than
+        ``stall_tol`` of it (the window rule's verdict, foreseen: the same PGNN setting a new best
+        by ~1e-5 at every step).  0 = off.
     regularizer : {'orthogonal', 'none'}
         Orthogonal projection-based regulariser [K] (29) or none ([K] Alg. 5).  Ignored for
         the rational model (no approximator).
@@ -639,8 +640,10 @@ def _stalled(J: list, inner_ok: list, window: int, tol: float, max_iter: int | N
 
     - out of reach: at least three iterates after the best, and the iterations left to
       ``max_iter`` cannot bring J below ``(1 − tol)`` of the best at that pace;
-    - a slow crawl: the last iterate is the best, and at that pace the next ``window``
-      iterations would lower it by less than ``tol`` of itself (the window rule, foreseen).
+    - a slow crawl: the last iterate is the best, its last fall at least half the one before
+      (a steady pace, not a fixed point approached at a contraction of 1/2 or faster, which
+      the parameter test is about to catch), and at that pace the next ``window`` iterations
+      would lower it by less than ``tol`` of itself (the window rule, foreseen).
 
     A crawl along a valley with no fixed point: whichever rule stops it, the best iterate is
     the result."""
@@ -651,7 +654,8 @@ def _stalled(J: list, inner_ok: list, window: int, tol: float, max_iter: int | N
     pace = max(0.0, J[-3] - J[-2], J[-2] - J[-1])        # fall per SK iteration, recent
     b = int(np.argmin(J))
     if b == len(J) - 1:                                 # a new best: is it still worth a window?
-        return window * pace < tol * J[-1]
+        steady = J[-2] - J[-1] >= 0.5 * (J[-3] - J[-2]) > 0
+        return steady and window * pace < tol * J[-1]
     if len(J) - 1 - b < 3:
         return False
     left = int(max_iter) - (len(J) - 1)                 # iterations still allowed (J[0] is j = 0)

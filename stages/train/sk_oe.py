@@ -114,9 +114,10 @@ class Params:
     # cannot come within stall_tol of the best before max_iter (sk._stalled): the rational model then stops at j = 10
     # (best at j = 5), the regularised PGNN's restart 4 at j = 4 (1.4686 at j = 1, then 1.47379, 1.47374,
     # 1.4737 at ~1000-1600 LM steps per SK step) instead of j = 11; the same kept iterates. And 'stalled' when the last
-    # iterate is the best but at that pace the next stall_window iterations would gain less than stall_tol: restart 4's
-    # perturbed twin (issue 19 check; new bests 1.47042, 1.47018, 1.47, 1.46992, 1.46984 at j = 3..7, inner solves up to
-    # 3000 LM steps) then stops at j = 7 instead of crawling to the window rule at j = 15 (1.46971; 616 s at 8947e96)
+    # iterate is the best, falling at a steady pace (its last fall >= half the one before) at which the next
+    # stall_window iterations would gain less than stall_tol: restart 4's perturbed twin (issue 19 check; new bests
+    # 1.47042, 1.47018, 1.47, 1.46992, 1.46984 at j = 3..7, inner solves up to 3000 LM steps) then stops at j = 7
+    # instead of crawling to the window rule at j = 15 (1.46971; 616 s at 8947e96)
     stall_tol: float = spec(1e-3, ge=0, lt=1)
     # with > 0, 'tol' and 'cost_tol' also need the model's training output to have moved by at most this fraction of
     # its own error over the step (‖Δŷ‖/√J_OE): what is computed from it has settled

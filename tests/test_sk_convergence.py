@@ -322,7 +322,7 @@ def test_stalled_rule_slow_crawl_of_new_bests():
     assert not _stalled(J[:8], ok[:8], 10, 1e-4, max_iter=30)                  # tightened 10x: 8e-4 > 1.47e-4
     # a fast new best is not a crawl, whatever came before it
     assert not _stalled(J[:7] + [1.4690], ok[:8], 10, 1e-3, max_iter=30)
-    # the pace is the larger of the last two falls: a pause after a fast fall goes on
+    # a pause after a fast fall is not a steady pace: go on
     assert not _stalled([9.0, 5.0, 4.0, 3.9999], [True] * 4, 10, 1e-3, max_iter=30)
     # falls shrinking 10x per step: a fixed point approached, left to the parameter test; at a steady pace it stops
     assert not _stalled([9.0, 5.0, 4.0001, 4.0, 3.99999], [True] * 5, 10, 1e-3, max_iter=30)

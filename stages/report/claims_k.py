@@ -282,10 +282,10 @@ def _k3(experiment: str, m: dict, found: dict, rows: list) -> list[str]:
                         "at every step (SPEC §5, needed for a stable filter) SK has no fixed point: the "
                         "parameter change never falls below tol and J_OE drifts up from its best iterate, "
                         "which the report uses" + (" (SK stops when the best J_OE has not improved by more "
-                        "than its stall tolerance over its stall window, or when at its recent pace it "
-                        "cannot come within that tolerance of the best before the iteration cap: reason "
-                        "'stalled', not a cap; the last iterate's J_OE, and so J_OE_last_over_min, depends "
-                        "on where it stops)"
+                        "than its stall tolerance over its stall window, or when its recent pace already says "
+                        "so (no gain within that tolerance of the best before the iteration cap, or over "
+                        "the next window): reason 'stalled', not a cap; the last iterate's J_OE, and so "
+                        "J_OE_last_over_min, depends on where it stops)"
                         if stalled else "") + "; a direct LM on (7) from that best iterate improves it by "
                         f"only {imp:.2%}, so the kept model is at the output-error optimum to that margin")
         notes.append(txt + ".")

@@ -17,18 +17,29 @@ install: $(VENV)/.installed  ## create .venv: CPU torch first, then the project 
 # torch: the CPU build from PyTorch's CPU wheel index; where that index cannot be reached, the
 # default index (a machine with a local CPU wheel gets that one). Then the project, with the
 # versions CI tested (constraints.txt).
+# The installer is uv (Astral's pip-compatible one, pinned in constraints.txt): it resolves, unpacks
+# and compiles the bytecode on every core (measured: see README, "make install"). uv reads neither pip's
+# configuration nor its PIP_* variables, so pip's find-links (where a machine keeps a local CPU torch
+# wheel) are handed over. Where uv cannot be installed or fails, the same steps run with pip.
 TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
+PIP_LINKS = $(strip $(PIP_FIND_LINKS) $(shell $(PYTHON) -m pip config get global.find-links 2>/dev/null))
+UV = $(PY) -m uv pip install --quiet --python $(PY) $(foreach l,$(sort $(PIP_LINKS)),--find-links $(l))
+PURELIB = "$$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet --no-compile torch==2.13.0 --index-url $(TORCH_CPU_INDEX) --retries 1 --timeout 30 \
-	  || $(PY) -m pip install --quiet --no-compile torch==2.13.0
-	$(PY) -m pip install --quiet --no-compile -c constraints.txt -e '.[dev]'
-	@# the bytecode pip would write one file at a time, on every core (measured on 2 cores: the install
-	@# 64 s instead of 82 s, medians of 3 pairs); as pip, a file this Python cannot compile (torch's py312 test fixtures) is skipped
-	$(PY) -m compileall -q -j 0 "$$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')" \
-	  pipeline stages > /dev/null || true
+	( $(PY) -m pip install --quiet -c constraints.txt uv \
+	  && { UV_HTTP_TIMEOUT=30 UV_HTTP_RETRIES=1 $(UV) torch==2.13.0 --index-url $(TORCH_CPU_INDEX) || $(UV) torch==2.13.0; } \
+	  && $(UV) --compile-bytecode -c constraints.txt -e '.[dev]' ) \
+	|| { echo "make install: uv failed (above); installing with pip"; \
+	  { $(PY) -m pip install --quiet --no-compile torch==2.13.0 --index-url $(TORCH_CPU_INDEX) --retries 1 --timeout 30 \
+	    || $(PY) -m pip install --quiet --no-compile torch==2.13.0; } \
+	  && $(PY) -m pip install --quiet --no-compile -c constraints.txt -e '.[dev]' \
+	  && { $(PY) -m compileall -q -j 0 $(PURELIB) > /dev/null || true; }; }
+	@# the project's own bytecode on every core (pip's compilation is one file at a time; as pip, a file this
+	@# Python cannot compile, torch's py312 test fixtures, is skipped)
+	$(PY) -m compileall -q -j 0 pipeline stages > /dev/null || true
 	@$(PY) -c "import torch; print('installed torch', torch.__version__, '(CUDA build: large)' if torch.version.cuda else '(CPU build)')"
 	touch $@
 

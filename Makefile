@@ -29,8 +29,10 @@ PURELIB = "$$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"]
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	( $(PY) -m pip install --quiet -c constraints.txt uv \
-	  && { UV_HTTP_TIMEOUT=30 UV_HTTP_RETRIES=1 $(UV) torch==2.13.0 --index-url $(TORCH_CPU_INDEX) || $(UV) torch==2.13.0; } \
+	@echo "make install: uv (pip where uv fails), torch $(TORCH_CPU_INDEX) first"
+	@( $(PY) -m pip install --quiet -c constraints.txt uv \
+	  && { UV_HTTP_TIMEOUT=30 UV_HTTP_RETRIES=1 $(UV) torch==2.13.0 --index-url $(TORCH_CPU_INDEX) \
+	       || { echo "make install: that index cannot be reached (above): torch from the default index"; $(UV) torch==2.13.0; }; } \
 	  && $(UV) --compile-bytecode -c constraints.txt -e '.[dev]' ) \
 	|| { echo "make install: uv failed (above); installing with pip"; \
 	  { $(PY) -m pip install --quiet --no-compile torch==2.13.0 --index-url $(TORCH_CPU_INDEX) --retries 1 --timeout 30 \

@@ -18,12 +18,17 @@ install: $(VENV)/.installed  ## create .venv: CPU torch first, then the project 
 # default index (a machine with a local CPU wheel gets that one). Then the project, with the
 # versions CI tested (constraints.txt).
 # The installer is uv (Astral's pip-compatible one, pinned in constraints.txt): it resolves, unpacks
-# and compiles the bytecode on every core (measured: see README, "make install"). uv reads neither pip's
-# configuration nor its PIP_* variables, so pip's find-links (where a machine keeps a local CPU torch
-# wheel) are handed over. Where uv cannot be installed or fails, the same steps run with pip.
+# and compiles the bytecode on every core (measured: docs/performance.md). uv reads neither pip's
+# configuration nor its PIP_* variables, so pip's indexes and find-links (where a machine keeps a local
+# CPU torch wheel, or a team its mirror) are handed over. Where uv cannot be installed or fails, the same
+# steps run with pip.
 TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
-PIP_LINKS = $(strip $(PIP_FIND_LINKS) $(shell $(PYTHON) -m pip config get global.find-links 2>/dev/null))
-UV = $(PY) -m uv pip install --quiet --python $(PY) $(foreach l,$(sort $(PIP_LINKS)),--find-links $(l))
+pip_config = $(shell $(PYTHON) -m pip config get global.$(1) 2>/dev/null)
+PIP_LINKS = $(sort $(PIP_FIND_LINKS) $(call pip_config,find-links))
+PIP_INDEX = $(firstword $(PIP_INDEX_URL) $(call pip_config,index-url))
+PIP_EXTRA = $(sort $(PIP_EXTRA_INDEX_URL) $(call pip_config,extra-index-url))
+UV_LINKS = $(PY) -m uv pip install --quiet --python $(PY) $(foreach l,$(PIP_LINKS),--find-links $(l))
+UV = $(UV_LINKS) $(if $(PIP_INDEX),--default-index $(PIP_INDEX)) $(foreach u,$(PIP_EXTRA),--extra-index-url $(u))
 PURELIB = "$$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
 
 $(VENV)/.installed: pyproject.toml constraints.txt
@@ -31,7 +36,7 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PY) -m pip install --quiet --upgrade pip
 	@echo "make install: uv (pip where uv fails), torch $(TORCH_CPU_INDEX) first"
 	@( $(PY) -m pip install --quiet -c constraints.txt uv \
-	  && { UV_HTTP_TIMEOUT=30 UV_HTTP_RETRIES=1 $(UV) torch==2.13.0 --index-url $(TORCH_CPU_INDEX) \
+	  && { UV_HTTP_TIMEOUT=30 UV_HTTP_RETRIES=1 $(UV_LINKS) torch==2.13.0 --index-url $(TORCH_CPU_INDEX) \
 	       || { echo "make install: that index cannot be reached (above): torch from the default index"; $(UV) torch==2.13.0; }; } \
 	  && $(UV) --compile-bytecode -c constraints.txt -e '.[dev]' ) \
 	|| { echo "make install: uv failed (above); installing with pip"; \

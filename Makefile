@@ -28,7 +28,9 @@ PIP_LINKS = $(sort $(PIP_FIND_LINKS) $(call pip_config,find-links))
 PIP_INDEX = $(firstword $(PIP_INDEX_URL) $(call pip_config,index-url))
 PIP_EXTRA = $(sort $(PIP_EXTRA_INDEX_URL) $(call pip_config,extra-index-url))
 UV_LINKS = $(PY) -m uv pip install --quiet --python $(PY) $(foreach l,$(PIP_LINKS),--find-links $(l))
-UV = $(UV_LINKS) $(if $(PIP_INDEX),--default-index $(PIP_INDEX)) $(foreach u,$(PIP_EXTRA),--extra-index-url $(u))
+# pip merges all its indexes, uv by default takes a package from the first index that has it: pip's way here
+UV = $(UV_LINKS) $(if $(PIP_INDEX),--default-index $(PIP_INDEX)) $(foreach u,$(PIP_EXTRA),--extra-index-url $(u)) \
+  $(if $(PIP_EXTRA),--index-strategy unsafe-best-match)
 PURELIB = "$$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
 
 $(VENV)/.installed: pyproject.toml constraints.txt

@@ -19,18 +19,11 @@ install: $(VENV)/.installed  ## create .venv: CPU torch first, then the project 
 # versions CI tested (constraints.txt).
 # The installer is uv (Astral's pip-compatible one, pinned in constraints.txt): it resolves, unpacks
 # and compiles the bytecode on every core (measured: docs/performance.md). uv reads neither pip's
-# configuration nor its PIP_* variables, so pip's indexes and find-links (where a machine keeps a local
-# CPU torch wheel, or a team its mirror) are handed over. Where uv cannot be installed or fails, the same
-# steps run with pip.
+# configuration nor its PIP_* variables: scripts/uv_install.py hands them over (indexes, find-links
+# where a machine keeps a local CPU torch wheel, constraints, certificates, proxy). Where uv cannot be
+# installed or fails, the same steps run with pip (`make install UV_INSTALL=false` forces that path).
 TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
-pip_config = $(shell $(PYTHON) -m pip config get global.$(1) 2>/dev/null)
-PIP_LINKS = $(sort $(PIP_FIND_LINKS) $(call pip_config,find-links))
-PIP_INDEX = $(firstword $(PIP_INDEX_URL) $(call pip_config,index-url))
-PIP_EXTRA = $(sort $(PIP_EXTRA_INDEX_URL) $(call pip_config,extra-index-url))
-UV_LINKS = $(PY) -m uv pip install --quiet --python $(PY) $(foreach l,$(PIP_LINKS),--find-links $(l))
-# pip merges all its indexes, uv by default takes a package from the first index that has it: pip's way here
-UV = $(UV_LINKS) $(if $(PIP_INDEX),--default-index $(PIP_INDEX)) $(foreach u,$(PIP_EXTRA),--extra-index-url $(u)) \
-  $(if $(PIP_EXTRA),--index-strategy unsafe-best-match)
+UV_INSTALL = $(PY) scripts/uv_install.py
 PURELIB = "$$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
 
 $(VENV)/.installed: pyproject.toml constraints.txt
@@ -38,9 +31,10 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PY) -m pip install --quiet --upgrade pip
 	@echo "make install: uv (pip where uv fails), torch $(TORCH_CPU_INDEX) first"
 	@( $(PY) -m pip install --quiet -c constraints.txt uv \
-	  && { UV_HTTP_TIMEOUT=30 UV_HTTP_RETRIES=1 $(UV_LINKS) torch==2.13.0 --index-url $(TORCH_CPU_INDEX) \
-	       || { echo "make install: that index cannot be reached (above): torch from the default index"; $(UV) torch==2.13.0; }; } \
-	  && $(UV) --compile-bytecode -c constraints.txt -e '.[dev]' ) \
+	  && { UV_HTTP_TIMEOUT=30 UV_HTTP_RETRIES=1 $(UV_INSTALL) torch==2.13.0 --index-url $(TORCH_CPU_INDEX) \
+	       || { echo "make install: that index cannot be reached (above): torch from the default index"; \
+	            $(UV_INSTALL) torch==2.13.0; }; } \
+	  && $(UV_INSTALL) -c constraints.txt -e '.[dev]' ) \
 	|| { echo "make install: uv failed (above); installing with pip"; \
 	  { $(PY) -m pip install --quiet --no-compile torch==2.13.0 --index-url $(TORCH_CPU_INDEX) --retries 1 --timeout 30 \
 	    || $(PY) -m pip install --quiet --no-compile torch==2.13.0; } \

@@ -44,7 +44,8 @@ def pip_settings(config_list: str, environ: dict[str, str]) -> dict[str, str]:
     out = {}
     for name in (*FLAGS, *ENV):
         env = environ.get("PIP_" + name.upper().replace("-", "_"))
-        value = env if env is not None else found.get(name, {}).get("install", found.get(name, {}).get("global"))
+        cfg = found.get(name, {})
+        value = env if env is not None else cfg.get("install", cfg.get("global"))
         if value and value.strip():
             out[name] = value.strip()
     return out

@@ -32,7 +32,9 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	@echo "make install: uv (pip where uv fails), torch $(TORCH_CPU_INDEX) first"
 	@( $(PY) -m pip install --quiet -c constraints.txt uv \
 	  && { UV_HTTP_TIMEOUT=30 UV_HTTP_RETRIES=1 $(UV_INSTALL) torch==2.13.0 --index-url $(TORCH_CPU_INDEX) \
-	       || { echo "make install: that index cannot be reached (above): torch from the default index"; \
+	         2> $(VENV)/torch-cpu-index.log \
+	       || { echo "make install: $(TORCH_CPU_INDEX) failed ($$(tail -n 1 $(VENV)/torch-cpu-index.log | sed "s/^ *//");" \
+	                 "all of it: $(VENV)/torch-cpu-index.log): torch from the default index"; \
 	            $(UV_INSTALL) torch==2.13.0; }; } \
 	  && $(UV_INSTALL) -c constraints.txt -e '.[dev]' ) \
 	|| { echo "make install: uv failed (above); installing with pip"; \

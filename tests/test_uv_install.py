@@ -35,7 +35,7 @@ def test_real_pip_config_list_is_read_with_pip_precedence(tmp_path):
     assert s["find-links"] == "/install/wheels"          # [install] over [global], as pip
     assert s["trusted-host"] == "mirror.example"         # from PIP_TRUSTED_HOST
     assert s["cert"] == "/etc/team-ca.pem"
-    cmd, uv_env = uv_install.uv_command(["-e", ".[dev]"], s, "/venv/bin/python")
+    cmd, uv_env, _ = uv_install.uv_command(["-e", ".[dev]"], s, "/venv/bin/python")
     assert _pairs(cmd, "--default-index") == ["https://mirror.example/simple"]
     assert _pairs(cmd, "--extra-index-url") == ["https://a.example/simple", "https://b.example/simple"]
     assert _pairs(cmd, "--index-strategy") == ["unsafe-best-match"]     # pip merges its indexes
@@ -49,7 +49,7 @@ def test_env_variable_replaces_the_config_value():
     listed = "global.find-links='/from/config'\nglobal.proxy='http://config-proxy:3128'\n"
     s = uv_install.pip_settings(listed, {"PIP_FIND_LINKS": "/from/env"})
     assert s["find-links"] == "/from/env"
-    _, env = uv_install.uv_command([], s, "python")
+    _, env, _ = uv_install.uv_command([], s, "python")
     assert env == {"HTTPS_PROXY": "http://config-proxy:3128", "HTTP_PROXY": "http://config-proxy:3128"}
 
 
@@ -58,7 +58,7 @@ def test_own_index_keeps_find_links_and_constraints_but_not_pips_indexes():
     wheel) and its constraints still apply."""
     s = {"index-url": "https://mirror.example/simple", "extra-index-url": "https://a.example/simple",
          "find-links": "/opt/wheels", "constraint": "/etc/pip-constraints.txt"}
-    cmd, _ = uv_install.uv_command(["torch==2.13.0", "--index-url", "https://download.pytorch.org/whl/cpu"], s, "py")
+    cmd, _, _ = uv_install.uv_command(["torch==2.13.0", "--index-url", "https://download.pytorch.org/whl/cpu"], s, "py")
     assert "--default-index" not in cmd and "--extra-index-url" not in cmd and "--index-strategy" not in cmd
     assert _pairs(cmd, "--find-links") == ["/opt/wheels"]
     assert _pairs(cmd, "--constraint") == ["/etc/pip-constraints.txt"]
@@ -66,6 +66,25 @@ def test_own_index_keeps_find_links_and_constraints_but_not_pips_indexes():
 
 
 def test_nothing_configured_adds_nothing():
-    cmd, env = uv_install.uv_command(["uv"], uv_install.pip_settings("", {}), "py")
+    cmd, env, warnings = uv_install.uv_command(["uv"], uv_install.pip_settings("", {}), "py")
     assert cmd == ["py", "-m", "uv", "pip", "install", "--quiet", "--python", "py", "--compile-bytecode", "uv"]
-    assert env == {}
+    assert env == {} and warnings == []
+
+
+def test_client_cert_timeout_retries_keyring_reach_uv_and_the_callers_uv_variables_win():
+    """pip's client certificate, timeout (a float: whole seconds up for uv), retries and a keyring provider uv
+    knows are handed over; make install's own UV_HTTP_TIMEOUT for PyTorch's index stays; a provider uv does
+    not have is named, not passed."""
+    listed = ("global.client-cert='/etc/me.pem'\nglobal.timeout='12.5'\nglobal.retries='7'\n"
+              "install.keyring-provider='subprocess'\n")
+    s = uv_install.pip_settings(listed, {})
+    cmd, env, warnings = uv_install.uv_command(["x"], s, "py")
+    assert env == {"SSL_CLIENT_CERT": "/etc/me.pem", "UV_HTTP_TIMEOUT": "13", "UV_HTTP_RETRIES": "7"}
+    assert _pairs(cmd, "--keyring-provider") == ["subprocess"] and warnings == []
+    _, env, _ = uv_install.uv_command(["x"], s, "py", {"UV_HTTP_TIMEOUT": "30"})
+    assert "UV_HTTP_TIMEOUT" not in env and env["UV_HTTP_RETRIES"] == "7"
+    s = uv_install.pip_settings("global.keyring-provider='import'\nglobal.timeout='soon'\n", {})
+    cmd, env, warnings = uv_install.uv_command(["x"], s, "py")
+    assert "--keyring-provider" not in cmd and env == {}
+    assert len(warnings) == 2 and "keyring-provider=import" in warnings[0] and "UV_INSTALL=false" in warnings[0]
+    assert "timeout" in warnings[1]

@@ -410,3 +410,18 @@ def test_gamma_floor_of_il_fhofc_is_the_regularised_optimum(gamma, mp):
     assert floor > 3e-7                                   # γ > 0 leaves a visible error (R peaks at 1)
     assert np.max(np.abs(out.e_rms / floor - 1)) <= 1e-8
     assert rel(out.u_ff[-1], u_star) <= 1e-8
+
+
+def test_receding_horizon_backtracks_an_overshooting_gauss_newton_step():
+    """ŷ(k) = 1e-3·u(k-1) + tanh(u(k-1)), no feedback: from u = 2.773 (ŷ = 0.995) the undamped Gauss–Newton step
+    toward r = 0 overshoots (tanh is flat there). The window solve took that failed first step for a minimum and
+    reported converged with u stuck at 2.773 and |e| = 0.995; halving the step reaches the exact inverse, as the
+    whole-horizon FHOFC and the inverse-model feedforward (Lemma 5.1) do."""
+    from pipeline.invert.fhofc import fhofc_receding, inverse_model_feedforward
+    m = ArxPGNN(0, 1, 0, np.array([1e-3]), W1=np.array([[1.0]]), b1=np.zeros(1), W2=np.ones(1), b2=0.0,
+                out_scale=1.0)
+    r = np.r_[0.0, 0.995 * np.ones(10), np.zeros(10)]
+    res = fhofc_receding(m, DiscreteController.from_tf(None), r, h=1, check_range=False)
+    assert res.converged
+    assert np.abs(r - res.y_hat).max() < 1e-12
+    np.testing.assert_allclose(res.u_ff[:-1], inverse_model_feedforward(m, r)[:-1], atol=1e-9)

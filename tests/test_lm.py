@@ -99,6 +99,15 @@ def test_bad_input_raises():
         levenberg_marquardt(lambda t: t / 0.0 * 0.0, torch.zeros(2, dtype=torch.float64))
 
 
+def test_nonfinite_jacobian_is_not_read_as_a_stationary_point():
+    """∂√|θ|/∂θ is inf at θ = 0: the scaled gradient test saw NaN columns as zero and stopped 'gtol', converged,
+    at cost 5 (the minimum is 0). Now the stop says what happened and is not converged."""
+    res = levenberg_marquardt(lambda th: torch.stack([torch.sqrt(th[0].abs()) - 1.0, th[1] - 2.0]),
+                              torch.zeros(2, dtype=torch.float64), max_iter=50)
+    assert res.message == "nonfinite_jacobian" and not res.converged and res.n_iter == 0
+    assert res.cost == pytest.approx(5.0, rel=1e-15)
+
+
 def test_normal_equations_from_row_blocks():
     # JᵀJ, Jᵀr summed over row blocks equal the unblocked ones to rounding, and an LM given them
     # (jacobian.normal_equations) reaches the same least-squares optimum without forming J

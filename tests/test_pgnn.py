@@ -432,3 +432,31 @@ def test_tanh_is_numpys_on_plain_data_and_torchs_where_traced(use_numpy, monkeyp
     xr = x.clone().requires_grad_()
     Tanh()(xr).sum().backward()
     torch.testing.assert_close(xr.grad, d, rtol=1e-15, atol=2e-16)
+
+
+def test_a_screened_restart_continues_from_its_best_validation_iterate_with_the_costs_before_it(monkeypatch):
+    """With early stopping the screening run returns its best-validation iterate, here accepted step 2 of 4. The
+    continuation starts there: the statistical window's past is the costs before it ([10, 9], not the run's
+    [10, 9, 8, 7.5], whose later, lower costs made the window test pass at once), and the restart's history
+    splices at it (no jump up from 7.4 to 8)."""
+    from pipeline.identify import narx
+    from pipeline.identify.lm import LMResult
+    m = PGNN(2, 1, physics=RigidBodyForward(TS), hidden=(2,))
+    p = m.parameter_vector().numel()
+    calls = []
+
+    def fake_lm(residual, theta0, *, max_iter, stat_history=None, **kw):
+        calls.append((theta0.clone(), max_iter, stat_history))
+        if stat_history is None:        # a screening run: best validation at accepted step 2 of 4
+            c0 = 10.0 + len(calls)      # restart 0 has the lowest cost
+            return LMResult(torch.full((p,), float(len(calls))), c0 - 2, [c0, c0 - 1, c0 - 2, c0 - 2.5, c0 - 2.6], 4,
+                            False, "max_iter", [5.0, 4.0, 3.0, 3.2, 3.3], 3.0)
+        return LMResult(theta0 + 1, 6.0, [9.0, 7.0, 6.0], 3, True, "early_stop", [3.0, 2.9, 2.8], 2.8)
+
+    monkeypatch.setattr(narx, "levenberg_marquardt", fake_lm)
+    out, best = narx.best_of_restarts(m, None, None, 2, 0, val_fn=lambda th: 0.0, max_iter=20, screen_iter=4)
+    assert best == 0 and len(calls) == 3
+    theta0, budget, past = calls[2]
+    assert torch.equal(theta0, torch.full((p,), 1.0)) and budget == 16 and past == [11.0, 10.0]
+    assert out[0].history == [11.0, 10.0, 9.0, 7.0, 6.0] and out[0].val_history == [5.0, 4.0, 3.0, 2.9, 2.8]
+    assert out[0].n_iter == 7 and out[0].message == "early_stop"

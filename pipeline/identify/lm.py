@@ -56,6 +56,8 @@ Stopping (``LMResult.message``):
 - ``'mu_max'``: no decrease possible even with a very large damping (the step is at the
   rounding level, θ is a minimiser to working precision);
 - ``'max_iter'``: ``max_iter`` damped systems were solved (accepted or not);
+- ``'nonfinite_jacobian'``: the Jacobian (JᵀJ or Jᵀr) at the current θ holds NaN/inf (e.g. ∂√|θ|/∂θ at 0);
+  not converged, θ is the last finite iterate;
 - ``'early_stop'``: the validation cost did not improve for ``patience`` accepted steps;
   θ is the best-validation iterate;
 - ``'callback'``: the callback returned ``True``.
@@ -341,6 +343,9 @@ def levenberg_marquardt(residual: Callable[[torch.Tensor], torch.Tensor], theta0
                 J = eval_jac(theta, r.numel())
                 A = _gram(J)
                 g = J.T @ r
+            if not (bool(torch.all(torch.isfinite(A))) and bool(torch.all(torch.isfinite(g)))):
+                message = "nonfinite_jacobian"    # not a stationary point: NaN columns would pass the gtol test
+                break
             if _PERTURB:            # emulate another machine's rounding (pipeline/perturbation.py)
                 A, g = _perturb_normal_equations(A, g, n_jac)
             diag = torch.diagonal(A).clone()

@@ -452,6 +452,16 @@ def identify_pgnn(model: PGNN, y, u, *, lam=0.01, n_restarts: int = 10, seed: in
     return fit
 
 
+def _best_validation_index(val_history: list[float]) -> int:
+    """Index of the iterate :func:`levenberg_marquardt` keeps under early stopping: the first strict
+    minimum of the validation costs (NaN never improves)."""
+    k, best = 0, val_history[0]
+    for i, v in enumerate(val_history[1:], 1):
+        if v < best:
+            k, best = i, v
+    return k
+
+
 def best_of_restarts(model: PGNN, residual, jacobian, n_restarts: int, seed: int, *, val_fn=None,
                      progress=None, on_iteration=None, memo=None, screen_iter: int = 0,
                      **lm_options) -> tuple[list[RestartResult], int]:
@@ -492,12 +502,15 @@ def best_of_restarts(model: PGNN, residual, jacobian, n_restarts: int, seed: int
     first = out[best]
     if screen and first.message == "max_iter":     # the kept restart continues to the full budget
         t0 = time.perf_counter()
+        # it continues from first.theta: with early stopping the best-validation iterate, not the last one.
+        # Its costs up to there are the continued run's past (the statistical window), those after it are dropped
+        k = _best_validation_index(first.val_history) if first.val_history else len(first.history) - 1
         cb = None if on_iteration is None else (lambda it, th, c: on_iteration(best, first.n_iter + it, c))
         res = levenberg_marquardt(residual, first.theta, jacobian=jacobian, val_cost=val_fn, callback=cb,
-                                  max_iter=max_iter - first.n_iter, stat_history=first.history[:-1],
+                                  max_iter=max_iter - first.n_iter, stat_history=first.history[:k],
                                   **lm_options)
-        out[best] = RestartResult(first.seed, res.cost, res.val_cost, first.history + res.history[1:],
-                                  first.val_history + res.val_history[1:], first.n_iter + res.n_iter,
+        out[best] = RestartResult(first.seed, res.cost, res.val_cost, first.history[:k + 1] + res.history[1:],
+                                  first.val_history[:k + 1] + res.val_history[1:], first.n_iter + res.n_iter,
                                   res.message, first.seconds + time.perf_counter() - t0, res.theta)
     model.load_parameter_vector(out[best].theta)
     return out, best

@@ -425,10 +425,16 @@ def _window_solve(model, ctrl, rs, ts, w, st, u_prev, gamma, d, max_iter, ftol):
         A = np.vstack([J, gamma * Dw]) if gamma > 0 else J
         b = np.concatenate([res[:n_out], -res[n_out:]]) if gamma > 0 else res[:n_out]
         step, *_ = sla.lstsq(A, b, lapack_driver="gelsy", check_finite=False)
-        res_new, _ = sim(w + step, False)
-        c_new = float(res_new @ res_new)
-        if not c_new < cost:
-            return w, cost, it, True       # no further decrease: minimum to working precision
+        # the Gauss–Newton step is a descent direction: where the full step overshoots (a nonlinear model) or leaves
+        # the finite range, halve it; only when 2^-30 of it gains nothing is w a minimum to working precision
+        for _ in range(31):
+            res_new, _ = sim(w + step, False)
+            c_new = float(res_new @ res_new)
+            if c_new < cost:
+                break
+            step = 0.5 * step
+        else:
+            return w, cost, it, True
         w, cost_old, cost = w + step, cost, c_new
         if cost_old - cost <= ftol * cost_old:
             return w, cost, it, True

@@ -60,7 +60,8 @@ class Params:
     range_margin: float = spec(0.1, ge=0, le=100.0)
 
 
-VERSION = 2   # 2: the FHOFC solve is timed warm (the first solve of a process compiles numba kernels)
+VERSION = 3   # 2: the FHOFC solve is timed warm (the first solve of a process compiles numba kernels); 3: the
+              # receding-horizon window halves an overshooting Gauss–Newton step instead of calling it a minimum
 
 
 def _bounds(node):

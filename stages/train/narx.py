@@ -66,7 +66,8 @@ class Params:
     stat_promise: Literal["auto", "gauss_newton", "damped"] = "auto"
 
 
-VERSION = 3   # 2: the statistical window spans a continued restart's screening steps (issue 19); 3: stat_promise
+VERSION = 4   # 2: the statistical window spans a continued restart's screening steps (issue 19); 3: stat_promise;
+              # 4: a screened restart continues from its best-validation iterate with the costs before it as its past
 
 STRUCTURES = ("forward", "inverse", "invertible")
 

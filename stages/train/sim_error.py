@@ -92,7 +92,8 @@ THETA_STAR = ("arx", "sim_error", "oracle")   # oracle: the plant's true linear 
 VERSION = 6   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zeros logged;
               # 3: measured loop from the recorded state; 4: the statistical window spans a continued
               # restart's screening steps (issue 19); 5: the measured loop screens its restarts too
-              # (identify.screen_iter was ignored there); 6: stat_promise (auto: damped on a recording)
+              # (identify.screen_iter was ignored there); 6: stat_promise (auto: damped on a recording); 7: with
+              # validation, a screened restart continues from its best-validation iterate, its past the costs before it
 
 
 def check(cfg, system) -> None:

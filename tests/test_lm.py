@@ -306,3 +306,32 @@ def test_statistical_stop_with_a_growing_window_waits_out_a_crawl():
     assert abs(cont.cost - grown.cost) < 2 * threshold < alone.cost - grown.cost
     with pytest.raises(ValueError, match="stat_frac"):
         levenberg_marquardt(res_fn, th0, stat_window=10, stat_frac=1.0)
+
+
+def test_the_decrement_leaves_out_directions_below_its_eps_and_a_smaller_eps_counts_them(monkeypatch):
+    """The statistical stop's Gauss–Newton decrement counts a direction of scaled curvature λ < ε as ε (lm.py
+    docstring): a linear problem whose start is off its minimum along a 4.6e-12 direction, by 100 stop thresholds,
+    stops there on 'stat' (the window saw no decrease, the discounted promise is small). With ε below λ the promise
+    is the whole remaining decrease (the closed form of a linear problem) and the run goes on to the minimum."""
+    import math
+
+    from pipeline.identify import lm
+    g = torch.Generator().manual_seed(0)
+    N = 10000
+    a, b, c = (torch.randn(N, generator=g, dtype=torch.float64) for _ in range(3))
+    X = torch.stack([a, a + 3e-6 * b, c], 1)                     # two nearly collinear columns
+    y = X.sum(1) + 0.1 * torch.randn(N, generator=g, dtype=torch.float64)
+    xs = torch.linalg.lstsq(X, y[:, None]).solution[:, 0]
+    c_min = float((X @ xs - y).square().sum())
+    thr = 0.1 * math.sqrt(2 / N) * c_min
+    s = torch.diagonal(X.T @ X).rsqrt()
+    lam, V = torch.linalg.eigh(s[:, None] * (X.T @ X) * s[None, :])
+    assert float(lam[0]) < 1e-10 < lm.DECREMENT_EPS * 1e3    # the weak direction is below ε
+    v = s * V[:, 0]
+    x0 = xs + math.sqrt(100 * thr / float(v @ (X.T @ X) @ v)) * v
+    kw = dict(max_iter=500, ftol=1e-15, gtol=1e-15, stat_window=10, stat_tol=0.1)
+    res = lm.levenberg_marquardt(lambda th: X @ th - y, x0, **kw)
+    assert res.message == "stat" and 50 < (res.cost - c_min) / thr <= 100.01
+    monkeypatch.setattr(lm, "DECREMENT_EPS", 1e-14)
+    res = lm.levenberg_marquardt(lambda th: X @ th - y, x0, **kw)
+    assert (res.cost - c_min) / thr < 1.0

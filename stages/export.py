@@ -95,7 +95,8 @@ DEPENDS = ("invert", "export.compile", "export.cc", "export.rtol", "export.timin
            "export.limits", "evaluate.references")
 
 
-VERSION = 3      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22)
+VERSION = 4      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
+                 # is checked over the whole window r(t-2) .. r(t+P), not only at its newest sample
 
 
 def validate(cfg, system) -> None:

@@ -416,3 +416,31 @@ def test_the_report_counts_misra_findings_per_package():
     assert line_a.endswith("| 75 |") and line_b.endswith("| n/a |")
     misra = [r for r in rows if r["metric"] == "misra_findings"]
     assert [(r["variant"], r["value"]) for r in misra] == [("export/a-run/ff_newton", 75.0)]
+
+
+@pytest.mark.parametrize("kind", ["physics", "newton"])
+def test_a_step_is_flagged_on_every_sample_whose_window_holds_it_and_no_large_output_goes_unflagged(kind, tmp_path):
+    """A 1 mm step in a reference at rest (found by a user: the envelope was checked at the newest preview
+    sample only, so the kick after the step had left it, -2498 N, went out unflagged and, with
+    envelope_action=fallback, unreplaced). Now every sample t whose window r(t-2) .. r(t+P) holds the step is
+    OUT_OF_RANGE, exactly those; every output above the smooth reference's largest is among them; C = Python."""
+    law0 = _law(kind)
+    r_smooth = _reference(600)
+    law = _with_guard(law0, **_envelope(law0, r_smooth))
+    s, P = 40, law.preview
+    step = np.r_[np.zeros(s), np.full(40, 1e-3)]
+    u, f = guarded(law, step)
+    out = (f & FLAG["OUT_OF_RANGE"]) != 0
+    np.testing.assert_array_equal(np.flatnonzero(out), np.arange(s - P, s + 2))   # δr at n = s, δ²r at n = s, s + 1
+    at_rest = 100.0 * np.max(np.abs(u[:s - P])) + 1e-6      # 100x the output before the step [N]
+    big = np.abs(u) > at_rest                                # the kick (Newton: at its bounds, ±5000 N)
+    assert big.sum() >= 2 and np.all(out[big])
+    law_fb = _with_guard(law, envelope_action="fallback")
+    u_fb, f_fb = guarded(law_fb, step)
+    assert np.max(np.abs(u_fb)) <= at_rest and np.all(f_fb[out] & FLAG["FALLBACK"])
+    if CC is not None:
+        write_package(law_fb, "ff_s", tmp_path, {"ref": (r_smooth, feedforward(law0, r_smooth))}, source={},
+                      timing_repeats=0)
+        u_c, f_c = _c_run(law_fb, "ff_s", tmp_path, step)
+        np.testing.assert_array_equal(f_c, f_fb)
+        np.testing.assert_array_equal(u_c, u_fb)

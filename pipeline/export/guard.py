@@ -8,12 +8,16 @@ guarded u_ff is the study's to the bit):
    the last finite one (the forward-filled reference r_c; before t = 0 the rest value r0, itself 0
    if non-finite) and the sample is flagged ``NONFINITE_INPUT``. The law never sees a NaN, so its
    state (recursions, filters) stays finite.
-2. **Training envelope.** The regressors x = [r_c(n), δr_c(n), δ²r_c(n)] at the newest sample
-   n = t + P (position, first and second backward difference / Ts, Ts²: what every law's φ is built
-   from, the reference standing in for the identified output y) must lie in [lo, hi] per component,
-   the range of the same quantities over the identification data's y widened by a margin of the
-   range on each side. Outside: ``OUT_OF_RANGE`` (only flagged by default; with
-   ``envelope_action = fallback`` it also triggers the fallback).
+2. **Training envelope.** The regressors x = [r_c(n), δr_c(n), δ²r_c(n)] (position, first and
+   second backward difference / Ts, Ts²: what every law's φ is built from, the reference standing in
+   for the identified output y) at every n = t .. t + P, i.e. over the whole window r(t-2) .. r(t+P)
+   the law is fed, must lie in [lo, hi] per component, the range of the same quantities over the
+   identification data's y widened by a margin of the range on each side. Outside: ``OUT_OF_RANGE``
+   (only flagged by default; with ``envelope_action = fallback`` it also triggers the fallback).
+   Checking the newest sample only let a step's kick through unflagged once the step had left it
+   (a 1 mm step: +2506 N flagged, then -2498 N not). A recursive law (Newton's model state, a
+   filter) carries an excursion's effect past the window: the flag marks the samples whose own
+   input left the envelope, not that memory.
 3. **Fallback** on an invalid sample (``NONFINITE_INPUT``, a non-finite law output, or
    ``OUT_OF_RANGE`` with ``envelope_action = fallback``), flagged ``FALLBACK``:
    ``hold``: the last output of a valid sample; ``ramp``: that output times max(0, 1 - m Ts /
@@ -49,7 +53,8 @@ FLAGS = (
     ("PAST_END", 16, "table: past the end of the table, its last value is held"),
     ("SATURATED", 32, "u_ff was clipped to [u_min, u_max] (export.limits)"),
     ("RATE_LIMITED", 64, "|u_ff(t) - u_ff(t-1)| was limited to rate * Ts (export.limits.rate)"),
-    ("OUT_OF_RANGE", 128, "r, dr/dt or d2r/dt2 at the newest preview sample left the training envelope"),
+    ("OUT_OF_RANGE", 128, "r, dr/dt or d2r/dt2 somewhere in the law's window r(t-2) .. r(t+P) left the training "
+                          "envelope"),
     ("NONFINITE_INPUT", 256, "a preview sample was NaN/inf: the last finite sample was used instead"),
     ("FALLBACK", 512, "u_ff is the fallback (hold, physics or ramp), not the law's"),
 )
@@ -143,6 +148,15 @@ def regressors(r_c: np.ndarray, r0: float, preview: int, Ts: float) -> np.ndarra
         return np.stack([x0, (x0 - x1) / Ts, (x0 - 2.0 * x1 + x2) / (Ts * Ts)], axis=1)
 
 
+def _inside_window(g: Guard, r_c: np.ndarray, r0: float, preview: int, Ts: float) -> np.ndarray:
+    """[N] bool: the regressors at every n = t .. t + P lie in the envelope (the C's loop over its window)."""
+    ext = np.concatenate([[r0, r0], r_c, np.full(preview, r_c[-1])])
+    with np.errstate(over="ignore", invalid="ignore"):
+        x = np.stack([ext[2:], (ext[2:] - ext[1:-1]) / Ts, (ext[2:] - 2.0 * ext[1:-1] + ext[:-2]) / (Ts * Ts)], axis=1)
+    ok = ((np.asarray(g.env_lo) <= x) & (x <= np.asarray(g.env_hi))).all(axis=1)    # at n = 0 .. N - 1 + P
+    return np.lib.stride_tricks.sliding_window_view(ok, preview + 1).all(axis=1)
+
+
 def run_guard(g: Guard, Ts: float, preview: int, r: np.ndarray, r0: float, core) -> tuple[np.ndarray, np.ndarray]:
     """(u_ff, flags) of a guarded law on the whole reference r: ``core(r_c) -> (u, flags)`` is the
     law itself on the sanitized reference. The sequential part (fallback, limits) runs sample by
@@ -158,11 +172,11 @@ def run_guard(g: Guard, Ts: float, preview: int, r: np.ndarray, r0: float, core)
         bad = np.lib.stride_tricks.sliding_window_view(bad_ext, P + 1).any(axis=1)
     flags |= np.where(bad, FLAG["NONFINITE_INPUT"], 0)
     x = regressors(r_c, r0, P, Ts)
-    inside = (np.asarray(g.env_lo) <= x) & (x <= np.asarray(g.env_hi))
-    flags |= np.where(inside.all(axis=1), 0, FLAG["OUT_OF_RANGE"])
+    inside = _inside_window(g, r_c, r0, P, Ts)
+    flags |= np.where(inside, 0, FLAG["OUT_OF_RANGE"])
     invalid = bad | ~np.isfinite(u_core)
     if g.envelope_action == "fallback":
-        invalid |= ~inside.all(axis=1)
+        invalid |= ~inside
     unlimited = g.u_min == -math.inf and g.u_max == math.inf and g.rate == math.inf
     if unlimited and not invalid.any():
         return u_core, flags          # the law's own numbers, untouched

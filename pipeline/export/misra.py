@@ -111,7 +111,7 @@ def readme(law, name: str, man: dict) -> str:
               "## Guard (limits, envelope, fallback)", "",
               f"- saturation u_ff in [{lim['u_min']}, {lim['u_max']}] N (flag SATURATED); slew |Δu| <= {lim['rate']} "
               "N/s x Ts (RATE_LIMITED), from u(-1) = 0",
-              "- training envelope of (r, dr/dt, d2r/dt2) at the newest preview sample: lo = "
+              "- training envelope of (r, dr/dt, d2r/dt2) at every sample of the window r(t-2) .. r(t+P): lo = "
               f"{[float(f'{v:.6g}') for v in env['lo']]}, hi = {[float(f'{v:.6g}') for v in env['hi']]}; outside: "
               f"OUT_OF_RANGE ({'and the fallback' if env['action'] == 'fallback' else 'flag only'})",
               "- a NaN/inf reference sample is replaced by the last finite one (NONFINITE_INPUT) and the sample "

@@ -17,8 +17,8 @@ ${source_lines}
  *              no allocation, no I/O, only <math.h> and <stdint.h>.
  * Guard        around the law, every sample (README "Deploy the feedforward"; pipeline/export/guard.py):
  *              a NaN/inf preview sample is replaced by the last finite one (NONFINITE_INPUT); the
- *              regressors r, dr/dt, d2r/dt2 at the newest preview sample are checked against the
- *              training envelope (OUT_OF_RANGE; ${envelope_doc});
+ *              regressors r, dr/dt, d2r/dt2 at every sample of the window r(t-2) .. r(t+P) are
+ *              checked against the training envelope (OUT_OF_RANGE; ${envelope_doc});
  *              an invalid sample gets the fallback "${fallback}"${fallback_doc} (FALLBACK);
  *              then saturation to [${u_min_doc}, ${u_max_doc}] N (SATURATED) and the slew limit
  *              |u(t) - u(t-1)| <= ${rate_doc} N/s * Ts (RATE_LIMITED), from u(-1) = 0.

@@ -172,3 +172,25 @@ def test_several_training_files_are_segments_not_one_glued_record(store, cfg_of,
            for k, run in (("two", two), ("glued", one))}
     assert err["two"] <= 0.02, err
     assert err["glued"] >= 2 * err["two"], err
+
+
+def test_a_reference_cut_mid_motion_or_starting_off_zero_is_warned_about_and_a_calm_one_is_not():
+    """The measured physics feedforward (r(-1) = 0, r held after its end) on a 10 cm cosine move: whole, no
+    warning; cut at 75 % (0.12 m/s), the last samples ask for an instant stop (~390 N against ~5 N inside);
+    started at 0.1 m, the first sample asks for a jump from 0 (~2.5e5 N)."""
+    from pipeline.systems.measured import Recording
+    from stages.invert import edge_warning
+    Ts = 1e-3
+    sys_ = Recording("axis", Ts, controller={"kind": "cascade", "kp": 160.18, "kv": 243.45, "gtau": 35.15},
+                     force_terms={"terms": ["viscous", "coulomb"]}, physics_input="averaged")
+    th = sys_.physics.theta_from_physical({"M": 5.0, "F_v": 15.0, "F_c": 2.0})
+    t = np.arange(2000) * Ts
+    r = 0.05 * (1 - np.cos(2 * np.pi * t / 2.0))
+    assert edge_warning("whole", r, sys_.physics.feedforward(th, r), Ts) is None
+    cut = r[:1500]
+    msg = edge_warning("cut", cut, sys_.physics.feedforward(th, cut), Ts)
+    assert msg and "'cut' ends with" in msg and "starts" not in msg
+    u = sys_.physics.feedforward(th, cut)
+    assert np.max(np.abs(u[-3:])) > 50 * np.max(np.abs(u[3:-3]))     # the spike the warning names
+    msg = edge_warning("offset", r + 0.1, sys_.physics.feedforward(th, r + 0.1), Ts)
+    assert msg and "'offset' starts with" in msg and "ends" not in msg.split(":")[0]

@@ -9,6 +9,7 @@ reference_force``): zero for error feedback, the velocity feedback on r for the 
 from __future__ import annotations
 
 import time
+import warnings
 
 import numpy as np
 
@@ -17,7 +18,7 @@ from stages._common import check_references, reference_specs
 
 UPSTREAM = ("generate", "baseline", "train")
 DEPENDS = ("invert", "evaluate.references", "evaluate.noise")  # fhofc scores the bound terms on the measured Y
-VERSION = 1
+VERSION = 2   # 2: reference_warning when the feedforward spikes at an end of the reference
 KIND_KEY = "invert.kind"
 
 
@@ -34,7 +35,7 @@ def validate(cfg, system) -> None:
 def run(ctx) -> dict:
     impl = implementation("invert", str(ctx.cfg.invert.kind))
     refs = check_references(reference_specs(ctx.cfg.evaluate.references), ctx.system, ctx.cfg)
-    u_ff = {}
+    u_ff, edge = {}, []
     for name, r in ctx.progress(refs.items(), desc="feedforward", total=len(refs)):
         t0 = time.perf_counter()
         f = np.asarray(impl.feedforward(ctx, name, r), dtype=np.float64)
@@ -46,10 +47,47 @@ def run(ctx) -> dict:
         if ctx.system.measured:   # a 2-DOF controller: cancel its output on y = r
             f = f - ctx.system.ctrl.reference_force(r)
         u_ff[name] = f
+        msg = edge_warning(name, r, f, float(ctx.system.Ts))
+        if msg:
+            edge.append(msg)
+            warnings.warn(msg, stacklevel=1)
+    if edge:
+        ctx.tag("reference_warning", " ".join(edge))
     out = {"u_ff": u_ff, "r": refs}
     if ctx.system.measured:   # evaluate replays the identified model in the recorded loop
         out["loop"] = loop_model(ctx)
     return out
+
+
+#: samples at each end of a reference that are compared with the rest of its feedforward
+EDGE_SAMPLES = 3
+#: an end's largest |u_ff| above this many times the interior's is a spike worth a warning
+EDGE_RATIO = 2.0
+
+
+def edge_warning(name: str, r: np.ndarray, u_ff: np.ndarray, Ts: float) -> str | None:
+    """A warning when the feedforward spikes at an end of the reference: every law starts from a reference at
+    rest (r(-1) = 0 or r(0)) and holds r after its last sample, so a recording that starts away from that or
+    ends while moving asks for an instant start or stop, and its first or last samples carry the force of it
+    (a recording cut mid-motion: 390 N at the end where the motion needs 5 N). None when both ends are calm."""
+    k = EDGE_SAMPLES
+    if r.size <= 4 * k:
+        return None
+    inner = float(np.max(np.abs(u_ff[k:-k])))
+    v = np.abs(np.diff(r)) / Ts
+    v_peak = float(np.max(v)) if v.size else 0.0
+    parts = []
+    for end, u_end, v_end in (("starts", u_ff[:k], v[0]), ("ends", u_ff[-k:], v[-1])):
+        peak = float(np.max(np.abs(u_end)))
+        if peak > EDGE_RATIO * inner:
+            parts.append(f"{end} with |u_ff| = {peak:.4g} against {inner:.4g} inside (r {end} at "
+                         f"{float(r[0] if end == 'starts' else r[-1]):.4g}, speed {v_end:.3g} of its peak "
+                         f"{v_peak:.3g} per s)")
+    if not parts:
+        return None
+    return (f"reference '{name}' " + " and ".join(parts) + ": the feedforward assumes the reference at rest "
+            "before its first sample and held after its last, so those samples ask for an instant start or stop. "
+            "Start and end the recording at rest, or leave its first and last samples out of the comparison.")
 
 
 def loop_model(ctx):

@@ -38,7 +38,8 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
         if VAL not in m:
             continue
         recs.append({"name": run["tags.mlflow.runName"], "kind": _kind(run), "id": run["run_id"], "m": m,
-                     "stop": run.get("tags.lm_stop"), "warn": run.get("tags.physics_warning")})
+                     "stop": run.get("tags.lm_stop"), "warn": run.get("tags.physics_warning"),
+                     "ref_warn": run.get("tags.reference_warning")})
     lines = [f"## {E}", "",
              "Real measured data (EMPS, Janot, Gautier & Brunot 2019; SPEC §2.5): train on `DATA_EMPS`, "
              "test on `DATA_EMPS_PULSES`. Every model is replayed inside the known controller on the "
@@ -66,6 +67,8 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
     ok_all = all(r["claim_holds"] for r in claims.judge(rows) if r["metric"].startswith("baseline/"))
     lines += ["", f"Every parameter within {claims.rule('X1', 'baseline/M').split('± ')[1]} of the published value: "
               f"**{'yes' if ok_all else 'no'}**." + (f" Warning: {P['warn']}" if P["warn"] else ""), ""]
+    if isinstance(P.get("ref_warn"), str) and P["ref_warn"]:
+        lines += [f"> Warning (invert): {P['ref_warn']}", ""]
     # ---- the published model in both conventions
     lines += ["### The published model replayed", "",
               "| file | convention | force error [%] | published | position error [%] | published | "

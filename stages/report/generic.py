@@ -22,9 +22,10 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
         variant = run["tags.mlflow.runName"]
         m = run_metrics(run)
         lines += [f"### {variant}", ""]
-        warn = run.get("tags.physics_warning")
-        if isinstance(warn, str) and warn:
-            lines += [f"> Warning: {warn}", ""]
+        for tag in ("physics_warning", "reference_warning"):
+            warn = run.get(f"tags.{tag}")
+            if isinstance(warn, str) and warn:
+                lines += [f"> Warning: {warn}", ""]
         params = {k.split("/", 1)[1]: v for k, v in sorted(m.items())
                   if k.startswith("baseline/") and not k.startswith("baseline/rel_error")}
         if params:

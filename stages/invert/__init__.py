@@ -81,7 +81,7 @@ def edge_warning(name: str, r: np.ndarray, u_ff: np.ndarray, Ts: float) -> str |
         peak = float(np.max(np.abs(u_end)))
         if peak > EDGE_RATIO * inner:
             parts.append(f"{end} with |u_ff| = {peak:.4g} against {inner:.4g} inside (r {end} at "
-                         f"{float(r[0] if end == 'starts' else r[-1]):.4g}, speed {v_end:.3g} of its peak "
+                         f"{float(r[0] if end == 'starts' else r[-1]):.4g}, moving at {v_end:.3g} per s, its peak "
                          f"{v_peak:.3g} per s)")
     if not parts:
         return None

@@ -65,8 +65,12 @@ def validate_frame(df: pd.DataFrame, source: str) -> None:
     """Raise a clear error on missing or non-numeric columns, NaN/inf or implausible values."""
     missing = [c for c in REQUIRED if c not in df.columns]
     if missing:
-        raise ValueError(f"{source}: missing column(s) {missing}; a dataset needs {list(REQUIRED)} "
-                         f"(optional {list(OPTIONAL)})")
+        found = [str(c) for c in df.columns]
+        hint = (" (one column holding them all: is the file separated by ';' or tabs? A dataset's CSV is "
+                "comma-separated)" if len(found) == 1 and any(ch in found[0] for ch in ";\t") else "")
+        raise ValueError(f"{source}: missing column(s) {missing}; found {found[:12]}{' …' if len(found) > 12 else ''}"
+                         f"{hint}; a dataset needs {list(REQUIRED)} (optional {list(OPTIONAL)}), lower case, no "
+                         "units in the header (those go in the sidecar JSON)")
     if len(df) < 2:
         raise ValueError(f"{source}: {len(df)} row(s); a dataset needs at least 2 samples")
     for c in df.columns:
@@ -109,8 +113,8 @@ def sample_time(t, Ts_sidecar, source: str, rtol: float = TS_RTOL) -> float:
     dt = np.diff(t)
     if np.any(dt <= 0):
         k = int(np.flatnonzero(dt <= 0)[0])
-        raise ValueError(f"{source}: column 't' is not increasing (t[{k + 1}] = {t[k + 1]!r} <= t[{k}] = "
-                         f"{t[k]!r}); sort the samples by time and drop repeated ones")
+        raise ValueError(f"{source}: column 't' is not increasing (t[{k + 1}] = {float(t[k + 1])!r} <= t[{k}] = "
+                         f"{float(t[k])!r}); sort the samples by time and drop repeated ones")
     med = float(np.median(dt))
     spread = float(np.max(np.abs(dt - med)) / med)
     if spread > rtol:
@@ -150,14 +154,20 @@ def load(path: str | Path) -> Dataset:
     if path.suffix not in (".parquet", ".csv"):
         path = path.with_suffix(".parquet")
     if not path.exists():
-        raise FileNotFoundError(f"data file {path} does not exist; check data.path (absolute, or "
-                                "relative to the repo root) or generate it with stages=[generate]")
+        where = (f"the folder {path.parent} does not exist either" if not path.parent.exists()
+                 else f"files there: {sorted(p.name for p in path.parent.iterdir())[:8]}")
+        raise FileNotFoundError(f"data file {path} does not exist ({where}); check data.path (absolute, or "
+                                "relative to the repo root) and data.file, or, for a simulated plant, generate it "
+                                "with stages=[generate]")
     try:
         frame = pd.read_parquet(path) if path.suffix == ".parquet" else pd.read_csv(path)
     except pd.errors.EmptyDataError:
         raise ValueError(f"{path}: the file is empty; a dataset needs columns {list(REQUIRED)}") from None
     side = path.with_suffix(".json")
-    meta = json.loads(side.read_text()) if side.exists() else {}
+    try:
+        meta = json.loads(side.read_text()) if side.exists() else {}
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{side}: the sidecar is not valid JSON ({exc}); it holds e.g. {{\"Ts\": 0.001}}") from None
     meta["source"] = str(path)
     validate_frame(frame, str(path))
     meta["Ts"] = sample_time(frame["t"].to_numpy(np.float64), meta.get("Ts"), str(path))
@@ -176,7 +186,11 @@ def load_emps(folder: str | Path, which: str = "DATA_EMPS") -> Dataset:
     from scipy.io import loadmat  # lazy: saves 0.2 s of start-up (scipy.io: only the EMPS .mat loader reads it)
     path = Path(folder) / f"{which}.mat"
     if not path.exists():
-        raise FileNotFoundError(f"EMPS file {path} not found; point data.path to the folder holding "
+        here = Path(folder)
+        tables = [p.name for p in (here.iterdir() if here.is_dir() else []) if p.suffix in (".csv", ".parquet")]
+        own = (f" (data.path holds {sorted(tables)[:6]}: a table of your own machine is read with data.format=table)"
+               if tables else "")
+        raise FileNotFoundError(f"EMPS file {path} not found{own}; point data.path to the folder holding "
                                 "DATA_EMPS.mat and DATA_EMPS_PULSES.mat (e.g. ../shared/data/emps)")
     m = loadmat(path)
     need = ("t", "qm", "qg", "vir") + EMPS_CONSTANTS

@@ -445,7 +445,8 @@ def profile_from_spec(spec, Ts: float) -> Reference:
     kind = spec.pop("kind", None)
     spec.pop("name", None)
     if kind not in _SPEC_ARGS:
-        raise ValueError(f"unknown reference kind {kind!r}; use one of {KINDS}")
+        raise ValueError(f"unknown reference kind {kind!r}; use one of {KINDS}, or 'measured' (a recorded file: "
+                         "{name: test, kind: measured, file: <file in data.path>}, with data=measured)")
     required, optional = _SPEC_ARGS[kind]
     missing = required - set(spec)
     unknown = set(spec) - required - optional

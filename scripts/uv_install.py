@@ -3,8 +3,9 @@
 uv is pip-compatible on the command line but reads neither pip's configuration files nor its ``PIP_*``
 variables. This passes on what decides where packages come from and which versions are allowed
 (index-url, extra-index-url, find-links, constraint, trusted-host) and how to reach them (cert, client-cert,
-proxy, timeout, retries, keyring-provider where uv has pip's value), as pip itself resolves them: ``pip config list`` (every configuration file merged, the ``install``
-section over ``global``) under the ``PIP_*`` variables. pip merges all its indexes; uv by default takes
+proxy, timeout, retries, keyring-provider where uv has pip's value), as pip itself resolves them:
+``pip config list`` (every configuration file merged, the ``install`` section over ``global``) under the
+``PIP_*`` variables. pip merges all its indexes; uv by default takes
 a package from the first index that has it, so with extra indexes pip's way is asked for
 (``--index-strategy unsafe-best-match``). Bytecode is compiled for everything installed (uv compiles
 only on request, and only the packages of that one command).
@@ -28,7 +29,8 @@ import sys
 
 #: pip options handed to uv as command-line arguments: pip's name -> uv's flag (several values: whitespace-separated)
 FLAGS = {"index-url": "--default-index", "extra-index-url": "--extra-index-url", "find-links": "--find-links",
-         "constraint": "--constraint", "trusted-host": "--allow-insecure-host", "keyring-provider": "--keyring-provider"}
+         "constraint": "--constraint", "trusted-host": "--allow-insecure-host",
+         "keyring-provider": "--keyring-provider"}
 #: pip options handed to uv through its environment
 ENV = {"cert": ("SSL_CERT_FILE",), "client-cert": ("SSL_CLIENT_CERT",), "proxy": ("HTTPS_PROXY", "HTTP_PROXY"),
        "timeout": ("UV_HTTP_TIMEOUT",), "retries": ("UV_HTTP_RETRIES",)}

@@ -521,3 +521,64 @@ def test_measured_sim_error_stage_passes_every_restart_option(store, cfg_of, tmp
     assert (want["screen_iter"], want["n_restarts"], want["max_iter"], want["stat_frac"]) == (7, 3, 11, 0.25)
     # identify.stat_promise=auto: the damped promise on a recording, the full one on a simulated plant
     assert want["stat_promise"] == "damped" and restart_options(cfg.identify)["stat_promise"] == "gauss_newton"
+
+
+def test_bad_recordings_are_named_with_what_was_found_and_the_fix(tmp_path):
+    """Found by a user trying their own recording: each message names the file, what is there and the fix."""
+    import pandas as pd
+
+    from pipeline import data
+    from pipeline.references import from_spec
+    from pipeline.runner import ConfigError
+    from stages.generate.measured import reference
+    t = np.arange(50) * 1e-3
+    pd.DataFrame({"t": t, "r": t, "u": t, "y": t}).to_csv(tmp_path / "own.csv", sep=";", index=False)
+    with pytest.raises(ValueError, match=r"found \['t;r;u;y'\].*separated by ';'"):
+        data.load(tmp_path / "own.csv")
+    pd.DataFrame({"T": t, "R": t, "U": t, "Y": t}).to_csv(tmp_path / "caps.csv", index=False)
+    with pytest.raises(ValueError, match=r"found \['T', 'R', 'U', 'Y'\].*lower case"):
+        data.load(tmp_path / "caps.csv")
+    with pytest.raises(FileNotFoundError, match=r"folder .*nodir does not exist either.*data.file"):
+        data.load(tmp_path / "nodir" / "train.csv")
+    pd.DataFrame({"t": t, "r": t, "u": t, "y": t}).to_csv(tmp_path / "ok.csv", index=False)
+    (tmp_path / "ok.json").write_text("{Ts: 0.001")
+    with pytest.raises(ValueError, match=r"ok\.json: the sidecar is not valid JSON"):
+        data.load(tmp_path / "ok.csv")
+    with pytest.raises(FileNotFoundError, match=r"holds \[.*'ok.csv'.*data.format=table"):
+        data.load_emps(tmp_path, "own")
+    with pytest.raises(ValueError, match=r"'measured' \(a recorded file"):
+        from_spec({"name": "test", "kind": "measure", "file": "x.csv"}, 1e-3)
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['fle'\]"):
+        reference(None, {"name": "test", "kind": "measured", "fle": "test.csv"}, None)
+
+
+@needs_emps
+def test_a_wrong_delay_under_the_tolerance_is_warned_about_and_the_right_one_is_not():
+    """EMPS with delay 1: the equation error (3.5 %) stays under the 5 % check, but delay 0 fits ~20x better
+    (0.2 %): a warning names the delay; the true delay 0 gets none."""
+    import warnings as w
+
+    from stages.generate.measured import check_record
+    ds = data.load_emps(EMPS, "DATA_EMPS")
+    with w.catch_warnings():
+        w.simplefilter("error")
+        check_record(ds, _emps_system(), "DATA_EMPS")
+    s1 = Recording("emps", 1e-3, dict(CTRL, delay=1))
+    rel = s1.ctrl.check(ds["r"], ds["y"], ds["u"], ds["d"])
+    assert 0.01 < rel < 0.05
+    with pytest.warns(UserWarning, match=r"delay of 0 samples instead of 1 it fits \d+x better"):
+        check_record(ds, s1, "DATA_EMPS")
+
+
+def test_a_recording_in_millimetres_is_warned_about(tmp_path):
+    """r and y in mm with the gains scaled to match pass the controller check; the speed (1000x a metre
+    recording's) says the units are wrong."""
+    from stages.generate.measured import PLAUSIBLE_SPEED, units_warning
+    Ts = 1e-3
+    t = np.arange(2000) * Ts
+    y = 0.2 * np.sin(2 * np.pi * t)                 # 0.2 m at 1 Hz: 1.26 m/s
+    ds = data.Dataset(pd.DataFrame({"t": t, "r": y, "u": 0 * y, "y": y}), {"Ts": Ts})
+    assert units_warning(ds, Ts) is None
+    ds_mm = data.Dataset(pd.DataFrame({"t": t, "r": 1e3 * y, "u": 0 * y, "y": 1e3 * y}), {"Ts": Ts})
+    msg = units_warning(ds_mm, Ts)
+    assert msg and "1257 m/s" in msg and f"{PLAUSIBLE_SPEED:g} m/s" in msg and "metres" in msg

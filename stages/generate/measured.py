@@ -141,6 +141,9 @@ def check_record(ds: data.Dataset, system, source: str, min_len: int = 0,
                          "(a wrong Ts scales an identified mass by its square)")
     if system is None or not system.measured:
         return
+    msg = units_warning(ds, Ts)
+    if msg:
+        warnings.warn(f"{source}: {msg}", stacklevel=2)
     ctrl, params = system.ctrl, dict(system.ctrl.params)
     for k in data.EMPS_CONSTANTS:
         if k in ds.meta and ds.meta[k] is not None and (k not in params or abs(float(ds.meta[k]) - params[k]) >
@@ -162,7 +165,38 @@ def check_record(ds: data.Dataset, system, source: str, min_len: int = 0,
             raise ValueError(msg + ". Only the physics least squares runs without it "
                              "(stages=[generate,baseline])")
         warnings.warn(msg, stacklevel=2)
+    else:
+        msg = delay_warning(ctrl, ds, d, rel)
+        if msg:
+            warnings.warn(f"{source}: {msg}", stacklevel=2)
     _check_disturbance(ds, ctrl, source)
+
+
+#: a recorded speed above this [m/s] is not a motion stage's: y (and r) are likely not in metres
+PLAUSIBLE_SPEED = 20.0
+
+
+def units_warning(ds, Ts: float) -> str | None:
+    """A warning when the recorded motion is implausible in metres (a recording in mm moves 1000x faster):
+    the controller check cannot see it when the gains were scaled to match, and a mass comes out 1000x off."""
+    y = np.asarray(ds["y"], dtype=np.float64)
+    v = float(np.max(np.abs(np.diff(y)))) / Ts if y.size > 1 else 0.0
+    if v <= PLAUSIBLE_SPEED:
+        return None
+    return (f"the recorded position moves at up to {v:.4g} m/s, above the {PLAUSIBLE_SPEED:g} m/s of any motion stage: "
+            "are y and r in metres (not mm or µm), and u in newtons? The pipeline's units are SI (README \"Your own "
+            "machine's data\")")
+
+
+def delay_warning(ctrl, ds, d, rel: float) -> str | None:
+    """A warning when another controller delay fits the record 10x better than the configured one."""
+    better = ctrl.better_delay(ds["r"], ds["y"], ds["u"], d, rel)
+    if better is None:
+        return None
+    D, res = better
+    return (f"the configured controller fits the recording (equation error {100 * rel:.2g} %), but with a delay of "
+            f"{D} samples instead of {ctrl.delay} it fits {rel / max(res, 1e-300):.0f}x better ({100 * res:.2g} %): "
+            f"check system.controller.delay (set +system.controller.delay={D} if the machine's output is delayed so)")
 
 
 #: a measured disturbance is suspect when it carries this share of the recorded force's rms ...
@@ -275,6 +309,13 @@ def make(cfg, system, ctx) -> data.Dataset:
         if not rel < CONTROLLER_RTOL:
             ctx.tag("controller_warning", f"the recorded u is not the configured controller's output "
                                           f"(equation error {100 * rel:.1f} %)")
+        else:
+            g = segs[0]
+            msg = delay_warning(system.ctrl, g, g["d"] if "d" in g else 0.0 * g["y"], system.ctrl.check(
+                g["r"].to_numpy(), g["y"].to_numpy(), g["u"].to_numpy(),
+                g["d"].to_numpy() if "d" in g else 0.0 * g["y"].to_numpy()))
+            if msg:
+                ctx.tag("controller_warning", msg)
         if "d" in ds.frame:
             share, active = disturbance_diagnostics(ds, system.ctrl)
             ctx.metric("disturbance_share", share)
@@ -288,6 +329,10 @@ def make(cfg, system, ctx) -> data.Dataset:
 
 def reference(cfg, spec: dict, system) -> data.Dataset:
     """The record an evaluation reference of kind ``measured`` names (``spec['file']``), checked."""
+    unknown = sorted(set(spec) - {"name", "kind", "file"})
+    if unknown:
+        raise ConfigError(f"reference '{spec.get('name')}' of kind 'measured': unknown key(s) {unknown}; it takes "
+                          "name, kind and file, e.g. {name: test, kind: measured, file: DATA_EMPS_PULSES}")
     if not spec.get("file"):
         raise ConfigError(f"reference '{spec.get('name')}' of kind 'measured' names no file; give the recorded "
                           "file inside data.path, e.g. {name: test, kind: measured, file: DATA_EMPS_PULSES}")

@@ -342,7 +342,8 @@ def test_measured_reference_needs_its_file_and_a_useful_length(store, cfg_of, tm
         runner.run_job(cfg_of(*ov[:-5], "evaluate=emps",
                               "evaluate.references=[{name:test,kind:measured,file:short.csv}]", *ov[-4:]))
     with pytest.raises(runner.ConfigError,
-                       match=r"reference 'test': .*gone\.csv does not exist \(files there: .*rec\.csv.*\); check data\.path"):
+                       match=r"reference 'test': .*gone\.csv does not exist \(files there: .*rec\.csv.*\); "
+                             r"check data\.path"):
         runner.run_job(cfg_of(*ov[:-5], "evaluate=emps",
                               "evaluate.references=[{name:test,kind:measured,file:gone.csv}]", *ov[-4:]))
 

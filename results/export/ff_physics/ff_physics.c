@@ -278,7 +278,7 @@ double ff_physics_899989e9_step(ff_physics_899989e9_state *s, const double *r_pr
 {
     double ext[G_PREVIEW + 3];   /* r(t-2), r(t-1), r(t) .. r(t+P) after sanitation */
     double x[3], u;
-    int i, flags = 0, invalid, inside = 1;
+    int i, j, flags = 0, invalid, inside = 1;
     ext[0] = s->r_hist[1];
     ext[1] = s->r_hist[0];
     for (i = 0; i <= G_PREVIEW; ++i) {
@@ -289,12 +289,15 @@ double ff_physics_899989e9_step(ff_physics_899989e9_state *s, const double *r_pr
             flags |= FF_PHYSICS_899989E9_NONFINITE_INPUT;
         }
     }
-    x[0] = ext[G_PREVIEW + 2];                                   /* r(n), n = t + P */
-    x[1] = (ext[G_PREVIEW + 2] - ext[G_PREVIEW + 1]) / G_TS;   /* backward differences */
-    x[2] = (ext[G_PREVIEW + 2] - 2.0 * ext[G_PREVIEW + 1] + ext[G_PREVIEW]) / (G_TS * G_TS);
-    for (i = 0; i < 3; ++i) {
-        if (!((ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
-    }
+    /* the envelope at every n = t .. t + P: the whole window r(t-2) .. r(t+P) the law is fed */
+    for (j = 0; j <= G_PREVIEW; ++j) {
+        x[0] = ext[j + 2];                                       /* r(n), n = t + j */
+        x[1] = (ext[j + 2] - ext[j + 1]) / G_TS;                 /* backward differences */
+        x[2] = (ext[j + 2] - 2.0 * ext[j + 1] + ext[j]) / (G_TS * G_TS);
+        for (i = 0; i < 3; ++i) {
+            if (!((ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
+        }
+    }   /* x: the newest, n = t + P (the physics fallback's regressors) */
     if (!inside) flags |= FF_PHYSICS_899989E9_OUT_OF_RANGE;
     u = law_step(s, ext + 2);
     flags |= s->status;

@@ -584,3 +584,17 @@ def test_a_recording_in_millimetres_is_warned_about(tmp_path):
     ds_mm = data.Dataset(pd.DataFrame({"t": t, "r": 1e3 * y, "u": 0 * y, "y": 1e3 * y}), {"Ts": Ts})
     msg = units_warning(ds_mm, Ts)
     assert msg and "1257 m/s" in msg and f"{PLAUSIBLE_SPEED:g} m/s" in msg and "metres" in msg
+
+
+def test_an_evaluation_file_at_another_ts_is_told_to_match_the_training_data():
+    """Setting system.Ts to the evaluation file's Ts (the advice for the training file) would break the training
+    data: for an evaluation recording the fix is to record or resample it at the system's Ts."""
+    from stages.generate.measured import check_record
+    t = np.arange(200) * 5e-4
+    ds = data.Dataset(pd.DataFrame({"t": t, "r": 0 * t, "u": 0 * t, "y": 0 * t}), {"Ts": 5e-4})
+    s = _emps_system()
+    with pytest.raises(ValueError, match=r"test\.csv: this evaluation recording is sampled at Ts = 0\.0005 s.*"
+                                         r"resample the evaluation run at 0\.001 s"):
+        check_record(ds, s, "test.csv", reference=True)
+    with pytest.raises(ValueError, match=r"train\.csv: the data are sampled at Ts = 0\.0005 s.*set system\.Ts=0\.0005"):
+        check_record(ds, s, "train.csv")

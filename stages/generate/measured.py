@@ -126,7 +126,7 @@ def load_file(cfg, file: str | None = None) -> data.Dataset:
 
 
 def check_record(ds: data.Dataset, system, source: str, min_len: int = 0,
-                 uses_controller: bool = True) -> None:
+                 uses_controller: bool = True, reference: bool = False) -> None:
     """A loaded record against the system it is meant for (length, sample time, controller, units).
     A controller that does not fit the record is an error where the run uses the controller
     (``uses_controller``: replay, feedforward), else a warning."""
@@ -136,6 +136,10 @@ def check_record(ds: data.Dataset, system, source: str, min_len: int = 0,
     Ts = float(ds.Ts)
     sys_Ts = float(getattr(system, "Ts", Ts))
     if abs(Ts - sys_Ts) > data.TS_RTOL * sys_Ts:
+        if reference:     # the training data fix system.Ts: an evaluation file must match them
+            raise ValueError(f"{source}: this evaluation recording is sampled at Ts = {Ts:.6g} s but the system (and "
+                             f"its training data) at Ts = {sys_Ts:g} s; record or resample the evaluation run at "
+                             f"{sys_Ts:g} s (system.Ts would no longer fit the training data)")
         raise ValueError(f"{source}: the data are sampled at Ts = {Ts:.6g} s but system "
                          f"'{getattr(system, 'name', '?')}' has Ts = {sys_Ts:g} s; set system.Ts={Ts:.6g} "
                          "(a wrong Ts scales an identified mass by its square)")
@@ -338,7 +342,7 @@ def reference(cfg, spec: dict, system) -> data.Dataset:
                           "file inside data.path, e.g. {name: test, kind: measured, file: DATA_EMPS_PULSES}")
     try:
         ds = load_file(cfg, spec["file"])
-        check_record(ds, system, ds.meta.get("source", str(spec["file"])), min_len=MIN_REFERENCE)
+        check_record(ds, system, ds.meta.get("source", str(spec["file"])), min_len=MIN_REFERENCE, reference=True)
     except FileNotFoundError as exc:
         raise ConfigError(f"reference '{spec.get('name')}': {str(exc).split(';')[0]}; check data.path and the "
                           "reference's file") from exc

@@ -138,23 +138,18 @@ def sanitized(r: np.ndarray, r0: float) -> tuple[np.ndarray, np.ndarray]:
     return r_c, finite
 
 
-def regressors(r_c: np.ndarray, r0: float, preview: int, Ts: float) -> np.ndarray:
-    """[N, 3]: r_c(n), δr_c(n), δ²r_c(n) at n = t + P (held after the end; r0 before 0), as the C
-    computes them from its window ext = [r(t-2), r(t-1), r(t) .. r(t+P)]."""
+def _regressors_all(r_c: np.ndarray, r0: float, preview: int, Ts: float) -> np.ndarray:
+    """[N + P, 3]: r_c(n), δr_c(n), δ²r_c(n) at every n = 0 .. N - 1 + P (held after the end; r0 before 0),
+    as the C computes them from its window ext = [r(t-2), r(t-1), r(t) .. r(t+P)]."""
     ext = np.concatenate([[r0, r0], r_c, np.full(preview, r_c[-1])])
-    N, P = r_c.size, preview
-    x0, x1, x2 = ext[P + 2:P + 2 + N], ext[P + 1:P + 1 + N], ext[P:P + N]
+    x0, x1, x2 = ext[2:], ext[1:-1], ext[:-2]
     with np.errstate(over="ignore", invalid="ignore"):     # an absurd reference: inf, flagged OUT_OF_RANGE
         return np.stack([x0, (x0 - x1) / Ts, (x0 - 2.0 * x1 + x2) / (Ts * Ts)], axis=1)
 
 
-def _inside_window(g: Guard, r_c: np.ndarray, r0: float, preview: int, Ts: float) -> np.ndarray:
-    """[N] bool: the regressors at every n = t .. t + P lie in the envelope (the C's loop over its window)."""
-    ext = np.concatenate([[r0, r0], r_c, np.full(preview, r_c[-1])])
-    with np.errstate(over="ignore", invalid="ignore"):
-        x = np.stack([ext[2:], (ext[2:] - ext[1:-1]) / Ts, (ext[2:] - 2.0 * ext[1:-1] + ext[:-2]) / (Ts * Ts)], axis=1)
-    ok = ((np.asarray(g.env_lo) <= x) & (x <= np.asarray(g.env_hi))).all(axis=1)    # at n = 0 .. N - 1 + P
-    return np.lib.stride_tricks.sliding_window_view(ok, preview + 1).all(axis=1)
+def regressors(r_c: np.ndarray, r0: float, preview: int, Ts: float) -> np.ndarray:
+    """[N, 3]: the regressors at the newest sample n = t + P of every t."""
+    return _regressors_all(r_c, r0, preview, Ts)[preview:]
 
 
 def run_guard(g: Guard, Ts: float, preview: int, r: np.ndarray, r0: float, core) -> tuple[np.ndarray, np.ndarray]:
@@ -171,8 +166,10 @@ def run_guard(g: Guard, Ts: float, preview: int, r: np.ndarray, r0: float, core)
         bad_ext = np.concatenate([bad, np.full(P, bad[-1])])
         bad = np.lib.stride_tricks.sliding_window_view(bad_ext, P + 1).any(axis=1)
     flags |= np.where(bad, FLAG["NONFINITE_INPUT"], 0)
-    x = regressors(r_c, r0, P, Ts)
-    inside = _inside_window(g, r_c, r0, P, Ts)
+    x_all = _regressors_all(r_c, r0, P, Ts)
+    x = x_all[P:]                     # the newest, n = t + P: the physics fallback's regressors
+    ok = ((np.asarray(g.env_lo) <= x_all) & (x_all <= np.asarray(g.env_hi))).all(axis=1)
+    inside = np.lib.stride_tricks.sliding_window_view(ok, P + 1).all(axis=1)   # every n = t .. t + P (the C's loop)
     flags |= np.where(inside, 0, FLAG["OUT_OF_RANGE"])
     invalid = bad | ~np.isfinite(u_core)
     if g.envelope_action == "fallback":

@@ -211,19 +211,18 @@ class LTIController:
             return math.inf
         return float(np.linalg.norm(Ac - Bx) / max(np.linalg.norm(Ac), 1e-300))
 
+    def other_delays(self, r, y, u, d) -> dict[int, float]:
+        """:meth:`check` of this controller with each other delay of 0..3 samples."""
+        return {D: LTIController(self.b_r, self.b_y, self.a, self.gtau, self.v_sat, D, self.structure,
+                                 self.params).check(r, y, u, d)
+                for D in range(0, 4) if D != self.delay}
+
     def better_delay(self, r, y, u, d, rel: float, factor: float = 10.0) -> tuple[int, float] | None:
         """(D, its equation error) of the delay among 0..3 samples that fits the recording ``factor`` times better
         than this controller's ``rel`` (its :meth:`check`), or None: a wrong delay can stay under the check's
         tolerance (EMPS with delay 1: 3.5 % against 0.2 % at its true 0) and still bias every replay."""
-        best = None
-        for D in range(0, 4):
-            if D == self.delay:
-                continue
-            alt = LTIController(self.b_r, self.b_y, self.a, self.gtau, self.v_sat, D, self.structure, self.params)
-            res = alt.check(r, y, u, d)
-            if res * factor < rel and (best is None or res < best[1]):
-                best = (D, res)
-        return best
+        D, res = min(self.other_delays(r, y, u, d).items(), key=lambda kv: kv[1])
+        return (D, res) if res * factor < rel else None
 
     def diagnose(self, r, y, u, d, tol: float) -> list[str]:
         """What fits the recording better than the configured structure (for the error message)."""
@@ -237,11 +236,7 @@ class LTIController:
                 why = "a sign error" if g < 0 else "check gtau and the gains"
                 hints.append(f"the recording is this structure with its gain ×{g:.4g} ({why}; residual then "
                              f"{100 * res:.2g} %)")
-        for D in range(0, 4):
-            if D == self.delay:
-                continue
-            alt = LTIController(self.b_r, self.b_y, self.a, self.gtau, self.v_sat, D, self.structure, self.params)
-            res = alt.check(r, y, u, d)
+        for D, res in self.other_delays(r, y, u, d).items():
             if res < tol:
                 hints.append(f"delay {D} samples fits (residual {100 * res:.2g} %): set controller.delay={D}")
         if self.structure != "error feedback":

@@ -170,7 +170,7 @@ def check_record(ds: data.Dataset, system, source: str, min_len: int = 0,
                              "(stages=[generate,baseline])")
         warnings.warn(msg, stacklevel=2)
     else:
-        msg = delay_warning(ctrl, ds, d, rel)
+        msg = delay_warning(ctrl, ds["r"], ds["y"], ds["u"], d, rel)
         if msg:
             warnings.warn(f"{source}: {msg}", stacklevel=2)
     _check_disturbance(ds, ctrl, source)
@@ -192,9 +192,9 @@ def units_warning(ds, Ts: float) -> str | None:
             "machine's data\")")
 
 
-def delay_warning(ctrl, ds, d, rel: float) -> str | None:
+def delay_warning(ctrl, r, y, u, d, rel: float) -> str | None:
     """A warning when another controller delay fits the record 10x better than the configured one."""
-    better = ctrl.better_delay(ds["r"], ds["y"], ds["u"], d, rel)
+    better = ctrl.better_delay(r, y, u, d, rel)
     if better is None:
         return None
     D, res = better
@@ -305,8 +305,10 @@ def make(cfg, system, ctx) -> data.Dataset:
     ds = load_training(cfg)
     if system is not None and system.measured:   # the checks' numbers on the run (check() warned or refused already)
         segs = list(ds.segments())
-        rel = max(system.ctrl.check(g["r"].to_numpy(), g["y"].to_numpy(), g["u"].to_numpy(),
-                                    g["d"].to_numpy() if "d" in g else 0.0 * g["y"].to_numpy()) for g in segs)
+        sig = [(g["r"].to_numpy(), g["y"].to_numpy(), g["u"].to_numpy(),
+                g["d"].to_numpy() if "d" in g else 0.0 * g["y"].to_numpy()) for g in segs]
+        rels = [system.ctrl.check(*s) for s in sig]
+        rel = max(rels)
         ctx.metric("controller_equation_error", rel)
         ctx.metric("segments", len(segs))
         ctx.tag("controller", system.ctrl.describe())
@@ -314,10 +316,7 @@ def make(cfg, system, ctx) -> data.Dataset:
             ctx.tag("controller_warning", f"the recorded u is not the configured controller's output "
                                           f"(equation error {100 * rel:.1f} %)")
         else:
-            g = segs[0]
-            msg = delay_warning(system.ctrl, g, g["d"] if "d" in g else 0.0 * g["y"], system.ctrl.check(
-                g["r"].to_numpy(), g["y"].to_numpy(), g["u"].to_numpy(),
-                g["d"].to_numpy() if "d" in g else 0.0 * g["y"].to_numpy()))
+            msg = delay_warning(system.ctrl, *sig[0], rels[0])     # the first segment, as check_record's warning
             if msg:
                 ctx.tag("controller_warning", msg)
         if "d" in ds.frame:

@@ -89,7 +89,7 @@ class Params:
 
 
 THETA_STAR = ("arx", "sim_error", "oracle")   # oracle: the plant's true linear part (an oracle, simulation only)
-VERSION = 6   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zeros logged;
+VERSION = 7   # 2: n1 = 0 is θ*_phy itself; stop reasons of θ*_phy's fit; zeros logged;
               # 3: measured loop from the recorded state; 4: the statistical window spans a continued
               # restart's screening steps (issue 19); 5: the measured loop screens its restarts too
               # (identify.screen_iter was ignored there); 6: stat_promise (auto: damped on a recording); 7: with

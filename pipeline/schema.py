@@ -107,6 +107,8 @@ class Config:
     paths: Paths = field(default_factory=Paths)
     # the export stage (stages=[..., export]): C99 code + MLflow model of the feedforward
     export: Any = None               # stages/export.py Params
+    # where every feedforward law starts and what it gives at switch-on (pipeline/invert/start.py Params)
+    start: Any = None
     report: Report = field(default_factory=Report)
     system: Any = None
     data: Any = None
@@ -179,7 +181,7 @@ CHOOSER = {"system": "_target_", "data": "kind", "model": "kind", "identify": "k
 #: group -> the stage whose ``stages/<stage>/<kind>.py`` implements (and declares the ``Params`` of) an option
 STAGE = {"data": "generate", "identify": "train", "invert": "invert"}
 #: top-level nodes a stage owns: their class is that stage module's ``Params``
-OWNED = {"export": "stages.export"}
+OWNED = {"export": "stages.export", "start": "pipeline.invert.start"}
 _ROOT = Path(__file__).resolve().parent.parent
 #: where :func:`register` keeps the options' defaults per content hash (beside this package's bytecode)
 DEFAULTS_CACHE = Path(__file__).resolve().parent / "__pycache__"

@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import math
 import sys
+
+import numpy as np
 from dataclasses import asdict, field
 from typing import Literal, Optional
 
@@ -48,11 +50,15 @@ from stages._common import reference_specs
 @schema
 class Limits:
     """export.limits: the guard around an exported law (pipeline.export.guard)."""
-    # actuator force saturation [N]
+    # actuator force saturation [N]; null: from the identification data (data_margin)
     u_min: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=-200.0)
     u_max: Optional[float] = spec(None, ge=-FORCE_MAX, le=FORCE_MAX, unit="N", example=200.0)
-    # slew limit [N/s]
+    # slew limit [N/s]; null: from the identification data (data_margin)
     rate: Optional[float] = spec(None, gt=0, le=1e12, unit="N/s", example=1e5)
+    # a null limit is ±(1 + data_margin) max|u| and (1 + data_margin) max|Δu|/Ts of the identification data's
+    # applied force u (the recorded command range of a measured axis, the simulated actuator's of a plant);
+    # null here: no limit where none is set
+    data_margin: Optional[float] = spec(0.5, ge=0, le=100, example=0.5)
     # training envelope of r, dr/dt, d2r/dt2 (the identification data's y) widened by this x its range
     envelope_margin: float = spec(0.1, ge=0, le=100)
     # flag: OUT_OF_RANGE only | fallback: also the fallback
@@ -160,6 +166,20 @@ def physics_coefficients(system, theta) -> list | None:
     return [t[0], pick("fv_over_m"), pick("fc_over_m")]
 
 
+def data_limits(segments, Ts: float) -> tuple[float, float]:
+    """(max|u| [N], max|Δu|/Ts [N/s]) of the identification data's applied force, one array per experiment (no
+    difference across a boundary): what the actuator was seen to do, the base of the default limits."""
+    u_abs = du_abs = 0.0
+    for u in segments:
+        u = np.asarray(u, dtype=np.float64)
+        u = u[np.isfinite(u)]
+        if u.size:
+            u_abs = max(u_abs, float(np.max(np.abs(u))))
+        if u.size > 1:
+            du_abs = max(du_abs, float(np.max(np.abs(np.diff(u)))) / Ts)
+    return u_abs or math.inf, du_abs or math.inf
+
+
 def guard_of(ctx) -> dict:
     """The guard of every law of the job from export.limits, the identification data's envelope and
     the physics fallback's coefficients (pipeline.export.guard.Guard)."""
@@ -168,12 +188,33 @@ def guard_of(ctx) -> dict:
     ds = ctx.inputs["generate"]["dataset"]
     lo, hi = envelope_of((seg["y"].to_numpy(dtype=float) for seg in ds.segments()), float(ctx.system.Ts),
                          float(lim.envelope_margin))
+    u_abs, du_abs = data_limits((seg["u"].to_numpy(dtype=float) for seg in ds.segments()), float(ctx.system.Ts))
+    if lim.get("data_margin") is not None:     # a null limit from the identification data (Limits.data_margin)
+        f = 1.0 + float(lim.data_margin)
+        bound = lambda k, none: (f * (-u_abs if k == "u_min" else u_abs if k == "u_max" else du_abs)  # noqa: E731
+                                 if lim.get(k) is None else float(lim.get(k)))
     phys = [0.0, 0.0, 0.0]
     if lim.fallback == "physics":
         phys = physics_coefficients(ctx.system, ctx.inputs["baseline"]["theta"])
     return asdict(Guard(u_min=bound("u_min", -math.inf), u_max=bound("u_max", math.inf),
                         rate=bound("rate", math.inf), env_lo=lo, env_hi=hi, envelope_action=str(lim.envelope_action),
                         fallback=str(lim.fallback), ramp_time=float(lim.ramp_time), physics=phys))
+
+
+def set_start(law: "laws.Law", start: dict, r0s: list[float]) -> None:
+    """The invert stage's start (pipeline.invert.start) on the law: 'zero' keeps the study's conventions;
+    'rest' puts every state at rest at r0 at init, ``settle`` (the rest samples the law needs, the most over
+    the references' r(0) and the training envelope's ends) measured on the law itself."""
+    if start["at"] != "rest" or law.family == "table":
+        return
+    from pipeline.invert.start import settle_count
+    law.start, law.static, law.rest = "rest", str(start["static"]), "first"
+    lo, hi = law.g.env_lo[0], law.g.env_hi[0]
+    r0s = sorted(set(r0s) | {v for v in (lo, hi) if math.isfinite(v)})
+    try:
+        law.settle = settle_count(lambda r: laws._core(law, r)[0], r0s)
+    except ValueError as exc:
+        raise ConfigError(f"export: {exc}") from exc
 
 
 def build_laws(ctx) -> dict[str, tuple["laws.Law", list[str]]]:
@@ -234,8 +275,10 @@ def run(ctx) -> dict:
     built = build_laws(ctx)
     guard = guard_of(ctx)
     zoh_n = 1 if e.get("target_rate") is None else zoh_factor(float(e.target_rate), float(ctx.system.Ts))
+    start = inv.get("start") or {"at": "zero", "static": "include"}
     for name, (law, names) in built.items():
         law.guard = dict(guard)
+        set_start(law, start, [float(inv["r"][ref][0]) for ref in names])
         refs = {ref: (inv["r"][ref], inv["u_ff"][ref]) for ref in names}
         prefix = e.get("prefix")
         if prefix and len(built) > 1:     # one table per reference: one prefix each

@@ -131,7 +131,7 @@ def _nx(law: Law) -> int:
     if law.family == "k_filter":
         return i["d_a"] + 1 + i["d_w"] + 1 + 2 * (i["n_b"] + 1)
     if law.family == "rigid_body":
-        return 1 + i["n_den"]
+        return 2 + i["n_den"]
     return 1
 
 
@@ -215,8 +215,8 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
     env = ", ".join(f"{n} in [{lo:.6g}, {hi:.6g}]" for n, lo, hi in zip(REGRESSORS, g.env_lo, g.env_hi))
     common = dict(name=name, NAME=NAME, file=file, doc=doc, source=source, Ts=_num(law.Ts), ts_ns=ts_ns(law.Ts),
                   preview=law.preview, r_unit=law.units["r"], u_unit=law.units["u_ff"],
-                  rest_zero=int(law.rest == "zero"),
-                  rest_doc="0" if law.rest == "zero" else "r(0), the first reference sample",
+                  rest_zero=int(law.rest == "zero" and law.start == "study"),
+                  rest_doc="0" if (law.rest == "zero" and law.start == "study") else "r(0), the first reference sample",
                   cost_doc=_cost_doc(law), nx=_nx(law), precision=precision,
                   precision_doc="" if precision == "double" else
                   " The float variant: max|du|/max|u| against the double study is in manifest.json.",
@@ -239,7 +239,8 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
         fallback_kind=FALLBACKS.index(g.fallback) if g.fallback != "ramp" else 2,
         env_fallback=int(g.envelope_action == "fallback"), ramp_n=_num(g.ramp_n(law.Ts)),
         env_lo=", ".join(_num(v) for v in g.env_lo), env_hi=", ".join(_num(v) for v in g.env_hi),
-        phys=", ".join(_num(v) for v in g.physics))
+        phys=", ".join(_num(v) for v in g.physics), start_rest=int(law.start == "rest"), settle_n=law.settle,
+        static_exclude=int(law.static == "exclude"))
     if zoh_n > 1:
         guard += "\n" + _template("zoh.c").substitute(common, **zoh)
     snippets, df2t = _snippets(), "\n" + _text("df2t.c")
@@ -277,7 +278,8 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
         src = _template("rigid_body.c").substitute(
             common, **snippets, arrays=arrays, df2t=df2t if i["has_ctrl"] else "",
             n_terms=i["n_terms"], averaged=int(law.averaged), has_ctrl=i["has_ctrl"],
-            nden=i["n_den"], gtau=_num(law.floats["gtau"]))
+            nden=i["n_den"], gtau=_num(law.floats["gtau"]), start_rest=int(law.start == "rest"),
+            k0=_num(law.floats.get("k0", 0.0)))
     else:
         arrays = (_array("R_TABLE", law.arrays["r"], "the reference the signal was optimised for")
                   + _array("U_TABLE", law.arrays["u"], "u_ff"))

@@ -152,7 +152,8 @@ def regressors(r_c: np.ndarray, r0: float, preview: int, Ts: float) -> np.ndarra
     return _regressors_all(r_c, r0, preview, Ts)[preview:]
 
 
-def run_guard(g: Guard, Ts: float, preview: int, r: np.ndarray, r0: float, core) -> tuple[np.ndarray, np.ndarray]:
+def run_guard(g: Guard, Ts: float, preview: int, r: np.ndarray, r0: float, core,
+              u_start: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(u_ff, flags) of a guarded law on the whole reference r: ``core(r_c) -> (u, flags)`` is the
     law itself on the sanitized reference. The sequential part (fallback, limits) runs sample by
     sample in the C's order of operations, so both give the same doubles."""
@@ -180,7 +181,7 @@ def run_guard(g: Guard, Ts: float, preview: int, r: np.ndarray, r0: float, core)
     u = np.empty(N)
     du, ramp_n = g.du_max(Ts), g.ramp_n(Ts)
     M, Fv, Fc = g.physics
-    u_prev = u_hold = 0.0
+    u_prev = u_hold = float(u_start)   # the output before t = 0: the law at rest (0 N: the actuator at rest)
     m = 0
     for t in range(N):
         f = int(flags[t])

@@ -67,12 +67,22 @@ class Law:
     strings: dict = field(default_factory=dict)
     units: dict = field(default_factory=lambda: {"r": "m", "u_ff": "N"})
     guard: dict = field(default_factory=dict)   # limits, envelope, fallback (pipeline.export.guard.Guard)
+    start: str = "study"          # 'study': rest as above | 'rest': every state at rest at r0 (pipeline.invert.start)
+    static: str = "include"       # 'include': u_ff(0) = the law at rest at r0 | 'exclude': that constant taken off
+    settle: int = 0               # start 'rest': rest samples the law runs at init (+1) to reach its steady state
 
     def __post_init__(self):
         if self.law not in LAWS:
             raise ExportError(f"unknown feedforward law {self.law!r}; the exporter covers {list(LAWS)}")
         if self.rest not in ("zero", "first"):
             raise ExportError(f"rest must be 'zero' or 'first', got {self.rest!r}")
+        if self.start not in ("study", "rest") or self.static not in ("include", "exclude") or self.settle < 0:
+            raise ExportError(f"start must be 'study' or 'rest', static 'include' or 'exclude', settle >= 0; got "
+                              f"{self.start!r}, {self.static!r}, {self.settle}")
+        if self.static == "exclude" and self.start != "rest":
+            raise ExportError("static 'exclude' takes the force at rest at r0 off: it needs start 'rest'")
+        if self.start == "rest" and self.family == "table":
+            raise ExportError("a table replays a signal optimised for one reference: it has no rest to start from")
         for k, a in self.arrays.items():
             a = np.ascontiguousarray(a, dtype=np.float64) if np.asarray(a).dtype.kind == "f" \
                 else np.ascontiguousarray(a)
@@ -241,11 +251,15 @@ def from_measured_physics(physics, theta, ctrl) -> Law:
     t = physics.terms
     db, den = ctrl.reference_filter()
     has_ctrl = bool(np.any(db))
+    try:
+        k0 = ctrl.rest_gain() if has_ctrl else 0.0      # the controller term's rest value per metre (start 'rest')
+    except ValueError:
+        k0 = 0.0                                         # no rest away from 0: start 'rest' is refused upstream
     return Law(law="physics", family="rigid_body", Ts=float(physics.Ts), preview=1 + int(physics.averaged_input),
                rest="zero", averaged=bool(physics.averaged_input),
                ints={"n_terms": int(codes.size), "has_ctrl": int(has_ctrl), "n_den": int(den.size),
                      "cogging_harmonics": int(t.cogging_harmonics)},
-               floats={"gtau": float(ctrl.gtau), "stribeck_velocity": float(t.stribeck_velocity),
+               floats={"gtau": float(ctrl.gtau), "k0": float(k0), "stribeck_velocity": float(t.stribeck_velocity),
                        "coulomb_width": 0.0 if t.coulomb_width is None else float(t.coulomb_width),
                        "cogging_period": 0.0 if t.cogging_period is None else float(t.cogging_period)},
                arrays={"theta": theta, "theta_inv": physics.inverse_theta(theta), "codes": codes,
@@ -330,16 +344,48 @@ def feedforward(law: Law, r) -> np.ndarray:
         if r.shape != R.shape or np.max(np.abs(r - R)) > law.floats["r_tol"]:
             raise ExportError(f"this {law.law} signal was optimised offline for one reference of "
                               f"{R.size} samples; the given reference ({r.size} samples) differs from it")
-    return _core(law, r)[0]
+    return _started(law, r, start_position(law, r))[0]
 
 
 def guarded(law: Law, r) -> tuple[np.ndarray, np.ndarray]:
     """(u_ff [N], flags [N]) of ``law`` with its guard (:mod:`pipeline.export.guard`): what the C
-    ``<prefix>_step`` returns and leaves in ``s->status``, sample for sample. On a clean reference
-    inside the limits u_ff is :func:`feedforward`'s to the bit."""
+    ``<prefix>_step`` returns and leaves in ``s->status``, sample for sample, after ``<prefix>_init(&s, r0)``
+    with r0 = :func:`start_position`. On a clean reference inside the limits u_ff is :func:`feedforward`'s to
+    the bit."""
     r = _check_reference(r)
-    r0 = 0.0 if law.rest == "zero" else float(r[0])
-    return run_guard(law.g, law.Ts, law.preview, r, r0, lambda r_c: _core(law, r_c))
+    r0 = start_position(law, r)
+    r0 = r0 if math.isfinite(r0) else 0.0
+    u_start = _rest_value(law, r0)[1]
+    return run_guard(law.g, law.Ts, law.preview, r, r0, lambda r_c: _started(law, r_c, r0), u_start=u_start)
+
+
+def start_position(law: Law, r) -> float:
+    """The r0 of ``<prefix>_init(&s, r0)`` that reproduces the study: r(0), or 0 for a law the study ran from
+    r = 0 (``rest == 'zero'`` with start 'study')."""
+    return 0.0 if (law.start == "study" and law.rest == "zero") else float(np.asarray(r, dtype=np.float64)[0])
+
+
+def _rest_value(law: Law, r0: float) -> tuple[float, float]:
+    """(u_rest, u_start): the law at rest at r0 (its last sample on [r0] × (settle + 1), the C's last warm-up
+    step at init) and what the guard takes as the previous output at t = 0 (u_rest, 0 when excluded; 0 for
+    start 'study', the actuator at rest)."""
+    if law.start != "rest":
+        return 0.0, 0.0
+    u_rest = float(_core(law, np.full(law.settle + 1, r0))[0][-1])
+    return u_rest, (0.0 if law.static == "exclude" else u_rest)
+
+
+def _started(law: Law, r: np.ndarray, r0: float) -> tuple[np.ndarray, np.ndarray]:
+    """(u_ff, flags) of the law started as ``law.start`` says (pipeline.invert.start): for 'rest' the law runs
+    on [r0] × (settle + 1) + r, the rest samples dropped, the force at rest taken off when excluded."""
+    if law.start != "rest":
+        return _core(law, r)
+    n = law.settle + 1
+    u, f = _core(law, np.concatenate([np.full(n, r0), r]))
+    u, f = u[n:], f[n:]
+    if law.static == "exclude":
+        u = u - _rest_value(law, r0)[0]
+    return u, f
 
 
 def _check_reference(r) -> np.ndarray:
@@ -367,8 +413,9 @@ def _core(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             )
             u = rational_feedforward(_k_model(law), r).f
         else:
-            physics, ctrl = _rigid_body(law)
-            u = physics.feedforward(law.arrays["theta"], r) - ctrl.reference_force(r)
+            physics, ctrl = _rigid_body(law)   # the controller term from rest at r(0) when starting at rest
+            u = physics.feedforward(law.arrays["theta"], r) - ctrl.reference_force(
+                r, float(r[0]) if law.start == "rest" else 0.0)
         return u, np.where(np.isfinite(u), 0, FLAG["SINGULAR"])
     w, f = _pgnn_run(law, np.append(r, r[-1]) if law.averaged else r)
     f = f | np.where(np.isfinite(w), 0, FLAG["SINGULAR"])    # an overflow: kept, the guard falls back

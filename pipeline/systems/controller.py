@@ -175,14 +175,41 @@ class LTIController:
         den[:self.a.size] = self.a
         return db, den
 
-    def reference_force(self, r) -> np.ndarray:
+    @property
+    def integral_action(self) -> bool:
+        """A(1) = 0: the controller integrates, so at rest it holds any constant load with zero error."""
+        return bool(self.a.size > 1 and abs(float(np.sum(self.a))) <= 1e-9 * float(np.sum(np.abs(self.a))))
+
+    def rest_gain(self) -> float:
+        """K0 [units/m]: the controller's output (C_r - C_y)(1) r0 / r0 at rest at y = r = r0, the
+        steady state of the reference filter.  With integral action the rest value is whatever the
+        integrator holds (it absorbs any constant), so the feedforward's controller term counts from
+        r0: K0 = 0.  A pole at z = 1 that B_r - B_y does not cancel means the integrator sees r and y
+        with different weights: no rest away from r = 0 exists (ValueError)."""
+        db, den = self.reference_filter()
+        s_db, s_den = float(np.sum(db)), float(np.sum(den))
+        scale = float(np.sum(np.abs(db))) or 1.0
+        if self.integral_action:
+            if abs(s_db) > 1e-9 * scale:
+                raise ValueError(f"C_r - C_y of {self.describe()} integrates (B_r(1) = {float(np.sum(self.b_r)):.6g} "
+                                 f"differs from B_y(1) = {float(np.sum(self.b_y)):.6g}): the loop has no rest away "
+                                 "from r = 0; check num_r, or use start.at=zero")
+            return 0.0
+        return s_db / s_den
+
+    def reference_force(self, r, r0: float = 0.0) -> np.ndarray:
         """(C_r - C_y) r · gtau [N]: the controller's force when the axis follows r exactly.  The
-        feedforward that makes y = r is the model's inverse force minus this (module docstring)."""
+        feedforward that makes y = r is the model's inverse force minus this (module docstring).
+        From rest at ``r0`` (the filter's steady state there, :meth:`rest_gain`): the filter runs on
+        r - r0 from a zero state, plus K0 r0; r0 = 0 is the zero state (as before, to the bit)."""
         from scipy import signal  # lazy: saves 1.4 s of start-up (scipy.signal)
         db, den = self.reference_filter()
         if not np.any(db):                    # error feedback: exactly zero
             return np.zeros(np.shape(r))
-        return self.gtau * signal.lfilter(db, den, np.asarray(r, np.float64))
+        r = np.asarray(r, np.float64)
+        if r0 == 0.0:
+            return self.gtau * signal.lfilter(db, den, r)
+        return self.gtau * (signal.lfilter(db, den, r - r0) + self.rest_gain() * r0)
 
     def recorded_output(self, u, d) -> np.ndarray:
         """c_meas(k) = u(k+D)/gtau - d(k+D) [units] (the last D samples are unknown: NaN)."""

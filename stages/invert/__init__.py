@@ -5,6 +5,9 @@ reference) and optionally ``check(cfg, system)``.  The references are ``evaluate
 On a measured system the applied feedforward is the model inverse minus the force the controller
 outputs when the axis follows the reference exactly, (C_r - C_y) r (``LTIController.
 reference_force``): zero for error feedback, the velocity feedback on r for the EMPS cascade.
+Every law starts as the ``start`` node says (``pipeline.invert.start``): at rest at r(0) on a measured
+system (every state steady there, the controller term from its rest value; with ``start.static=exclude``
+the force at rest taken off), the papers' conventions on the simulators.
 """
 from __future__ import annotations
 
@@ -17,8 +20,8 @@ from pipeline.runner import ConfigError, implementation
 from stages._common import check_references, reference_specs
 
 UPSTREAM = ("generate", "baseline", "train")
-DEPENDS = ("invert", "evaluate.references", "evaluate.noise")  # fhofc scores the bound terms on the measured Y
-VERSION = 2   # 2: reference_warning when the feedforward spikes at an end of the reference
+DEPENDS = ("invert", "evaluate.references", "evaluate.noise", "start")  # fhofc scores the bound terms on the measured Y
+VERSION = 3   # 2: reference_warning when the feedforward spikes at an end of the reference; 3: start (issue 48)
 KIND_KEY = "invert.kind"
 
 
@@ -30,30 +33,68 @@ def validate(cfg, system) -> None:
     impl = implementation("invert", str(cfg.invert.kind))
     if hasattr(impl, "check"):
         impl.check(cfg, system)
+    try:
+        st = start_of(cfg, system)
+        if st.rest and system is not None and system.measured:
+            system.ctrl.rest_gain()       # a controller with no rest away from 0 is named before any work
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from exc
+    if st.rest and str(cfg.invert.kind) in TABLES:
+        raise ConfigError(f"start.at=rest: invert.kind={cfg.invert.kind} is a signal optimised offline for one "
+                          "reference and starts where that reference starts; use start.at=zero")
+
+
+#: laws that are signals optimised for one reference (no state to start)
+TABLES = ("fhofc", "il_fhofc")
+
+
+def start_of(cfg, system):
+    """The job's :class:`~pipeline.invert.start.Start` (``auto`` decided for its system)."""
+    from pipeline.invert.start import resolve
+    return resolve(cfg.get("start"), system)
 
 
 def run(ctx) -> dict:
+    from pipeline.invert.start import settle_count, started
     impl = implementation("invert", str(ctx.cfg.invert.kind))
     refs = check_references(reference_specs(ctx.cfg.evaluate.references), ctx.system, ctx.cfg)
+    st = start_of(ctx.cfg, ctx.system)
+    ctrl = ctx.system.ctrl if ctx.system.measured else None
     u_ff, edge = {}, []
     for name, r in ctx.progress(refs.items(), desc="feedforward", total=len(refs)):
         t0 = time.perf_counter()
-        f = np.asarray(impl.feedforward(ctx, name, r), dtype=np.float64)
+        law = lambda rr: np.asarray(impl.feedforward(ctx, name, rr), dtype=np.float64)   # noqa: E731
+        r0 = float(r[0])
+        if st.rest:               # every state at rest at r(0) (pipeline.invert.start)
+            n_metrics = len(ctx.metrics)
+            settle = settle_count(law, [r0])
+            del ctx.metrics[n_metrics:]     # the law's own metrics of the rest probe are not the reference's
+            f, u_rest = started(law, r, r0, settle)
+            ctx.metric(f"{name}/start_settle_samples", settle)
+        else:
+            f = law(r)
         ctx.metric(f"{name}/seconds_per_sample", (time.perf_counter() - t0) / r.size)
         if f.shape != r.shape or not np.all(np.isfinite(f)):
             raise ValueError(f"invert.kind={ctx.cfg.invert.kind} returned a feedforward of shape "
                              f"{f.shape} with {int((~np.isfinite(f)).sum())} non-finite values for "
                              f"reference '{name}' (expected {r.shape}, all finite)")
-        if ctx.system.measured:   # a 2-DOF controller: cancel its output on y = r
-            f = f - ctx.system.ctrl.reference_force(r)
+        if ctrl is not None:      # a 2-DOF controller: cancel its output on y = r
+            f = f - ctrl.reference_force(r, r0 if st.rest else 0.0)
+            if st.rest:
+                u_rest -= ctrl.gtau * ctrl.rest_gain() * r0
+        if st.rest:
+            if st.static == "exclude":
+                f = f - u_rest
+            ctx.metric(f"{name}/static_force_at_start", u_rest)
         u_ff[name] = f
-        msg = edge_warning(name, r, f, float(ctx.system.Ts))
+        msg = edge_warning(name, r, f, float(ctx.system.Ts), st.at)
         if msg:
             edge.append(msg)
             warnings.warn(msg, stacklevel=1)
     if edge:
         ctx.tag("reference_warning", " ".join(edge))
-    out = {"u_ff": u_ff, "r": refs}
+    ctx.tag("start", f"{st.at}, static {st.static}")
+    out = {"u_ff": u_ff, "r": refs, "start": {"at": st.at, "static": st.static}}
     if ctx.system.measured:   # evaluate replays the identified model in the recorded loop
         out["loop"] = loop_model(ctx)
     return out
@@ -65,29 +106,37 @@ EDGE_SAMPLES = 3
 EDGE_RATIO = 2.0
 
 
-def edge_warning(name: str, r: np.ndarray, u_ff: np.ndarray, Ts: float) -> str | None:
-    """A warning when the feedforward spikes at an end of the reference: every law starts from a reference at
-    rest (r(-1) = 0 or r(0)) and holds r after its last sample, so a recording that starts away from that or
-    ends while moving asks for an instant start or stop, and its first or last samples carry the force of it
-    (a recording cut mid-motion: 390 N at the end where the motion needs 5 N). None when both ends are calm."""
+def edge_warning(name: str, r: np.ndarray, u_ff: np.ndarray, Ts: float, at: str = "rest") -> str | None:
+    """A warning when the feedforward spikes at an end of the reference: a law takes the reference at rest before
+    its first sample (at r(0) with ``start.at=rest``, at 0 with ``zero``) and held after its last, so a reference
+    that starts moving, or starts away from 0 under ``zero``, or ends while moving asks for an instant start or
+    stop there (a recording cut mid-motion: 390 N at the end where the motion needs 5 N). None when both ends
+    are calm. A reference at rest away from 0 is normal under ``rest``: no spike, no warning."""
     k = EDGE_SAMPLES
     if r.size <= 4 * k:
         return None
     inner = float(np.max(np.abs(u_ff[k:-k])))
     v = np.abs(np.diff(r)) / Ts
     v_peak = float(np.max(v)) if v.size else 0.0
-    parts = []
+    parts, why = [], []
     for end, u_end, v_end in (("starts", u_ff[:k], v[0]), ("ends", u_ff[-k:], v[-1])):
         peak = float(np.max(np.abs(u_end)))
         if peak > EDGE_RATIO * inner:
-            parts.append(f"{end} with |u_ff| = {peak:.4g} against {inner:.4g} inside (r {end} at "
-                         f"{float(r[0] if end == 'starts' else r[-1]):.4g}, moving at {v_end:.3g} per s, its peak "
-                         f"{v_peak:.3g} per s)")
+            r_end = float(r[0] if end == "starts" else r[-1])
+            parts.append(f"{end} with |u_ff| = {peak:.4g} against {inner:.4g} inside (r {end} at {r_end:.4g}, "
+                         f"moving at {v_end:.3g} per s, its peak {v_peak:.3g} per s)")
+            if end == "starts" and at == "zero" and r_end != 0.0 and v_end <= 1e-3 * v_peak:
+                why.append("the reference starts at rest away from 0 while start.at=zero takes it at 0 before its "
+                           "first sample: set start.at=rest (the default on a measured system)")
+            elif v_end > 1e-3 * v_peak:
+                why.append(f"the reference {end} while moving: the law takes it at rest before its first sample "
+                           "and held after its last, so those samples ask for an instant start or stop; start and "
+                           "end the reference at rest, or leave those samples out of the comparison")
     if not parts:
         return None
-    return (f"reference '{name}' " + " and ".join(parts) + ": the feedforward assumes the reference at rest "
-            "before its first sample and held after its last, so those samples ask for an instant start or stop. "
-            "Start and end the recording at rest, or leave its first and last samples out of the comparison.")
+    if not why:
+        why.append("the law takes the reference at rest before its first sample and held after its last")
+    return f"reference '{name}' " + " and ".join(parts) + ": " + "; ".join(why) + "."
 
 
 def loop_model(ctx):

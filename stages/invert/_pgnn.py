@@ -63,6 +63,8 @@ def log_diagnostics(ctx, name: str, model, r: np.ndarray) -> None:
       ``y_clean`` is the noise-free one-step output h(φ)): the share of the variance of the
       true unmodelled dynamics g = h - f_phy(θ̂_phy) on the training rows that f_NN explains.
     """
+    if r.size < 2:
+        return   # a rest probe of the start (pipeline.invert.start): no motion to compare
     ds = ctx.inputs["generate"]["dataset"]
     Ts = float(ctx.system.Ts)
     v_train = max(float(np.max(np.abs(np.diff(seg["y"].to_numpy(np.float64))))) for seg in ds.segments()) / Ts

@@ -13,9 +13,28 @@ static const double ENV_HI[3] = {${env_hi}};
 static const double PHYS[3] = {${phys}};    /* physics fallback: M, F_v, F_c */
 #endif
 
+#define START_REST ${start_rest}        /* 1: init puts every state at rest at r0 (pipeline/invert/start.py) */
+#define SETTLE_N ${settle_n}u          /* rest samples the law needs to reach its steady state */
+#define STATIC_EXCLUDE ${static_exclude}  /* 1: the force at rest at r0 is taken off (the loop holds the load) */
+
 void ${name}_init(${name}_state *s, double r0)
 {
-    law_init(s, isfinite(r0) ? r0 : 0.0);
+    const double r = isfinite(r0) ? r0 : 0.0;
+    law_init(s, r);
+#if START_REST   /* SETTLE_N + 1 law steps on a reference held at r0: the last is the law at rest, u_rest */
+    {
+        double rp[G_PREVIEW + 1], u = 0.0;
+        uint64_t k;
+        int i;
+        for (i = 0; i <= G_PREVIEW; ++i) rp[i] = r;
+        for (k = 0u; k <= SETTLE_N; ++k) u = law_step(s, rp);
+        s->u_static = STATIC_EXCLUDE ? u : 0.0;
+        s->u_prev = u - s->u_static;   /* the output before t = 0: the law at rest (no slew from 0 N) */
+        s->u_hold = s->u_prev;
+        s->status = 0;
+        s->primed = 0;   /* an averaged input computes w(0) from the real preview at t = 0, as the study does */
+    }
+#endif
 }
 
 double ${name}_step(${name}_state *s, const double *r_preview)
@@ -44,6 +63,9 @@ double ${name}_step(${name}_state *s, const double *r_preview)
     }   /* x: the newest, n = t + P (the physics fallback's regressors) */
     if (!inside) flags |= ${NAME}_OUT_OF_RANGE;
     u = law_step(s, ext + 2);
+#if START_REST
+    u -= s->u_static;
+#endif
     flags |= s->status;
     invalid = ((flags & ${NAME}_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
     if (invalid) {

@@ -49,6 +49,7 @@ typedef struct {
     double r_hist[2];      /* guard: r(t-1), r(t-2) after sanitation */
     double u_prev;         /* guard: the last output (slew limit) */
     double u_hold;         /* guard: the last output of a valid sample (fallback) */
+    double u_static;       /* start: the force at rest at r0 taken off every output (start.static=exclude) */
     int primed;            /* averaged model input: w(0) computed */
     int status;            /* flags of the last sample (0: clean) */
     uint64_t n_invalid;    /* guard: invalid samples in a row (ramp; saturates) */

@@ -6,5 +6,6 @@
     s->n_invalid = 0;
     s->u_prev = 0.0;
     s->u_hold = 0.0;
+    s->u_static = 0.0;
     s->r_hist[0] = r0;
     s->r_hist[1] = r0;

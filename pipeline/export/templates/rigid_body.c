@@ -12,9 +12,12 @@
 #define NDEN ${nden}            /* (B_r - B_y), A coefficients in q^-1 (A[0] = 1) */
 #define TS_R (${Ts})
 #define GTAU (${gtau})
-/* state x: [r(t-1) | lfilter z of (C_r - C_y) r, NDEN] */
+#define START_REST_CTRL ${start_rest}   /* the controller term from its rest at r0 (LTIController.reference_force) */
+#define K0 (${k0})                       /* (C_r - C_y) at rest [units/m]; 0 with integral action */
+/* state x: [r(t-1) | lfilter z of (C_r - C_y) (r - r0), NDEN | r0] */
 #define XR 0
 #define XZ 1
+#define XR0 (1 + NDEN)
 
 ${arrays}
 static inline double force_term(int code, double p, double q, double v)
@@ -49,13 +52,18 @@ static void law_init(${name}_state *s, double r0)
     int i;
     for (i = 0; i < ${NAME}_NX; ++i) s->x[i] = 0.0;
     s->x[XR] = r0;
+    s->x[XR0] = START_REST_CTRL ? r0 : 0.0;
 ${reset}}
 
 static double law_step(${name}_state *s, const double *r_preview)
 {
     double u;
 ${averaged_step}#if HAS_CTRL   /* minus the controller's force on y = r: gtau (C_r - C_y) r */
+#if START_REST_CTRL
+    u = u - GTAU * (df2t(s->x + XZ, r_preview[0] - s->x[XR0]) + K0 * s->x[XR0]);
+#else
     u = u - GTAU * df2t(s->x + XZ, r_preview[0]);
+#endif
 #endif
     s->status = isfinite(u) ? 0 : ${NAME}_SINGULAR;
     return u;

@@ -40,6 +40,7 @@ from pipeline.errors import ConfigError
 from pipeline.export import law as laws
 from pipeline.export.c_code import c_name
 from pipeline.export.guard import Guard, envelope_of
+from pipeline.invert.start import settle_count
 from pipeline.export.misra import find_cppcheck
 from pipeline.export.package import check_prefix, find_compiler, reference_file_clash, write_package
 from pipeline.params import COUNT_MAX, FORCE_MAX, FREQ_MAX, schema, spec
@@ -149,21 +150,26 @@ def zoh_factor(target_rate: float, Ts: float) -> int:
     return int(N)
 
 
-def physics_coefficients(system, theta) -> list | None:
-    """[M, F_v, F_c] of the system's rigid-body physics law (the physics fallback), None if it has
-    none; with theta None only whether it has one ([0, 0, 0])."""
+def physics_coefficients(system, theta) -> dict | None:
+    """The physics fallback of the system's rigid-body law, every force term of it (Guard's ``physics`` =
+    [M, p_1, ...], ``physics_codes``, ``physics_consts``: M δ²r + Σ_j p_j T_j(r, δr)), None if it has none;
+    with theta None only whether it has one (zeros). A measured axis keeps all its configured terms (the offset
+    is gravity on a vertical axis: without it the fallback dropped the load); the linear motor's (8) is
+    [m, f_v, f_c] with T = δr, sign δr."""
     physics = getattr(system, "physics", None)
     law = getattr(physics, "physics_law", None)
     if law not in ("linear_motor", "rigid_body"):
         return None
+    if law == "linear_motor":          # [m, f_v, f_c], (8): viscous, sign (force_terms codes 0, 1)
+        codes, consts = [0, 1], [0.0, 0.0]
+    else:
+        c, k = physics.terms.kernel()
+        codes, consts = [int(v) for v in c], [float(v) for v in k]
     if theta is None:
-        return [0.0, 0.0, 0.0]
-    t = [float(v) for v in physics.inverse_theta(theta)]
-    if law == "linear_motor":          # [m, f_v, f_c], (8)
-        return t[:3]
-    names = [e[0] for e in physics.terms.expanded()]
-    pick = lambda n: t[1 + names.index(n)] if n in names else 0.0   # noqa: E731
-    return [t[0], pick("fv_over_m"), pick("fc_over_m")]
+        t = [0.0] * (1 + len(codes))
+    else:
+        t = [float(v) for v in physics.inverse_theta(theta)][:1 + len(codes)]
+    return {"physics": t, "physics_codes": codes, "physics_consts": consts}
 
 
 def data_limits(segments, Ts: float) -> tuple[float, float]:
@@ -180,9 +186,10 @@ def data_limits(segments, Ts: float) -> tuple[float, float]:
     return u_abs or math.inf, du_abs or math.inf
 
 
-def guard_of(ctx) -> dict:
-    """The guard of every law of the job from export.limits, the identification data's envelope and
-    the physics fallback's coefficients (pipeline.export.guard.Guard)."""
+def guard_of(ctx) -> tuple[dict, str]:
+    """(the guard of every law of the job, where its limits come from): export.limits, else the identification
+    data's force range and slew (``data_limits``, ``Limits.data_margin``), the data's envelope and the physics
+    fallback's coefficients (pipeline.export.guard.Guard)."""
     lim = ctx.cfg.export.limits          # every key set by pipeline.schema (null: no limit)
     bound = lambda k, none: none if lim.get(k) is None else float(lim.get(k))   # noqa: E731
     ds = ctx.inputs["generate"]["dataset"]
@@ -193,12 +200,18 @@ def guard_of(ctx) -> dict:
         f = 1.0 + float(lim.data_margin)
         bound = lambda k, none: (f * (-u_abs if k == "u_min" else u_abs if k == "u_max" else du_abs)  # noqa: E731
                                  if lim.get(k) is None else float(lim.get(k)))
-    phys = [0.0, 0.0, 0.0]
+    given = [k for k in ("u_min", "u_max", "rate") if lim.get(k) is not None]
+    src = (f"{', '.join(given) or 'none'} from export.limits; "
+           + ("the others none (export.limits.data_margin=null)" if lim.get("data_margin") is None else
+              f"the others from the identification data's applied force: ±{1 + float(lim.data_margin):g} x max|u| "
+              f"= {u_abs:.6g} N and {1 + float(lim.data_margin):g} x max|du/dt| = {du_abs:.6g} N/s "
+              f"(export.limits.data_margin={float(lim.data_margin):g})"))
+    phys = {}                            # the Guard's default physics (unused unless fallback=physics)
     if lim.fallback == "physics":
         phys = physics_coefficients(ctx.system, ctx.inputs["baseline"]["theta"])
     return asdict(Guard(u_min=bound("u_min", -math.inf), u_max=bound("u_max", math.inf),
                         rate=bound("rate", math.inf), env_lo=lo, env_hi=hi, envelope_action=str(lim.envelope_action),
-                        fallback=str(lim.fallback), ramp_time=float(lim.ramp_time), physics=phys))
+                        fallback=str(lim.fallback), ramp_time=float(lim.ramp_time), **phys)), src
 
 
 def set_start(law: "laws.Law", start: dict, r0s: list[float]) -> None:
@@ -207,7 +220,6 @@ def set_start(law: "laws.Law", start: dict, r0s: list[float]) -> None:
     the references' r(0) and the training envelope's ends) measured on the law itself."""
     if start["at"] != "rest" or law.family == "table":
         return
-    from pipeline.invert.start import settle_count
     law.start, law.static, law.rest = "rest", str(start["static"]), "first"
     lo, hi = law.g.env_lo[0], law.g.env_hi[0]
     r0s = sorted(set(r0s) | {v for v in (lo, hi) if math.isfinite(v)})
@@ -273,11 +285,12 @@ def run(ctx) -> dict:
     out = ctx.workdir / "artifacts"
     manifests, worst = {}, 0.0
     built = build_laws(ctx)
-    guard = guard_of(ctx)
+    guard, limits_source = guard_of(ctx)
     zoh_n = 1 if e.get("target_rate") is None else zoh_factor(float(e.target_rate), float(ctx.system.Ts))
     start = inv.get("start") or {"at": "zero", "static": "include"}
     for name, (law, names) in built.items():
         law.guard = dict(guard)
+        law.strings["limits_source"] = limits_source
         set_start(law, start, [float(inv["r"][ref][0]) for ref in names])
         refs = {ref: (inv["r"][ref], inv["u_ff"][ref]) for ref in names}
         prefix = e.get("prefix")

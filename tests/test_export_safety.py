@@ -228,7 +228,7 @@ def test_rate_is_checked_at_build_and_the_zero_order_hold_holds_the_law(tmp_path
     u_law = guarded(law, rf[::n])[0]
     np.testing.assert_array_equal(u[::n], u_law)
     np.testing.assert_array_equal(u.reshape(-1)[1:4], np.full(3, u_law[0]))
-    wrong = subprocess.run([CC, "-std=c99", "-DAXIS1_LOOP_TS_NS=250000", "-c", "-o", str(pkg / "x.o"),
+    wrong = subprocess.run([CC, "-std=c99", "-DAXIS1_LOOP_TS_NS=500000", "-c", "-o", str(pkg / "x.o"),
                             str(pkg / "zoh.c")], capture_output=True, text=True)
     assert wrong.returncode != 0 and "for Ts = 0.001 s only" in wrong.stderr
     ok = subprocess.run([CC, "-std=c99", "-DAXIS1_LOOP_TS_NS=1000000", "-c", "-o", str(pkg / "x.o"),

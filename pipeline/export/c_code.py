@@ -32,8 +32,8 @@ from pipeline.export.law import ExportError, Law
 
 __all__ = ["c_name", "write_c", "CFLAGS"]
 
-#: the compile line the package is verified with (and the README quotes)
-CFLAGS = ("-std=c99", "-O2", "-Wall", "-Wextra", "-Werror")
+#: the compile line the package is verified with (and the README quotes); clean under gcc and clang
+CFLAGS = ("-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-Wconversion", "-Wdouble-promotion")
 
 _LAW_DOC = {
     "physics": "physics feedforward [B1] (8): the analytic inverse of the physics model with θ*_phy",
@@ -135,6 +135,13 @@ def _nx(law: Law) -> int:
     return 1
 
 
+def _start_lines(law: Law) -> str:
+    """The header's start paragraph (``Law.start_doc``): what init assumes, what u_ff(0) is."""
+    d = law.start_doc()
+    text = f"{d['init']}. u_ff at switch-on, on a reference at rest: {d['u_ff_at_switch_on']}."
+    return "\n".join(f" *              {line}" for line in textwrap.wrap(text, 92))
+
+
 def _cost_doc(law: Law) -> str:
     f = law.flops_per_sample()
     base = f"{f['flops']} flops, {f['elementary_calls']} tanh/exp calls"
@@ -199,11 +206,12 @@ def _single(text: str) -> str:
 
 def write_c(law: Law, name: str, folder: Path, source: str, example: str = "reference.csv", *,
             prefix: str | None = None, precision: str = "double", zoh_n: int = 1,
-            check_tol: float = 1e-9) -> list[Path]:
+            check_tol: float = 1e-9, check_atol: float = 0.0) -> list[Path]:
     """Write ``<name>.h``, ``<name>.c`` and ``main_<name>.c`` into ``folder``; returns the paths.
     ``prefix``: the C symbols' prefix (default ``name``); ``precision``: double | single (the law's
     arithmetic; the harness reads and writes double); ``zoh_n`` > 1: also a zero-order-hold wrapper
-    for a loop ``zoh_n`` times faster; ``check_tol``: the harness's --check tolerance."""
+    for a loop ``zoh_n`` times faster; the harness's --check accepts |u_c(t) - u(t)| <= ``check_atol``
+    + ``check_tol`` |u(t)| per sample, and the flags exactly."""
     file = c_name(name)
     name = c_name(prefix or name)
     NAME = name.upper()
@@ -217,29 +225,39 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
                   preview=law.preview, r_unit=law.units["r"], u_unit=law.units["u_ff"],
                   rest_zero=int(law.rest == "zero" and law.start == "study"),
                   rest_doc="0" if (law.rest == "zero" and law.start == "study") else "r(0), the first reference sample",
-                  cost_doc=_cost_doc(law), nx=_nx(law), precision=precision,
+                  cost_doc=_cost_doc(law), nx=_nx(law), precision=precision, start_lines=_start_lines(law),
                   precision_doc="" if precision == "double" else
                   " The float variant: max|du|/max|u| against the double study is in manifest.json.",
                   envelope_doc=f"{env}; {'falls back' if g.envelope_action == 'fallback' else 'flag only'}",
                   fallback=g.fallback,
                   fallback_doc={"hold": " (the last valid output)",
                                 "ramp": f" (the last valid output ramped to 0 over {g.ramp_time:g} s)",
-                                "physics": f" (M d2r + F_v dr + F_c sign dr, [M, F_v, F_c] = "
-                                           f"[{', '.join(f'{v:.6g}' for v in g.physics)}]; holds on NaN)"}[g.fallback],
+                                "physics": f" (M d2r + sum_j p_j T_j(r, dr), every force term: [M, p_j] = "
+                                           f"[{', '.join(f'{v:.6g}' for v in g.physics)}], T_j codes "
+                                           f"{g.physics_codes}; holds on NaN)"}[g.fallback],
                   u_min_doc=lim(g.u_min), u_max_doc=lim(g.u_max), rate_doc=lim(g.rate),
                   status_lines="\n".join(f" *                {NAME}_{f} = {v}: {d}" for f, v, d in flags),
                   source_lines="\n".join(f" *   {line}" for line in textwrap.wrap(source, 96)),
                   flag_defines="\n".join(f"#define {NAME}_{f} {v}" for f, v, _ in FLAGS),
                   zoh_doc="" if zoh_n == 1 else f"\n *              {name}_zoh_step: the law held for a loop "
-                                                f"{zoh_n} x faster (Ts_loop = Ts / {zoh_n}).")
-    zoh = dict(zoh_n=zoh_n, ts_loop=_num(law.Ts / zoh_n))
+                                                f"{zoh_n} x faster (Ts_loop = Ts / {zoh_n}, {NAME}_LOOP_TS_NS = "
+                                                f"{ts_ns(law.Ts / zoh_n)} passes too).",
+                  # the loop period of the ZOH wrapper passes the rate check as well as the law's own
+                  zoh_rate_check="" if zoh_n == 1 else f" && ({NAME}_LOOP_TS_NS != {ts_ns(law.Ts / zoh_n)})",
+                  zoh_rate_doc="" if zoh_n == 1 else
+                  f" (or Ts_loop = {_num(law.Ts / zoh_n)} s through {name}_zoh_step)")
+    zoh = dict(zoh_n=zoh_n, ts_loop=_num(law.Ts / zoh_n), zoh_ts_ns=ts_ns(law.Ts / zoh_n),
+               du_loop=_num(g.du_max(law.Ts) / zoh_n))      # the slew limit per loop sample: rate Ts / N
     common["zoh_api"] = "\n" + _template("zoh.h").substitute(common, **zoh) if zoh_n > 1 else ""
     guard = "\n" + _template("guard.c").substitute(
         common, sat_lo=_num(g.u_min), sat_hi=_num(g.u_max), du_max=_num(g.du_max(law.Ts)),
         fallback_kind=FALLBACKS.index(g.fallback) if g.fallback != "ramp" else 2,
         env_fallback=int(g.envelope_action == "fallback"), ramp_n=_num(g.ramp_n(law.Ts)),
         env_lo=", ".join(_num(v) for v in g.env_lo), env_hi=", ".join(_num(v) for v in g.env_hi),
-        phys=", ".join(_num(v) for v in g.physics), start_rest=int(law.start == "rest"), settle_n=law.settle,
+        phys=", ".join(_num(v) for v in g.physics), n_phys=len(g.physics) - 1,
+        phys_codes=", ".join([str(c) for c in g.physics_codes] + ["0"]),        # + one unused: C99 has no
+        phys_consts=", ".join([_num(v) for v in g.physics_consts] + ["0.0"]),   # empty arrays (no terms)
+        start_rest=int(law.start == "rest"), settle_n=law.settle,
         static_exclude=int(law.static == "exclude"))
     if zoh_n > 1:
         guard += "\n" + _template("zoh.c").substitute(common, **zoh)
@@ -289,7 +307,7 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
     if precision == "single":
         header, src = _single(header), _single(src)
     harness = _template("harness.c").substitute(common, example=example, check_tol=_num(check_tol),
-                                                check_flags=int(precision == "double"))
+                                                check_atol=_num(check_atol))
     files = {f"{file}.h": header, f"{file}.c": src, f"main_{file}.c": harness}
     out = []
     for fname, text in files.items():

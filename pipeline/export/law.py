@@ -95,6 +95,25 @@ class Law:
     def g(self) -> Guard:
         return Guard(**self.guard)
 
+    def start_doc(self) -> dict:
+        """What the law assumes before t = 0 and what it gives at switch-on (manifest ``start``, README)."""
+        if self.start == "rest":
+            at = (f"init(&s, r0) puts every state at rest at r0 (the axis standing there, the loop running): it "
+                  f"runs the law {self.settle + 1} sample(s) on a reference held at r0; pass r0 = r(0), where the "
+                  "axis stands")
+            u0 = ("0 N: the force at rest at r0 (gravity, springs, offsets, the controller's rest output) is taken "
+                  "off every sample, because the loop's integrator already holds it at switch-on"
+                  if self.static == "exclude" else
+                  "the law's force at rest at r0 (gravity, springs, offsets minus the controller's rest output): "
+                  "right when the feedforward is on from power-up, before any integrator holds the load")
+        else:
+            r0 = "0" if self.rest == "zero" else "r(0)"
+            at = (f"the study's convention: the reference at rest at {r0} before t = 0, past inputs 0; init(&s, r0) "
+                  f"with r0 = {r0} reproduces the study (references that start at 0)")
+            u0 = "the law's first sample as the study computed it"
+        return {"at": "rest" if self.start == "rest" else "zero", "static": self.static,
+                "settle_samples": self.settle, "init": at, "u_ff_at_switch_on": u0}
+
     # ---- storage (json + npz: nothing executes on load) -----------------------------------
     def save(self, folder: Path) -> None:
         folder = Path(folder)
@@ -371,7 +390,10 @@ def _rest_value(law: Law, r0: float) -> tuple[float, float]:
     start 'study', the actuator at rest)."""
     if law.start != "rest":
         return 0.0, 0.0
-    u_rest = float(_core(law, np.full(law.settle + 1, r0))[0][-1])
+    with np.errstate(over="ignore", invalid="ignore"):
+        u_rest = float(_core(law, np.full(law.settle + 1, r0))[0][-1])
+    if not math.isfinite(u_rest):     # an absurd r0 overflowed the law: nothing to take off; its samples fall back
+        u_rest = 0.0
     return u_rest, (0.0 if law.static == "exclude" else u_rest)
 
 
@@ -413,9 +435,13 @@ def _core(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             )
             u = rational_feedforward(_k_model(law), r).f
         else:
-            physics, ctrl = _rigid_body(law)   # the controller term from rest at r(0) when starting at rest
-            u = physics.feedforward(law.arrays["theta"], r) - ctrl.reference_force(
-                r, float(r[0]) if law.start == "rest" else 0.0)
+            physics, ctrl = _rigid_body(law)   # RigidBodyPhysics.feedforward's operations, an overflow kept (flagged)
+            with np.errstate(over="ignore", invalid="ignore"):
+                rp = np.concatenate([[0.0], r, r[-1:], r[-1:]])                 # r(-1) = 0 .. r(N+1)
+                w = physics.inverse_features(np.stack([rp[2:], rp[1:-1], rp[:-2]], axis=1)) \
+                    @ physics.inverse_theta(law.arrays["theta"])
+                u = (0.5 * (w[:-1] + w[1:]) if law.averaged else w[:-1]) \
+                    - ctrl.reference_force(r, float(r[0]) if law.start == "rest" else 0.0)   # from rest at r(0)
         return u, np.where(np.isfinite(u), 0, FLAG["SINGULAR"])
     w, f = _pgnn_run(law, np.append(r, r[-1]) if law.averaged else r)
     f = f | np.where(np.isfinite(w), 0, FLAG["SINGULAR"])    # an overflow: kept, the guard falls back

@@ -96,33 +96,44 @@ def readme(law, name: str, man: dict) -> str:
              "## C API", "", "```c",
              f'#include "{name}.h"',
              f"{p}_state s;",
-             f"{p}_init(&s, r0);                    /* at rest at r0 (study: {P}_REST_AT_ZERO ? 0 : r(0)) */",
+             f"{p}_init(&s, r0);                    /* at rest at r0: where the axis stands (below) */",
              f"u = {p}_step(&s, r_preview);        /* r_preview[0..{P}_PREVIEW] = r(t) .. r(t+P) */",
-             f"if (s.status & {P}_FALLBACK) ...     /* flags of this sample, table below */", "```", ""]
+             f"if (s.status & {P}_FALLBACK) ...     /* flags of this sample, table below */", "```", "",
+             "## Start and switch-on", "",
+             f"- start: {man['start']['init']}.",
+             f"- u_ff at switch-on, on a reference at rest: {man['start']['u_ff_at_switch_on']}.", ""]
     if "zoh" in man:
         z = man["zoh"]
         lines += [f"Loop {z['factor']} x faster (Ts_loop = {z['loop_Ts']:g} s): `{p}_zoh_init`, `{p}_zoh_step(&z, "
                   f"r_fast)` with r_fast[0..{P}_ZOH_PREVIEW]; the law runs every {z['factor']}th call and its "
-                  f"output is held (zero-order hold). Effect on u_ff on the first reference: max|Δu|/max|u| = "
+                  f"output is held (zero-order hold), reached at the slew limit per loop sample (|du| <= "
+                  f"{z.get('du_loop', float('inf')):g} N, `{P}_ZOH_DU`); `{P}_LOOP_TS_NS` may be the loop period. "
+                  f"Effect on u_ff on the first reference: max|Δu|/max|u| = "
                   f"{z['max_rel_diff_vs_interpolated']:.3g} against the law's u_ff interpolated linearly, mean delay "
                   f"{z['mean_delay_s']:g} s.", ""]
     lines += [f"Compile: `{man['compile']}`. A build for another loop rate stops with `#error` when "
               f"`{P}_LOOP_TS_NS` (the loop period in ns) is defined and differs from `{P}_TS_NS`.", "",
               "## Guard (limits, envelope, fallback)", "",
               f"- saturation u_ff in [{lim['u_min']}, {lim['u_max']}] N (flag SATURATED); slew |Δu| <= {lim['rate']} "
-              "N/s x Ts (RATE_LIMITED), from u(-1) = 0",
+              "N/s x Ts (RATE_LIMITED), from the output at rest before t = 0 (" + ("the law at rest at r0"
+              if man["start"]["at"] == "rest" else "0 N") + "); " + man.get("limits_source", ""),
               "- training envelope of (r, dr/dt, d2r/dt2) at every sample of the window r(t-2) .. r(t+P): lo = "
               f"{[float(f'{v:.6g}') for v in env['lo']]}, hi = {[float(f'{v:.6g}') for v in env['hi']]}; outside: "
               f"OUT_OF_RANGE ({'and the fallback' if env['action'] == 'fallback' else 'flag only'})",
               "- a NaN/inf reference sample is replaced by the last finite one (NONFINITE_INPUT) and the sample "
               f"gets the fallback `{man['fallback']['kind']}` (FALLBACK): hold = the last valid output; ramp = that "
-              f"output ramped to 0 over {man['fallback']['ramp_time']:g} s; physics = M d2r + F_v dr + F_c sign dr "
-              "(holds on a NaN reference). Never a step to 0 N.", "",
+              f"output ramped to 0 over {man['fallback']['ramp_time']:g} s; physics = M d2r + sum_j p_j T_j(r, dr) "
+              "with every force term of the system (holds on a NaN reference). Never a step to 0 N.",
+              "- an overflow (a non-finite regressor or law output, SINGULAR) falls back too; a non-finite law output "
+              "latches the fallback until the next init; otherwise the output returns to the law's linearly over "
+              f"{man['fallback']['ramp_time']:g} s (FALLBACK until it is back)", "",
               "## Flags (`s.status`)", "", "| flag | bit | meaning |", "| --- | --- | --- |"]
     lines += [f"| `{P}_{n}` | {b} | {d.replace('|', chr(92) + '|')} |" for n, b, d in FLAGS]
     lines += ["", "## Test vectors", "",
               f"`vectors_<case>.csv` (r, u_ff, flags; from the Python law, the MLflow model's code). Check: "
-              f"`./main_{name} --check vectors_normal.csv` (exit 0: u_ff and flags agree).", "",
+              f"`./main_{name} --check vectors_normal.csv` (exit 0: the flags exactly, u_ff per sample within "
+              f"{man['check']['atol']:.3g} N + {man['check']['rtol']:g} |u|; manifest `check`). Never build with "
+              "-ffast-math/-Ofast: the C stops with #error.", "",
               "Cases: `normal` (the first evaluation reference, at most 4000 samples), `out_of_range` (3 x its "
               "motion), `nonfinite` (a NaN burst and an inf where it moves fastest), `limits` (2 x its motion: "
               "SATURATED / RATE_LIMITED where export.limits sets limits), `past_end` (tables).", "",

@@ -3,7 +3,8 @@ CSV, the law (json + npz, the MLflow model's data) and ``manifest.json`` (issue 
 
 The package is written into a temporary directory and renamed into place when complete: it
 appears whole or not at all.  With a C compiler the package is verified before it is kept: the
-harness is compiled with ``cc -std=c99 -O2 -Wall -Wextra -Werror`` and run on every reference, and
+harness is compiled with ``cc`` and :data:`~pipeline.export.c_code.CFLAGS` (``-std=c99 -O2 -Wall -Wextra -Werror
+-Wconversion -Wdouble-promotion``) and run on every reference, and
 its u_ff must equal the study's to ``rtol`` × max|u| (:class:`~pipeline.export.law.ExportError`
 otherwise); the same check runs on the Python law (what the MLflow model returns).  Without a
 compiler the source is still written and the manifest says it was not compiled.
@@ -21,12 +22,13 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.export.c_code import CFLAGS, c_name, write_c
-from pipeline.export.guard import FLAGS
-from pipeline.export.law import ExportError, Law, feedforward, guarded, strict_json
+from pipeline.export.guard import FLAGS, zoh_loop
+from pipeline.export.law import ExportError, Law, _rest_value, feedforward, guarded, start_position, strict_json
 from pipeline.export.misra import cppcheck_report, readme
 
 __all__ = ["find_compiler", "compile_harness", "run_harness", "time_harness", "write_package",
-           "replace_dir", "rel_diff", "default_prefix", "check_prefix", "law_hash", "VECTOR_SAMPLES"]
+           "replace_dir", "rel_diff", "default_prefix", "check_prefix", "law_hash", "VECTOR_SAMPLES",
+           "check_bound"]
 
 #: the longest test vector [samples]
 VECTOR_SAMPLES = 4000
@@ -43,9 +45,29 @@ def law_hash(law: Law) -> str:
     return h.hexdigest()
 
 
-def default_prefix(law: Law, name: str) -> str:
-    """``<package>_<8 hex of the law's hash>``: laws of one kind from different runs link together."""
-    return f"{c_name(name)}_{law_hash(law)[:8]}"
+def default_prefix(law: Law, name: str, precision: str = "double") -> str:
+    """``<package>_<8 hex of the law's hash>`` (``_f32`` added for the float build): laws of one kind from
+    different runs, and the float and double builds of one law, link together."""
+    return f"{c_name(name)}_{law_hash(law)[:8]}" + ("_f32" if precision == "single" else "")
+
+
+def check_bound(u_study: np.ndarray, precision: str, rtol: float, single_rtol: float) -> dict:
+    """The harness's --check bound per sample, |u_c(t) - u(t)| <= atol + rtol |u(t)| (manifest "check").
+
+    The scale is the RMS of the study's u_ff on the first reference, not its max: one end spike (992 N against a
+    94 N motion) set max|u| and let an all-zero output pass a bound of tol x max|u|. double: the C runs the
+    study's operations in the same order, so it agrees to rounding: rtol = export.rtol, atol = rtol x the scale
+    (a sample near 0 N). single: float keeps 24 bits (eps = 2^-23 = 1.2e-7) of every quantity the law forms,
+    and the laws difference positions (δ²r = (r(t+1) - 2 r(t) + r(t-1))/Ts² amplifies the rounding of r by
+    |r|/(|δ²r| Ts²)) and take the sign of velocities below float resolution (a Coulomb term is then missing):
+    errors that scale with the law's magnitude over the motion, not with eps |u(t)|; single_rtol
+    (export.single_rtol, what the float law is accepted to against the double study) bounds them per sample, as
+    single_rtol x (the scale + |u(t)|)."""
+    u = np.asarray(u_study, dtype=np.float64)
+    scale = float(np.sqrt(np.mean(u * u))) if u.size else 0.0
+    rt = float(single_rtol if precision == "single" else rtol)
+    return {"rtol": rt, "atol": rt * scale, "u_scale": scale, "u_scale_is": "RMS of the study's u_ff on the first "
+            "reference", "bound": "|u_c(t) - u(t)| <= atol + rtol |u(t)| per sample; flags exactly"}
 
 
 def check_prefix(prefix: str) -> str | None:
@@ -159,7 +181,7 @@ def write_package(law: Law, name: str, out: Path, references: dict, *, source: d
     the double study and accepted to ``single_rtol``); ``zoh_n`` > 1: a zero-order-hold wrapper for a
     loop ``zoh_n`` times faster, its effect measured; ``cppcheck``: run cppcheck and its MISRA addon.
     """
-    opts = dict(prefix=prefix or default_prefix(law, name), precision=precision, single_rtol=single_rtol,
+    opts = dict(prefix=prefix or default_prefix(law, name, precision), precision=precision, single_rtol=single_rtol,
                 zoh_n=int(zoh_n), cppcheck=cppcheck)
     why = check_prefix(opts["prefix"])
     if why:
@@ -228,9 +250,12 @@ def _zoh_effect(law: Law, r: np.ndarray, n: int) -> dict:
     u = guarded(law, r)[0]
     t = np.arange(u.size)
     tf = np.arange((u.size - 1) * n + 1) / n
-    held = u[np.minimum(np.floor(tf).astype(int), u.size - 1)]
+    du_loop = law.g.du_max(law.Ts) / n               # the wrapper's slew limit per loop sample (templates/zoh.c)
+    r0 = start_position(law, r)
+    held = zoh_loop(u, n, du_loop, _rest_value(law, r0 if np.isfinite(r0) else 0.0)[1])[:tf.size]  # from u(-1)
     lin = np.interp(tf, t, u)
-    return {"loop_Ts": law.Ts / n, "factor": n, "max_rel_diff_vs_interpolated": rel_diff(held, lin),
+    return {"loop_Ts": law.Ts / n, "factor": n, "du_loop": du_loop,
+            "max_rel_diff_vs_interpolated": rel_diff(held, lin),
             "rms_rel_diff_vs_interpolated": float(np.sqrt(np.mean((held - lin) ** 2))
                                                   / max(np.max(np.abs(lin)), 1e-300)),
             "mean_delay_s": law.Ts * (n - 1) / (2 * n)}
@@ -260,7 +285,9 @@ def _build(law, name, folder, references, source, cc, rtol, repeats, keep_exe, *
     src = ", ".join(f"{k} {v}" for k, v in source.items() if v)
     single = precision == "single"
     tol = single_rtol if single else rtol
-    write_c(law, name, folder, src, example=first, prefix=prefix, precision=precision, zoh_n=zoh_n, check_tol=tol)
+    chk = check_bound(next(iter(references.values()))[1], precision, rtol, single_rtol)
+    write_c(law, name, folder, src, example=first, prefix=prefix, precision=precision, zoh_n=zoh_n,
+            check_tol=chk["rtol"], check_atol=chk["atol"])
     law.save(folder / "law")
     r_first = np.asarray(next(iter(references.values()))[0], dtype=np.float64)
     vectors = {}
@@ -273,18 +300,21 @@ def _build(law, name, folder, references, source, cc, rtol, repeats, keep_exe, *
     manifest = {
         "name": name, "prefix": prefix, "law": law.law, "family": law.family,
         "model": law.strings.get("model", law.law),
-        "Ts": law.Ts, "rate_hz": 1.0 / law.Ts, "preview": law.preview, "rest_before_start": law.rest,
+        "Ts": law.Ts, "rate_hz": 1.0 / law.Ts, "preview": law.preview,
+        "rest_before_start": "r0" if law.start == "rest" else law.rest, "start": law.start_doc(),
         "averaged_model_input": law.averaged, "units": law.units, "precision": precision,
         "parameters": law.n_params, **law.flops_per_sample(), **source,
         "limits": {"u_min": g.u_min, "u_max": g.u_max, "rate": g.rate},
+        "limits_source": law.strings.get("limits_source", "export.limits (null: no limit)"),
         "envelope": {"regressors": ["r", "dr/dt", "d2r/dt2"], "lo": g.env_lo, "hi": g.env_hi,
                      "action": g.envelope_action},
-        "fallback": {"kind": g.fallback, "ramp_time": g.ramp_time, "physics": g.physics},
+        "fallback": {"kind": g.fallback, "ramp_time": g.ramp_time, "physics": g.physics,
+                     "physics_codes": g.physics_codes, "physics_consts": g.physics_consts},
         "flag_bits": {n: b for n, b, _ in FLAGS},
         "vectors": vectors,
         "files": sorted(p.name for p in folder.iterdir()),
         "compile": " ".join(["cc", *CFLAGS, "-o", f"main_{name}", f"main_{name}.c", f"{name}.c", "-lm"]),
-        "references": refs, "rtol": rtol,
+        "references": refs, "rtol": rtol, "check": chk,
         "python_max_rel_diff": max(v["python_max_rel_diff"] for v in refs.values()),
     }
     if zoh_n > 1:

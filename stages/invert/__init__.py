@@ -16,6 +16,8 @@ import warnings
 
 import numpy as np
 
+from pipeline.export.guard import envelope_of
+from pipeline.invert.start import resolve, settle_count, started
 from pipeline.runner import ConfigError, implementation
 from stages._common import check_references, reference_specs
 
@@ -50,12 +52,10 @@ TABLES = ("fhofc", "il_fhofc")
 
 def start_of(cfg, system):
     """The job's :class:`~pipeline.invert.start.Start` (``auto`` decided for its system)."""
-    from pipeline.invert.start import resolve
     return resolve(cfg.get("start"), system)
 
 
 def run(ctx) -> dict:
-    from pipeline.invert.start import settle_count, started
     impl = implementation("invert", str(ctx.cfg.invert.kind))
     refs = check_references(reference_specs(ctx.cfg.evaluate.references), ctx.system, ctx.cfg)
     st = start_of(ctx.cfg, ctx.system)
@@ -93,6 +93,10 @@ def run(ctx) -> dict:
             warnings.warn(msg, stacklevel=1)
     if edge:
         ctx.tag("reference_warning", " ".join(edge))
+    env = envelope_warning(ctx, refs)
+    if env:
+        warnings.warn(env, stacklevel=1)
+        ctx.tag("envelope_warning", env)
     ctx.tag("start", f"{st.at}, static {st.static}")
     out = {"u_ff": u_ff, "r": refs, "start": {"at": st.at, "static": st.static}}
     if ctx.system.measured:   # evaluate replays the identified model in the recorded loop
@@ -137,6 +141,33 @@ def edge_warning(name: str, r: np.ndarray, u_ff: np.ndarray, Ts: float, at: str 
     if not why:
         why.append("the law takes the reference at rest before its first sample and held after its last")
     return f"reference '{name}' " + " and ".join(parts) + ": " + "; ".join(why) + "."
+
+
+def envelope_warning(ctx, refs: dict) -> str | None:
+    """A warning naming every reference that leaves the identification data's range of position, velocity or
+    acceleration (the law's regressors, r standing in for y; ``pipeline.export.guard.envelope_of`` without margin):
+    there the model is extrapolated ([B1] Definition 6), and the exported guard flags it OUT_OF_RANGE."""
+    ds = ctx.inputs["generate"].get("dataset")
+    if ds is None:
+        return None
+    Ts = float(ctx.system.Ts)
+    lo, hi = envelope_of((seg["y"].to_numpy(dtype=float) for seg in ds.segments()), Ts, 0.0)
+    names, parts = ("position", "velocity", "acceleration"), []
+    for name, r in refs.items():
+        rlo, rhi = envelope_of([r], Ts, 0.0)
+        out = []
+        for i, q in enumerate(names):
+            if rlo[i] < lo[i] or rhi[i] > hi[i]:
+                span = max(abs(lo[i]), abs(hi[i])) or 1.0
+                out.append(f"{q} {rlo[i]:.4g} .. {rhi[i]:.4g} against {lo[i]:.4g} .. {hi[i]:.4g} "
+                           f"({max(abs(rlo[i]), abs(rhi[i])) / span:.3g}x the training's largest)")
+        if out:
+            parts.append(f"reference '{name}': " + "; ".join(out))
+    if not parts:
+        return None
+    return ("the feedforward extrapolates the model beyond its training data: " + " | ".join(parts)
+            + ". Record training data that cover the reference (faster, longer moves), or expect the exported "
+            "law's OUT_OF_RANGE flag there.")
 
 
 def loop_model(ctx):

@@ -39,7 +39,7 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
             continue
         recs.append({"name": run["tags.mlflow.runName"], "kind": _kind(run), "id": run["run_id"], "m": m,
                      "stop": run.get("tags.lm_stop"), "warn": run.get("tags.physics_warning"),
-                     "ref_warn": run.get("tags.reference_warning")})
+                     "ref_warn": run.get("tags.reference_warning"), "env_warn": run.get("tags.envelope_warning")})
     lines = [f"## {E}", "",
              "Real measured data (EMPS, Janot, Gautier & Brunot 2019; SPEC §2.5): train on `DATA_EMPS`, "
              "test on `DATA_EMPS_PULSES`. Every model is replayed inside the known controller on the "
@@ -67,8 +67,9 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
     ok_all = all(r["claim_holds"] for r in claims.judge(rows) if r["metric"].startswith("baseline/"))
     lines += ["", f"Every parameter within {claims.rule('X1', 'baseline/M').split('± ')[1]} of the published value: "
               f"**{'yes' if ok_all else 'no'}**." + (f" Warning: {P['warn']}" if P["warn"] else ""), ""]
-    if isinstance(P.get("ref_warn"), str) and P["ref_warn"]:
-        lines += [f"> Warning (invert): {P['ref_warn']}", ""]
+    for key in ("ref_warn", "env_warn"):
+        if isinstance(P.get(key), str) and P[key]:
+            lines += [f"> Warning (invert): {P[key]}", ""]
     # ---- the published model in both conventions
     lines += ["### The published model replayed", "",
               "| file | convention | force error [%] | published | position error [%] | published | "

@@ -22,7 +22,7 @@ def section(experiment: str, runs: pd.DataFrame, figdir: Path):
         variant = run["tags.mlflow.runName"]
         m = run_metrics(run)
         lines += [f"### {variant}", ""]
-        for tag in ("physics_warning", "reference_warning"):
+        for tag in ("physics_warning", "reference_warning", "envelope_warning"):
             warn = run.get(f"tags.{tag}")
             if isinstance(warn, str) and warn:
                 lines += [f"> Warning: {warn}", ""]

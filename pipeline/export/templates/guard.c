@@ -1,4 +1,9 @@
 /* ---- guard (issue 22): input sanitation, training envelope, fallback, saturation, slew limit ---- */
+#if defined(__FAST_MATH__) || (defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__)
+/* -ffast-math (also implied by -Ofast) and -ffinite-math-only let the compiler assume no NaN/inf: it then
+ * deletes every isfinite() below, and a NaN reference or an overflow reaches the actuator unflagged */
+#error "${file}.c: do not build the guarded feedforward with -ffast-math, -Ofast or -ffinite-math-only: they delete every isfinite() check of the guard (a NaN reference or an overflow would reach the actuator with no flag); drop that flag (use -O2 or -O3)"
+#endif
 #define G_PREVIEW ${NAME}_PREVIEW
 #define G_TS (${Ts})
 #define U_LO (${sat_lo})           /* saturation [N] */
@@ -6,11 +11,29 @@
 #define DU_MAX (${du_max})         /* slew limit x Ts: the largest |u(t) - u(t-1)| [N] */
 #define FALLBACK_KIND ${fallback_kind}        /* 0 hold, 1 physics, 2 ramp */
 #define ENVELOPE_FALLS_BACK ${env_fallback}  /* 1: out of the envelope is invalid; 0: flagged only */
-#define RAMP_N (${ramp_n})         /* ramp_time / Ts: samples of the ramp to 0 */
+#define RAMP_N (${ramp_n})         /* ramp_time / Ts: samples of the ramp to 0 and of the return to the law */
 static const double ENV_LO[3] = {${env_lo}};   /* training envelope of r, dr/dt, d2r/dt2 */
 static const double ENV_HI[3] = {${env_hi}};
-#if FALLBACK_KIND == 1
-static const double PHYS[3] = {${phys}};    /* physics fallback: M, F_v, F_c */
+#if FALLBACK_KIND == 1   /* physics fallback M d2r + sum_j p_j T_j(r, dr), every force term of the system */
+#define NPHYS ${n_phys}
+static const double PHYS[NPHYS + 1] = {${phys}};          /* M, p_1 .. p_n */
+static const int PHYS_CODES[NPHYS + 1] = {${phys_codes}};      /* T_j: pipeline.systems.force_terms codes */
+static const double PHYS_CONSTS[NPHYS + 1] = {${phys_consts}}; /* shape constant of each T_j (+ one unused) */
+
+static double phys_term(int code, double p, double q, double v)
+{   /* T(q, q̇) of one force term (pipeline.systems.force_terms.term; guard.py _term) */
+    const double sg = v > 0 ? 1.0 : (v < 0 ? -1.0 : 0.0);
+    double x;
+    switch (code) {
+    case 0: return v;                             /* viscous */
+    case 1: return sg;                            /* Coulomb, sign */
+    case 2: return tanh(v / p);                   /* Coulomb, smooth */
+    case 3: x = v / p; return sg * exp(-(x * x)); /* Stribeck */
+    case 4: return 1.0;                           /* offset (gravity) */
+    case 5: return cos(p * q);                    /* cogging cos */
+    default: return sin(p * q);                   /* cogging sin */
+    }
+}
 #endif
 
 #define START_REST ${start_rest}        /* 1: init puts every state at rest at r0 (pipeline/invert/start.py) */
@@ -28,6 +51,7 @@ void ${name}_init(${name}_state *s, double r0)
         int i;
         for (i = 0; i <= G_PREVIEW; ++i) rp[i] = r;
         for (k = 0u; k <= SETTLE_N; ++k) u = law_step(s, rp);
+        if (!isfinite(u)) u = 0.0;     /* an absurd r0 overflowed the law: nothing to take off (Python alike) */
         s->u_static = STATIC_EXCLUDE ? u : 0.0;
         s->u_prev = u - s->u_static;   /* the output before t = 0: the law at rest (no slew from 0 N) */
         s->u_hold = s->u_prev;
@@ -41,9 +65,12 @@ double ${name}_step(${name}_state *s, const double *r_preview)
 {
     double ext[G_PREVIEW + 3];   /* r(t-2), r(t-1), r(t) .. r(t+P) after sanitation */
     double x[3], u;
-    int i, j, flags = 0, invalid, inside = 1;
+    int i, j, flags = 0, invalid, inside = 1, overflow = 0;
     ext[0] = s->r_hist[1];
     ext[1] = s->r_hist[0];
+    if (s->r_bad != 0u) {      /* r(t-1) or r(t-2) was replaced: a step in the law's differences */
+        flags |= ${NAME}_NONFINITE_INPUT;
+    }
     for (i = 0; i <= G_PREVIEW; ++i) {
         if (isfinite(r_preview[i])) {
             ext[i + 2] = r_preview[i];
@@ -52,13 +79,15 @@ double ${name}_step(${name}_state *s, const double *r_preview)
             flags |= ${NAME}_NONFINITE_INPUT;
         }
     }
+    s->r_bad = ((s->r_bad << 1u) | (isfinite(r_preview[0]) ? 0u : 1u)) & 3u;
     /* the envelope at every n = t .. t + P: the whole window r(t-2) .. r(t+P) the law is fed */
     for (j = 0; j <= G_PREVIEW; ++j) {
         x[0] = ext[j + 2];                                       /* r(n), n = t + j */
         x[1] = (ext[j + 2] - ext[j + 1]) / G_TS;                 /* backward differences */
         x[2] = (ext[j + 2] - 2.0 * ext[j + 1] + ext[j]) / (G_TS * G_TS);
-        for (i = 0; i < 3; ++i) {
-            if (!((ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
+        for (i = 0; i < 3; ++i) {   /* a non-finite regressor (an overflow) is outside any envelope */
+            if (!isfinite(x[i])) { overflow = 1; }
+            if (!(isfinite(x[i]) && (ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
         }
     }   /* x: the newest, n = t + P (the physics fallback's regressors) */
     if (!inside) flags |= ${NAME}_OUT_OF_RANGE;
@@ -67,9 +96,15 @@ double ${name}_step(${name}_state *s, const double *r_preview)
     u -= s->u_static;
 #endif
     flags |= s->status;
-    invalid = ((flags & ${NAME}_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
+    if (!isfinite(u)) { s->latched = 1; }   /* the law's state may hold inf/NaN: not trusted until init */
+    if (s->latched != 0) { flags |= ${NAME}_SINGULAR; }
+    /* invalid: a replaced input, an overflow (inf regressor, non-finite output, the law's SINGULAR: Newton
+     * returns 0 N or its last finite iterate when it overflows), out of the envelope when that falls back */
+    invalid = ((flags & (${NAME}_NONFINITE_INPUT | ${NAME}_SINGULAR)) != 0) || (overflow != 0) || (s->latched != 0)
+              || (ENVELOPE_FALLS_BACK && !inside);
     if (invalid) {
         flags |= ${NAME}_FALLBACK;
+        s->n_back = 0u;
         if (s->n_invalid < UINT64_MAX) s->n_invalid++;
 #if FALLBACK_KIND == 2                /* ramp to 0 over RAMP_N samples */
         {
@@ -78,8 +113,10 @@ double ${name}_step(${name}_state *s, const double *r_preview)
         }
 #elif FALLBACK_KIND == 1              /* physics on a finite reference, else hold */
         if ((flags & ${NAME}_NONFINITE_INPUT) == 0) {
-            const double sg = x[1] > 0 ? 1.0 : (x[1] < 0 ? -1.0 : 0.0);
-            u = PHYS[0] * x[2] + PHYS[1] * x[1] + PHYS[2] * sg;
+            u = PHYS[0] * x[2];
+            for (j = 0; j < NPHYS; ++j) {
+                u += PHYS[1 + j] * phys_term(PHYS_CODES[j], PHYS_CONSTS[j], x[0], x[1]);
+            }
             if (!isfinite(u)) u = s->u_hold;
         } else {
             u = s->u_hold;
@@ -87,8 +124,16 @@ double ${name}_step(${name}_state *s, const double *r_preview)
 #else                                 /* hold */
         u = s->u_hold;
 #endif
-    } else {
-        s->n_invalid = 0;
+    } else {   /* back from a fallback: linearly from its last output to the law's over RAMP_N samples */
+        if (s->n_invalid > 0u) { s->u_from = s->u_prev; s->n_back = 1u; }
+        else if (s->n_back > 0u) { s->n_back++; }
+        else { /* not returning */ }
+        s->n_invalid = 0u;
+        if (s->n_back > 0u) {
+            const double g = (double)s->n_back / RAMP_N;
+            if (g < 1.0) { u = s->u_from + (u - s->u_from) * g; flags |= ${NAME}_FALLBACK; }
+            else { s->n_back = 0u; }
+        }
     }
     if (u > U_HI) { u = U_HI; flags |= ${NAME}_SATURATED; }
     else if (u < U_LO) { u = U_LO; flags |= ${NAME}_SATURATED; }

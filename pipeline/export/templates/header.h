@@ -13,13 +13,19 @@ ${source_lines}
  *              end of a finite motion pass the last sample again (the study holds r there).
  * Start        ${name}_init(s, r0): the reference at rest at r0 before t = 0 (a non-finite r0: 0). To
  *              reproduce the study pass r0 = ${rest_doc} (${NAME}_REST_AT_ZERO = ${rest_zero}).
+${start_lines}
  * Cost         fixed per sample: ${cost_doc} plus the guard;
  *              no allocation, no I/O, only <math.h> and <stdint.h>.
  * Guard        around the law, every sample (README "Deploy the feedforward"; pipeline/export/guard.py):
- *              a NaN/inf preview sample is replaced by the last finite one (NONFINITE_INPUT); the
- *              regressors r, dr/dt, d2r/dt2 at every sample of the window r(t-2) .. r(t+P) are
- *              checked against the training envelope (OUT_OF_RANGE; ${envelope_doc});
- *              an invalid sample gets the fallback "${fallback}"${fallback_doc} (FALLBACK);
+ *              a NaN/inf preview sample is replaced by the last finite one (NONFINITE_INPUT on every
+ *              sample whose window r(t-2) .. r(t+P) held one); the regressors r, dr/dt, d2r/dt2 at
+ *              every sample of that window are checked against the training envelope (OUT_OF_RANGE;
+ *              ${envelope_doc}; a non-finite one, an overflow, is always invalid);
+ *              an invalid sample (NONFINITE_INPUT, an overflow: inf regressor, SINGULAR or a
+ *              non-finite law output) gets the fallback "${fallback}"${fallback_doc} (FALLBACK);
+ *              a non-finite law output latches it until the next init (SINGULAR | FALLBACK on
+ *              every later sample: the law's state is not trusted again); otherwise the output
+ *              returns to the law's linearly over ramp_time (FALLBACK until it is back);
  *              then saturation to [${u_min_doc}, ${u_max_doc}] N (SATURATED) and the slew limit
  *              |u(t) - u(t-1)| <= ${rate_doc} N/s * Ts (RATE_LIMITED), from u(-1) = 0.
  * Counters     s->k (samples since init) and s->n_flagged are uint64_t and saturate at UINT64_MAX
@@ -34,8 +40,8 @@ ${status_lines}
 
 #define ${NAME}_TS ${Ts}
 #define ${NAME}_TS_NS ${ts_ns}
-#if defined(${NAME}_LOOP_TS_NS) && (${NAME}_LOOP_TS_NS != ${NAME}_TS_NS)
-#error "${file}: this feedforward law is for Ts = ${Ts} s only; re-export it with export.target_rate for your loop"
+#if defined(${NAME}_LOOP_TS_NS) && (${NAME}_LOOP_TS_NS != ${NAME}_TS_NS)${zoh_rate_check}
+#error "${file}: this feedforward law is for Ts = ${Ts} s only${zoh_rate_doc}; re-export it with export.target_rate for your loop"
 #endif
 #define ${NAME}_PREVIEW ${preview}
 #define ${NAME}_REST_AT_ZERO ${rest_zero}
@@ -52,7 +58,11 @@ typedef struct {
     double u_static;       /* start: the force at rest at r0 taken off every output (start.static=exclude) */
     int primed;            /* averaged model input: w(0) computed */
     int status;            /* flags of the last sample (0: clean) */
+    double u_from;         /* guard: the output the return from a fallback ramps from */
+    unsigned int r_bad;    /* guard: bit 0, 1: r(t-1), r(t-2) was NaN/inf (replaced) */
+    int latched;           /* guard: a non-finite law output: the fallback until init */
     uint64_t n_invalid;    /* guard: invalid samples in a row (ramp; saturates) */
+    uint64_t n_back;       /* guard: samples of the return ramp from a fallback (0: none running) */
     uint64_t n_flagged;    /* samples with a flag since init (saturates) */
     uint64_t k;            /* samples since init (saturates) */
 } ${name}_state;

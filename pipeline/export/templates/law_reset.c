@@ -4,6 +4,10 @@
     s->n_flagged = 0;
     s->k = 0;
     s->n_invalid = 0;
+    s->n_back = 0u;
+    s->u_from = 0.0;
+    s->r_bad = 0u;
+    s->latched = 0;
     s->u_prev = 0.0;
     s->u_hold = 0.0;
     s->u_static = 0.0;

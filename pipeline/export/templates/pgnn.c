@@ -37,6 +37,10 @@ ${arrays}#define TH (BLOB + ${o_th})
 #define B2 (BLOB[${o_b2}])
 #define CFG (BLOB + ${o_cfg})
 
+#if defined(__clang__)   /* the kernels' helpers: each law uses some; clang (not gcc) warns on an unused inline */
+#pragma clang diagnostic push
+#pragma clang diagnostic ignored "-Wunused-function"
+#endif
 static inline double physics(const double *th, const double *phi)
 {   /* f_phy(θ, φ) of the built-in maps (pipeline.models.pgnn._fast_physics) */
 #if KIND == 0
@@ -70,7 +74,7 @@ static inline double gain(const double *th)
     return CFG[0] * CFG[0] * th[0];
 #else
     (void)th;
-    return NAN;
+    return (double)NAN;   /* NAN is a float: cast, not promoted implicitly */
 #endif
 }
 
@@ -142,7 +146,7 @@ static inline double analytic_solve(double *phi, double r_next, int use_start, i
     double a, psi, nn = 0.0, d;
     physics_affine(use_start ? TS : TH, phi, &a, &psi);
     if (with_nn) nn = nn_affine(phi, &d);
-    if (psi == 0.0) return NAN;
+    if (psi == 0.0) return (double)NAN;
     return (r_next - a - nn) / psi;
 }
 
@@ -150,7 +154,7 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
 {   /* [B1] Algorithm 1 (pipeline.invert.newton.newton_solve): at most K_NEWTON updates */
     int flags = 0, i;
     double u = analytic_solve(phi, r_next, 1, 0);   /* physics start, θ*_phy */
-    double a, psi, best_u, best_v = HUGE_VAL, first_v = NAN, last_v = NAN;
+    double a, psi, best_u, best_v = HUGE_VAL, first_v = (double)NAN, last_v = (double)NAN;
     if (!isfinite(u)) { u = 0.0; flags |= ${NAME}_SINGULAR; }
     if (u < U_MIN) { u = U_MIN; flags |= ${NAME}_BOUNDS; }
     else if (u > U_MAX) { u = U_MAX; flags |= ${NAME}_BOUNDS; }
@@ -180,6 +184,9 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
     *flags_out = flags;
     return best_u;
 }
+#if defined(__clang__)
+#pragma clang diagnostic pop
+#endif
 
 static inline double law_w(${name}_state *s, const double *rp)
 {   /* one sample of the law: the model input w(t) from r(t .. t+NK+1) and the state */

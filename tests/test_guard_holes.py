@@ -403,3 +403,30 @@ def test_the_readme_says_what_the_guard_does():
     assert "latched" in deploy and "until the next init" in deploy
     assert "-ffast-math" in deploy and "every configured force term" in deploy
     assert "per loop sample" in deploy and "flags exactly" in deploy
+
+
+@pytest.mark.parametrize("cc", ["gcc", "clang"])
+def test_the_readme_compile_line_builds_a_package_and_checks_its_vectors(cc, tmp_path):
+    """README "Deploy the feedforward"'s compile line, as written (its flags, with gcc and clang for `cc`), builds
+    an exported package and its harness passes `--check vectors_normal.csv`; its flags are the stage's CFLAGS."""
+    import re
+    import shlex
+
+    from pipeline.export.c_code import CFLAGS
+    exe = shutil.which(cc)
+    if exe is None:
+        pytest.skip(f"{cc} is not installed (apt-get install {cc}): the README's line is checked where it is")
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    m = re.search(r"cd export/ff_newton && cc (.*?)\\\n\s+(-o main_ff_newton main_ff_newton\.c ff_newton\.c -lm)", text)
+    assert m, "the README's compile line moved: update this test"
+    flags = shlex.split(m.group(1))
+    assert tuple(flags) == CFLAGS
+    law = _law("newton")
+    r = _ref(law, "newton")
+    write_package(law, "ff_newton", tmp_path, {"ref": (r, feedforward(law, r))}, source={}, timing_repeats=0)
+    d = tmp_path / "ff_newton"
+    out = subprocess.run([exe, *flags, *shlex.split(m.group(2))], cwd=d, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-3000:]
+    out = subprocess.run([str(d / "main_ff_newton"), "--check", "vectors_normal.csv"], cwd=d, capture_output=True,
+                         text=True)
+    assert out.returncode == 0, out.stderr[-2000:]

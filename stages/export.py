@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import sys
+import warnings
 
 import numpy as np
 from dataclasses import asdict, field
@@ -172,12 +173,17 @@ def physics_coefficients(system, theta) -> dict | None:
     return {"physics": t, "physics_codes": codes, "physics_consts": consts}
 
 
-def data_limits(segments, Ts: float) -> tuple[float, float]:
-    """(max|u| [N], max|Δu|/Ts [N/s]) of the identification data's applied force, one array per experiment (no
-    difference across a boundary): what the actuator was seen to do, the base of the default limits."""
+def data_limits(segments, Ts: float, ctrl=None) -> tuple[float, float]:
+    """(max|u_ff| [N], max|Δu_ff|/Ts [N/s]) a feedforward of the identification data would need, per experiment
+    (segments of (u, r): no difference across a boundary): the applied force u (the model's inverse force on the
+    data is that force) plus, on a 2-DOF loop, the controller term (C_r - C_y) r the law cancels, which can be far
+    larger than the force itself (a D-term on y only: kd dr/dt); the base of the default limits."""
     u_abs = du_abs = 0.0
-    for u in segments:
+    for u, r in segments:
         u = np.asarray(u, dtype=np.float64)
+        if ctrl is not None:
+            r = np.asarray(r, dtype=np.float64)
+            u = u - ctrl.reference_force(r, float(r[0]))
         u = u[np.isfinite(u)]
         if u.size:
             u_abs = max(u_abs, float(np.max(np.abs(u))))
@@ -195,7 +201,10 @@ def guard_of(ctx) -> tuple[dict, str]:
     ds = ctx.inputs["generate"]["dataset"]
     lo, hi = envelope_of((seg["y"].to_numpy(dtype=float) for seg in ds.segments()), float(ctx.system.Ts),
                          float(lim.envelope_margin))
-    u_abs, du_abs = data_limits((seg["u"].to_numpy(dtype=float) for seg in ds.segments()), float(ctx.system.Ts))
+    ctrl = ctx.system.ctrl if ctx.system.measured else None
+    pairs = ((seg["u"].to_numpy(dtype=float), None if ctrl is None else seg["r"].to_numpy(dtype=float))
+             for seg in ds.segments())
+    u_abs, du_abs = data_limits(pairs, float(ctx.system.Ts), ctrl)
     if lim.get("data_margin") is not None:     # a null limit from the identification data (Limits.data_margin)
         f = 1.0 + float(lim.data_margin)
         bound = lambda k, none: (f * (-u_abs if k == "u_min" else u_abs if k == "u_max" else du_abs)  # noqa: E731
@@ -203,7 +212,9 @@ def guard_of(ctx) -> tuple[dict, str]:
     given = [k for k in ("u_min", "u_max", "rate") if lim.get(k) is not None]
     src = (f"{', '.join(given) or 'none'} from export.limits; "
            + ("the others none (export.limits.data_margin=null)" if lim.get("data_margin") is None else
-              f"the others from the identification data's applied force: ±{1 + float(lim.data_margin):g} x max|u| "
+              "the others from the identification data's applied force u"
+              + (" minus the controller term (C_r - C_y) r" if ctrl is not None else "")
+              + f": ±{1 + float(lim.data_margin):g} x max|u| "
               f"= {u_abs:.6g} N and {1 + float(lim.data_margin):g} x max|du/dt| = {du_abs:.6g} N/s "
               f"(export.limits.data_margin={float(lim.data_margin):g})"))
     phys = {}                            # the Guard's default physics (unused unless fallback=physics)
@@ -301,6 +312,15 @@ def run(ctx) -> dict:
                             precision=str(e.precision), single_rtol=float(e.single_rtol),
                             zoh_n=zoh_n, cppcheck=bool(e.cppcheck) and find_cppcheck() is not None)
         manifests[name] = man
+        touched = {ref: v for ref, v in man["references"].items() if v["guard_max_rel_change"] > 0}
+        if touched:    # the package as shipped is not the study's feedforward on a reference it was verified on
+            msg = (f"export: the guard of {name} changes its u_ff on " + ", ".join(
+                f"'{ref}' (max|Δu|/max|u| = {v['guard_max_rel_change']:.3g}, flags {v['flags']})"
+                for ref, v in touched.items())
+                + f"; limits: {man['limits_source']}. The machine gets the guarded u_ff: set export.limits "
+                "(u_min, u_max, rate) to the actuator's, or record training data that cover the reference")
+            warnings.warn(msg, stacklevel=1)
+            ctx.tag(f"export_warning/{name}", msg)
         ctx.artifacts += sorted(str(p.relative_to(out)) for p in (out / name).rglob("*") if p.is_file())
         ctx.models.append({"name": name, "law": f"artifacts/{name}/law",
                            "example": f"artifacts/{name}/{next(iter(man['references'].values()))['file']}"})

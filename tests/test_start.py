@@ -239,3 +239,53 @@ def test_settle_counts_the_recursion_and_started_drops_it():
     assert abs(u_rest - 2.0) <= 1e-13
     with pytest.raises(ValueError, match="does not settle"):
         settle_count(lambda r: np.cumsum(r), [1.0])
+
+
+def test_an_integrator_typed_with_8_digits_is_still_an_integrator_and_has_a_rest():
+    """Coefficients copied with 8 significant digits move the integrator's pole ~1e-8 off z = 1: it must still be
+    recognised (else the rest gain (B_r - B_y)(1)/A(1) is a 1e6 N/m artefact and u_ff(0) tens of kN); with 7 digits
+    a pole lands just outside the circle and the refusal says why."""
+    ctrl = _pid_2dof(True)
+    rnd = lambda p, n: [float(f"{c:.{n - 1}e}") for c in p]   # noqa: E731
+    typed = LTIController.lti(rnd(ctrl.b_y, 8), rnd(ctrl.a, 8), rnd(ctrl.b_r, 8), gtau=2.0, delay=1)
+    assert typed.integral_action and typed.rest_gain() == 0.0
+    f = typed.reference_force(_reference(0.06), 0.06)
+    assert np.all(f[:REST] == 0.0)
+    a7 = np.polymul([1.0, -1.000004], LEAD[1])           # an integrator typed so that its pole is outside
+    with pytest.raises(ValueError, match="integrator typed with too few digits"):
+        LTIController.lti([1.0, 0.5], list(a7), delay=1)
+
+
+def test_default_limits_cover_the_controller_term_of_a_2dof_loop():
+    """The feedforward of a 2-DOF loop carries -(C_r - C_y) r, which a D-term on y only makes far larger than the
+    applied force: the default limits are those of u - (C_r - C_y) r on the training data, not of u alone (which
+    clipped 37 000 of 48 000 samples of the held-out axis's law)."""
+    from stages.export import data_limits
+    ctrl = _pid_2dof(True)
+    r = _reference(0.06, 2000, 0.05)
+    u = 30.0 + 5.0 * np.sin(np.arange(r.size) * 0.01)          # the recorded force: a load and a small motion
+    term = ctrl.reference_force(r, float(r[0]))
+    u_abs, du_abs = data_limits([(u, r)], Ts, ctrl)
+    assert u_abs == pytest.approx(float(np.max(np.abs(u - term))), rel=1e-15)
+    assert u_abs > 10 * float(np.max(np.abs(u)))
+    assert du_abs == pytest.approx(float(np.max(np.abs(np.diff(u - term)))) / Ts, rel=1e-15)
+    assert data_limits([(u, None)], Ts) == (pytest.approx(35.0, rel=1e-3), pytest.approx(0.05 / Ts, rel=1e-3))
+
+
+def test_a_rest_force_beyond_the_limits_starts_saturated_not_slewing_from_outside(tmp_path):
+    """The output before t = 0 is the law at rest clamped into [u_min, u_max]: the first sample is saturated and
+    no sample leaves the limits (before, the slew limit ramped from the rest value for seconds)."""
+    law0, static = _family("measured")
+    law = _rest_law(law0, R0S)
+    r = _reference(0.06)
+    lo, hi = envelope_of([r], law.Ts, 0.5)
+    s = static(0.06)
+    d = dict(law.__dict__)
+    d["guard"] = {**law.guard, "env_lo": lo, "env_hi": hi, "u_min": -0.5 * s, "u_max": 0.5 * s, "rate": 1e3}
+    lg = Law(**d)
+    u, f = guarded(lg, r)
+    assert np.all(np.abs(u) <= 0.5 * s) and u[0] == 0.5 * s and f[0] & FLAG["SATURATED"]
+    assert np.max(np.abs(np.diff(u))) <= 1e3 * Ts * (1 + 1e-12)
+    if CC is not None:
+        man = write_package(lg, "ff_rest", tmp_path, {"ref": (r, feedforward(lg, r))}, source={}, timing_repeats=0)
+        assert man["compiled"] and man["references"]["ref"]["c_flags_agree"] and man["c_max_rel_diff"] <= 1e-12

@@ -374,8 +374,9 @@ def guarded(law: Law, r) -> tuple[np.ndarray, np.ndarray]:
     r = _check_reference(r)
     r0 = start_position(law, r)
     r0 = r0 if math.isfinite(r0) else 0.0
-    u_start = _rest_value(law, r0)[1]
-    return run_guard(law.g, law.Ts, law.preview, r, r0, lambda r_c: _started(law, r_c, r0), u_start=u_start)
+    g = law.g
+    u_start = min(max(_rest_value(law, r0)[1], g.u_min), g.u_max)   # inside the limits, as the C's init clamps it
+    return run_guard(g, law.Ts, law.preview, r, r0, lambda r_c: _started(law, r_c, r0), u_start=u_start)
 
 
 def start_position(law: Law, r) -> float:

@@ -56,6 +56,8 @@ class Params:
 
 
 KINDS = ("cascade", "lti")
+#: a root of A this close to z = 1 is an integrator (a pole typed with 7-10 significant digits lands ~1e-7 off)
+INTEGRATOR_TOL = 1e-6
 
 
 def _poly(name: str, v) -> np.ndarray:
@@ -106,10 +108,14 @@ class LTIController:
         if int(delay) != delay or delay < 0:
             raise ValueError(f"controller.delay={delay} must be a whole number of samples >= 0")
         poles = np.roots(a / a[0]) if a.size > 1 else np.zeros(0)
-        if np.any(np.abs(poles) > 1.0 + 1e-9):
+        if np.any(np.abs(poles) > 1.0 + INTEGRATOR_TOL):   # an integrator typed with few digits: |z| = 1 + 1e-7
+            z = float(np.abs(poles).max())
             raise ValueError(f"controller.den={list(den)} has poles outside the unit circle "
-                             f"(|z| = {np.abs(poles).max():.4g}): an unstable controller cannot be replayed; "
-                             "check the coefficient order (powers of z⁻¹, a[0] first)")
+                             f"(|z| = {z:.10g}): an unstable controller cannot be replayed; "
+                             "check the coefficient order (powers of z⁻¹, a[0] first)"
+                             + ("; a pole this close to 1 is an integrator typed with too few digits: give den, num "
+                                "and num_r with every digit the drive's tuning tool shows (12 or more)"
+                                if z - 1.0 < 1e-3 else ""))
         return cls(b_r / a[0], b_y / a[0], a / a[0], float(gtau), float(v_sat), int(delay),
                    "error feedback" if num_r is None else "2-DOF",
                    (("gtau", float(gtau)), ("v_sat", float(v_sat))))
@@ -177,8 +183,11 @@ class LTIController:
 
     @property
     def integral_action(self) -> bool:
-        """A(1) = 0: the controller integrates, so at rest it holds any constant load with zero error."""
-        return bool(self.a.size > 1 and abs(float(np.sum(self.a))) <= 1e-9 * float(np.sum(np.abs(self.a))))
+        """A has a root at z = 1 (within INTEGRATOR_TOL: coefficients typed with 7-10 digits move it by ~1e-7): the
+        controller integrates, so at rest it holds any constant load with zero error."""
+        if self.a.size < 2:
+            return False
+        return bool(np.any(np.abs(np.roots(self.a) - 1.0) <= INTEGRATOR_TOL))
 
     def rest_gain(self) -> float:
         """K0 [units/m]: the controller's output (C_r - C_y)(1) r0 / r0 at rest at y = r = r0, the
@@ -188,9 +197,9 @@ class LTIController:
         with different weights: no rest away from r = 0 exists (ValueError)."""
         db, den = self.reference_filter()
         s_db, s_den = float(np.sum(db)), float(np.sum(den))
-        scale = float(np.sum(np.abs(db))) or 1.0
-        if self.integral_action:
-            if abs(s_db) > 1e-9 * scale:
+        if self.integral_action:   # the same integral weight on r and y: B_r(1) = B_y(1) to the coefficients' digits
+            scale = max(abs(float(np.sum(self.b_r))), abs(float(np.sum(self.b_y))), 1e-300)
+            if abs(s_db) > 1e-3 * scale:
                 raise ValueError(f"C_r - C_y of {self.describe()} integrates (B_r(1) = {float(np.sum(self.b_r)):.6g} "
                                  f"differs from B_y(1) = {float(np.sum(self.b_y)):.6g}): the loop has no rest away "
                                  "from r = 0; check num_r, or use start.at=zero")
@@ -255,6 +264,11 @@ class LTIController:
         """What fits the recording better than the configured structure (for the error message)."""
         r, y = np.asarray(r, np.float64), np.asarray(y, np.float64)
         hints = []
+        near = [p for p in (np.roots(self.a) if self.a.size > 1 else []) if INTEGRATOR_TOL < abs(p - 1.0) <= 1e-3]
+        if near:
+            hints.append(f"A has a pole at z = {complex(near[0]).real:.10g}, {abs(near[0] - 1):.2g} from 1: an "
+                         "integrator or a slow filter typed with too few digits moves it and changes the controller "
+                         "a lot; give num, den and num_r with every digit the drive's tuning tool shows (12 or more)")
         Ac, Bx = self._equation_error(r, y, self.recorded_output(u, d))
         if Ac.size >= 10 and np.dot(Bx, Bx) > 0:
             g = float(np.dot(Ac, Bx) / np.dot(Bx, Bx))            # best scale of the law

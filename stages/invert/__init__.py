@@ -86,6 +86,10 @@ def run(ctx) -> dict:
             if st.static == "exclude":
                 f = f - u_rest
             ctx.metric(f"{name}/static_force_at_start", u_rest)
+        if ctrl is not None or st.rest:   # the law's own max|u_ff| was of the model inverse alone: the applied one
+            key = f"{ctx.name}/{name}/max_abs_u_ff"
+            ctx.metrics[:] = [m for m in ctx.metrics if m[0] != key]
+            ctx.metric(f"{name}/max_abs_u_ff", float(np.max(np.abs(f))))
         u_ff[name] = f
         msg = edge_warning(name, r, f, float(ctx.system.Ts), st.at)
         if msg:

@@ -53,7 +53,9 @@ void ${name}_init(${name}_state *s, double r0)
         for (k = 0u; k <= SETTLE_N; ++k) u = law_step(s, rp);
         if (!isfinite(u)) u = 0.0;     /* an absurd r0 overflowed the law: nothing to take off (Python alike) */
         s->u_static = STATIC_EXCLUDE ? u : 0.0;
-        s->u_prev = u - s->u_static;   /* the output before t = 0: the law at rest (no slew from 0 N) */
+        s->u_prev = u - s->u_static;   /* the output before t = 0: the law at rest (no slew from 0 N), */
+        if (s->u_prev > U_HI) s->u_prev = U_HI;         /* inside the force limits (no slew from outside) */
+        else if (s->u_prev < U_LO) s->u_prev = U_LO;
         s->u_hold = s->u_prev;
         s->status = 0;
         s->primed = 0;   /* an averaged input computes w(0) from the real preview at t = 0, as the study does */

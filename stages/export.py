@@ -98,13 +98,14 @@ class Params:
 
 
 UPSTREAM = ("generate", "baseline", "train", "invert")
-DEPENDS = ("invert", "export.compile", "export.cc", "export.rtol", "export.timing_repeats",
+DEPENDS = ("invert", "start", "export.compile", "export.cc", "export.rtol", "export.timing_repeats",
            "export.prefix", "export.precision", "export.single_rtol", "export.target_rate", "export.cppcheck",
            "export.limits", "evaluate.references")
 
 
-VERSION = 4      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
-                 # is checked over the whole window r(t-2) .. r(t+P), not only at its newest sample
+VERSION = 5      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
+                 # is checked over the whole window r(t-2) .. r(t+P), not only at its newest sample; 5: the start at
+                 # rest, default limits from the data, the guard's return ramp and latch (issue 48)
 
 
 def validate(cfg, system) -> None:

@@ -103,9 +103,10 @@ DEPENDS = ("invert", "start", "export.compile", "export.cc", "export.rtol", "exp
            "export.limits", "evaluate.references")
 
 
-VERSION = 5      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
+VERSION = 6      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
                  # is checked over the whole window r(t-2) .. r(t+P), not only at its newest sample; 5: the start at
-                 # rest, default limits from the data, the guard's return ramp and latch (issue 48)
+                 # rest, default limits from the data, the guard's return ramp and latch (issue 48); 6: the start's
+                 # header text, the float harness's flag mask
 
 
 def validate(cfg, system) -> None:
@@ -174,7 +175,7 @@ def physics_coefficients(system, theta) -> dict | None:
     return {"physics": t, "physics_codes": codes, "physics_consts": consts}
 
 
-def data_limits(segments, Ts: float, ctrl=None) -> tuple[float, float]:
+def data_limits(segments, Ts: float, ctrl=None, rest: bool = True) -> tuple[float, float]:
     """(max|u_ff| [N], max|Δu_ff|/Ts [N/s]) a feedforward of the identification data would need, per experiment
     (segments of (u, r): no difference across a boundary): the applied force u (the model's inverse force on the
     data is that force) plus, on a 2-DOF loop, the controller term (C_r - C_y) r the law cancels, which can be far
@@ -184,7 +185,7 @@ def data_limits(segments, Ts: float, ctrl=None) -> tuple[float, float]:
         u = np.asarray(u, dtype=np.float64)
         if ctrl is not None:
             r = np.asarray(r, dtype=np.float64)
-            u = u - ctrl.reference_force(r, float(r[0]))
+            u = u - ctrl.reference_force(r, float(r[0]) if rest else 0.0)   # as the law's start counts it
         u = u[np.isfinite(u)]
         if u.size:
             u_abs = max(u_abs, float(np.max(np.abs(u))))
@@ -205,7 +206,8 @@ def guard_of(ctx) -> tuple[dict, str]:
     ctrl = ctx.system.ctrl if ctx.system.measured else None
     pairs = ((seg["u"].to_numpy(dtype=float), None if ctrl is None else seg["r"].to_numpy(dtype=float))
              for seg in ds.segments())
-    u_abs, du_abs = data_limits(pairs, float(ctx.system.Ts), ctrl)
+    start = ctx.inputs["invert"].get("start") or {"at": "zero"}
+    u_abs, du_abs = data_limits(pairs, float(ctx.system.Ts), ctrl, start["at"] == "rest")
     if lim.get("data_margin") is not None:     # a null limit from the identification data (Limits.data_margin)
         f = 1.0 + float(lim.data_margin)
         bound = lambda k, none: (f * (-u_abs if k == "u_min" else u_abs if k == "u_max" else du_abs)  # noqa: E731
@@ -215,8 +217,8 @@ def guard_of(ctx) -> tuple[dict, str]:
            + ("the others none (export.limits.data_margin=null)" if lim.get("data_margin") is None else
               "the others from the identification data's applied force u"
               + (" minus the controller term (C_r - C_y) r" if ctrl is not None else "")
-              + f": ±{1 + float(lim.data_margin):g} x max|u| "
-              f"= {u_abs:.6g} N and {1 + float(lim.data_margin):g} x max|du/dt| = {du_abs:.6g} N/s "
+              + f": ±{1 + float(lim.data_margin):g} x {u_abs:.6g} N (its largest magnitude) and "
+              f"{1 + float(lim.data_margin):g} x {du_abs:.6g} N/s (its largest slew) "
               f"(export.limits.data_margin={float(lim.data_margin):g})"))
     phys = {}                            # the Guard's default physics (unused unless fallback=physics)
     if lim.fallback == "physics":

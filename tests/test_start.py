@@ -289,3 +289,39 @@ def test_a_rest_force_beyond_the_limits_starts_saturated_not_slewing_from_outsid
     if CC is not None:
         man = write_package(lg, "ff_rest", tmp_path, {"ref": (r, feedforward(lg, r))}, source={}, timing_repeats=0)
         assert man["compiled"] and man["references"]["ref"]["c_flags_agree"] and man["c_max_rel_diff"] <= 1e-12
+
+
+def test_an_integrator_cancelled_to_the_typed_digits_does_not_drift():
+    """B_r(1) - B_y(1) = 1e-4 of B_y(1) (digits): accepted as the same integral weight, and the pole at z = 1 cancels
+    exactly, so after a move the controller term settles to its DC value instead of integrating the rounding (it
+    drifted by 30 N in 40 s before)."""
+    ctrl = _pid_2dof(True)
+    b_r = ctrl.b_r.copy()
+    b_r[0] += 1e-4 * float(np.sum(ctrl.b_y))
+    typed = LTIController.lti(list(ctrl.b_y), list(ctrl.a), list(b_r), gtau=2.0, delay=1)
+    assert typed.rest_gain() == 0.0 and abs(float(np.sum(typed.reference_filter()[1]))) > 0.1   # no pole at 1 left
+    r = np.concatenate([_reference(0.06), np.full(40_000, 0.08)])      # a 20 mm move, then 40 s at rest
+    f = typed.reference_force(r, 0.06)
+    exact = ctrl.reference_force(r, 0.06)
+    end = f[-30_000:]
+    assert np.ptp(end) <= 1e-9 * np.max(np.abs(f))
+    assert abs(end[-1] - exact[-1]) <= 2e-4 * np.max(np.abs(exact))
+
+
+@pytest.mark.skipif(CC is None, reason="no C compiler on this machine")
+def test_a_past_input_recursion_starts_as_init_leaves_it_when_the_reference_moves_at_once(tmp_path):
+    """A direct inverse with n_k = 1 and a past input (n_b = 2) on a reference that moves from sample 1: the C's
+    init warms the recursion up on r0 alone (it cannot see the motion coming), so the Python law takes the input
+    history of a rest run, not of rest samples padded in front (which saw the motion in their preview and
+    disagreed with the C by 0.25 %). C = Python to 1e-12."""
+    from pipeline.models.pgnn import PGNN
+    m = PGNN(2, 2, 1, structure="inverse", physics=RigidBodyInverse(Ts), hidden=(8,), seed=3, out_init_scale=0.3)
+    m.set_physics_estimate((0.2, 2.0, 0.4))
+    law = _rest_law(from_pgnn(_over_the_travel(m), "direct", Ts), R0S)
+    assert law.settle > 0                                   # a recursion to settle
+    t = np.arange(700) * Ts
+    r = 0.06 + 0.02 * (1 - np.cos(2 * np.pi * t / (700 * Ts))) / 2      # moving from sample 1
+    lg = _guard(law, r)
+    u, f = guarded(lg, r)
+    man = write_package(lg, "ff", tmp_path, {"ref": (r, u)}, source={}, timing_repeats=0)
+    assert man["references"]["ref"]["c_flags_agree"] and man["c_max_rel_diff"] <= 1e-12

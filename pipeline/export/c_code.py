@@ -206,7 +206,7 @@ def _single(text: str) -> str:
 
 def write_c(law: Law, name: str, folder: Path, source: str, example: str = "reference.csv", *,
             prefix: str | None = None, precision: str = "double", zoh_n: int = 1,
-            check_tol: float = 1e-9, check_atol: float = 0.0) -> list[Path]:
+            check_tol: float = 1e-9, check_atol: float = 0.0, check_mask: int = 1023) -> list[Path]:
     """Write ``<name>.h``, ``<name>.c`` and ``main_<name>.c`` into ``folder``; returns the paths.
     ``prefix``: the C symbols' prefix (default ``name``); ``precision``: double | single (the law's
     arithmetic; the harness reads and writes double); ``zoh_n`` > 1: also a zero-order-hold wrapper
@@ -307,7 +307,7 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
     if precision == "single":
         header, src = _single(header), _single(src)
     harness = _template("harness.c").substitute(common, example=example, check_tol=_num(check_tol),
-                                                check_atol=_num(check_atol))
+                                                check_atol=_num(check_atol), check_mask=int(check_mask))
     files = {f"{file}.h": header, f"{file}.c": src, f"main_{file}.c": harness}
     out = []
     for fname, text in files.items():

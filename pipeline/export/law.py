@@ -108,9 +108,11 @@ class Law:
                   "right when the feedforward is on from power-up, before any integrator holds the load")
         else:
             r0 = "0" if self.rest == "zero" else "r(0)"
-            at = (f"the study's convention: the reference at rest at {r0} before t = 0, past inputs 0; init(&s, r0) "
-                  f"with r0 = {r0} reproduces the study (references that start at 0)")
+            at = (f"the papers' convention: the reference at rest at {r0} before t = 0 and past inputs 0 (the study's "
+                  f"references start at 0); init(&s, {r0}) reproduces the study; init at another position gives a "
+                  "start transient: re-export with start.at=rest for a machine that starts where it stands")
             u0 = "the law's first sample as the study computed it"
+        at += "; call init once, at switch-on (a re-init resets the output's slew history)"
         return {"at": "rest" if self.start == "rest" else "zero", "static": self.static,
                 "settle_samples": self.settle, "init": at, "u_ff_at_switch_on": u0}
 
@@ -404,8 +406,16 @@ def _started(law: Law, r: np.ndarray, r0: float) -> tuple[np.ndarray, np.ndarray
     if law.start != "rest":
         return _core(law, r)
     n = law.settle + 1
-    u, f = _core(law, np.concatenate([np.full(n, r0), r]))
-    u, f = u[n:], f[n:]
+    if law.family == "pgnn" and law.ints["n_b"] > 1:
+        # a past-input recursion: its history is the C's after init, n steps whose preview is r0 only (a padded
+        # run's last rest steps would see the motion coming, which init cannot), then the reference from r(0)
+        kept: list = []
+        _core(law, np.full(n, r0), keep=kept)
+        n_y = law.ints["n_a"] + 1
+        u, f = _core(law, r, u_past=kept[0][n_y:n_y + law.ints["n_b"]].copy())
+    else:
+        u, f = _core(law, np.concatenate([np.full(n, r0), r]))
+        u, f = u[n:], f[n:]
     if law.static == "exclude":
         u = u - _rest_value(law, r0)[0]
     return u, f
@@ -418,8 +428,9 @@ def _check_reference(r) -> np.ndarray:
     return r
 
 
-def _core(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(u_ff, the law's own flags) on a finite reference r, as the C law_step computes them."""
+def _core(law: Law, r: np.ndarray, **pgnn) -> tuple[np.ndarray, np.ndarray]:
+    """(u_ff, the law's own flags) on a finite reference r, as the C law_step computes them (``pgnn``: the
+    input history before t = 0 and the state's receiver, :func:`_pgnn_run`)."""
     N = r.size
     if law.family == "table":
         R, U, n = law.arrays["r"], law.arrays["u"], law.ints["n"]
@@ -444,7 +455,7 @@ def _core(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
                 u = (0.5 * (w[:-1] + w[1:]) if law.averaged else w[:-1]) \
                     - ctrl.reference_force(r, float(r[0]) if law.start == "rest" else 0.0)   # from rest at r(0)
         return u, np.where(np.isfinite(u), 0, FLAG["SINGULAR"])
-    w, f = _pgnn_run(law, np.append(r, r[-1]) if law.averaged else r)
+    w, f = _pgnn_run(law, np.append(r, r[-1]) if law.averaged else r, **pgnn)
     f = f | np.where(np.isfinite(w), 0, FLAG["SINGULAR"])    # an overflow: kept, the guard falls back
     if not law.averaged:
         return w, f
@@ -453,8 +464,9 @@ def _core(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return 0.5 * (w[:-1] + w[1:]), flags
 
 
-def _pgnn_run(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(w, flags): the numba kernels' w(t) (Newton's per-sample flags; the other laws raise none here)."""
+def _pgnn_run(law: Law, r: np.ndarray, u_past=None, keep: list | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(w, flags): the numba kernels' w(t) (Newton's per-sample flags; the other laws raise none here); ``u_past``:
+    the input history before t = 0 (default 0), ``keep``: receives the kernel state after the run."""
     from pipeline.invert.analytic import _run  # lazy: saves 2.8 s of start-up (torch, numba kernels)
     from pipeline.invert.direct import (  # lazy: saves 2.5 s of start-up (torch, numba kernels)
         _direct_run,
@@ -468,6 +480,10 @@ def _pgnn_run(law: Law, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     fm = FastPGNN(blob, meta, law.strings["structure"], m["n_a"], m["n_b"], m["n_k"])
     r_ext = padded(law, r, m["n_a"], m["n_k"] + 1)
     state = initial_state(fm, r_ext)
+    if u_past is not None:            # state[n_y .. n_y + n_b): u(t-1), u(t-2), ... (fast_push_input)
+        state[m["n_a"] + 1:m["n_a"] + 1 + m["n_b"]] = u_past
+    if keep is not None:
+        keep.append(state)            # the kernels advance it in place
     N = r.size
     none = np.zeros(N, dtype=np.int64)
     if law.law == "direct":

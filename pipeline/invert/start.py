@@ -9,9 +9,9 @@ running. Two choices say what the law assumes then (config node ``start``):
   gives a constant u_ff there, the static force at r0, and no transient; ``zero``: the papers'
   conventions as the study ran them (the physics law (8) and the [K] filters from r = 0, the [B1]
   PGNN inversions from r(0), the controller term from a zero state), for references that start at
-  0 (their numbers stay equal to the bit); ``recorded``: the same conventions on a measured system, for
-  recordings replayed as they were recorded (EMPS's files start moving: their numbers stay equal to the
-  bit); ``auto`` (default): ``rest`` on a measured system, ``zero`` on the simulators.
+  0 (their numbers stay equal to the bit); ``recorded``: the same conventions on a measured system, for a
+  recording replayed as the study replayed it before the start was declared (the reference from r = 0, the
+  controller term from a zero state); ``auto`` (default): ``rest`` on a measured system, ``zero`` on the simulators.
 - ``start.static``: ``include``: u_ff(0) is the law's force at rest at r0 (gravity, a spring, an
   offset): right when the feedforward is on from power-up; ``exclude``: that constant is taken off,
   u_ff(0) = 0, right when the loop's integrator already holds the load at switch-on (else the axis
@@ -46,7 +46,7 @@ SETTLE_RTOL = 1e-14
 class Params:
     """start (pipeline/invert/start.py): the state every feedforward law starts from and its value at switch-on."""
     # auto: rest on a measured system, zero on the simulators | rest: steady state at r(0) | zero: the papers'
-    # conventions | recorded: the same on a recording replayed as recorded (EMPS)
+    # conventions | recorded: the same on a measured system (as it ran before the start was declared)
     at: Literal["auto", "rest", "zero", "recorded"] = "auto"
     # auto: exclude when the controller integrates (it holds the load at switch-on), else include
     static: Literal["auto", "include", "exclude"] = "auto"

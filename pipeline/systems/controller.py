@@ -173,13 +173,22 @@ class LTIController:
         return signal.lfilter(self.b_r, self.a, r) - signal.lfilter(self.b_y, self.a, y)
 
     def reference_filter(self) -> tuple[np.ndarray, np.ndarray]:
-        """(B_r - B_y, A) padded to one length: C_r - C_y as a filter (zero numerator for error feedback)."""
+        """(B_r - B_y, A) padded to one length: C_r - C_y as a filter (zero numerator for error feedback). With
+        integral action and the same integral weight on r and y (B_r(1) = B_y(1) to the coefficients' digits) the
+        integrator cancels: both are divided by (1 - z⁻¹), their remainders (the typed digits' rounding) dropped, so
+        the filter has no pole at z = 1 left to integrate that rounding into a drift."""
         n = max(self.b_r.size, self.b_y.size, self.a.size)
         db, den = np.zeros(n), np.zeros(n)
         db[:self.b_r.size] += self.b_r
         db[:self.b_y.size] -= self.b_y
         den[:self.a.size] = self.a
+        if np.any(db) and self.integral_action and self._same_integral(db):
+            db, den = np.cumsum(db)[:-1], np.cumsum(den)[:-1]     # c(z⁻¹) / (1 - z⁻¹), ascending powers
         return db, den
+
+    def _same_integral(self, db: np.ndarray) -> bool:
+        scale = max(abs(float(np.sum(self.b_r))), abs(float(np.sum(self.b_y))), 1e-300)
+        return abs(float(np.sum(db))) <= 1e-3 * scale
 
     @property
     def integral_action(self) -> bool:
@@ -198,8 +207,10 @@ class LTIController:
         db, den = self.reference_filter()
         s_db, s_den = float(np.sum(db)), float(np.sum(den))
         if self.integral_action:   # the same integral weight on r and y: B_r(1) = B_y(1) to the coefficients' digits
-            scale = max(abs(float(np.sum(self.b_r))), abs(float(np.sum(self.b_y))), 1e-300)
-            if abs(s_db) > 1e-3 * scale:
+            raw = np.zeros(max(self.b_r.size, self.b_y.size))
+            raw[:self.b_r.size] += self.b_r
+            raw[:self.b_y.size] -= self.b_y
+            if np.any(raw) and not self._same_integral(raw):
                 raise ValueError(f"C_r - C_y of {self.describe()} integrates (B_r(1) = {float(np.sum(self.b_r)):.6g} "
                                  f"differs from B_y(1) = {float(np.sum(self.b_y)):.6g}): the loop has no rest away "
                                  "from r = 0; check num_r, or use start.at=zero")

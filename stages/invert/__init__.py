@@ -170,8 +170,8 @@ def envelope_warning(ctx, refs: dict) -> str | None:
     if not parts:
         return None
     return ("the feedforward extrapolates the model beyond its training data: " + " | ".join(parts)
-            + ". Record training data that cover the reference (faster, longer moves), or expect the exported "
-            "law's OUT_OF_RANGE flag there.")
+            + ". Record training data that cover the reference (faster, longer moves); an exported law flags "
+            "OUT_OF_RANGE beyond export.limits.envelope_margin (0.1 of each range by default) outside them.")
 
 
 def loop_model(ctx):

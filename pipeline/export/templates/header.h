@@ -27,7 +27,8 @@ ${start_lines}
  *              every later sample: the law's state is not trusted again); otherwise the output
  *              returns to the law's linearly over ramp_time (FALLBACK until it is back);
  *              then saturation to [${u_min_doc}, ${u_max_doc}] N (SATURATED) and the slew limit
- *              |u(t) - u(t-1)| <= ${rate_doc} N/s * Ts (RATE_LIMITED), from u(-1) = 0.
+ *              |u(t) - u(t-1)| <= ${rate_doc} N/s * Ts (RATE_LIMITED), from the output before t = 0 (the law
+ *              at rest at r0 clamped into the limits when init starts it at rest, else 0 N).
  * Counters     s->k (samples since init) and s->n_flagged are uint64_t and saturate at UINT64_MAX
  *              (no wrap-around: a table law past its end stays past its end).
  * status       bit flags of the last sample (s->status; s->n_flagged counts flagged samples):

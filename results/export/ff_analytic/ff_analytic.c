@@ -30,25 +30,25 @@
  * [θ̂_phy (P) | θ*_phy, the physics start (P) | W, first layer with the input map folded in (H x NPHI) |
  *  b (H) | w2 = output weights x output scale (H) | b2 | physics map configuration] */
 static const double BLOB[89] = {
-    0.04987963007290453, 0.44226973944092485, 0.6033027560649488, 0.04973197666618563,
-    0.44226973944061004, 0.603302756047546, 121.3715537982124, 111.8618456759972, 0.0,
-    -16.945320042569, -6.862004481917552, 0.0, -150.0991295571034, -143.5985627303383, 0.0,
-    -59.41158616652126, -54.15557858416439, 0.0, 81.12135634323168, 80.8708199304312, 0.0,
-    -9.058968310463914, -3.8804175113745956, 0.0, 1.3825460561347125, -7.054626473754057, 0.0,
-    0.9294518439007738, 4.906988095372224, 0.0, -17.089977289260602, -8.660427834901013, 0.0,
-    43.57789044618593, 60.041739201991724, 0.0, -78.30400516066967, -90.3542856923544, 0.0,
-    16.562807268295753, 17.479458861228476, 0.0, 221.48005290562264, 224.87964118073114, 0.0,
-    93.73246818268215, 96.36129955502929, 0.0, 8.162822412462212, -2.0428159312634406, 0.0,
-    -7.168865809737601, -0.9754076843369707, 0.0, -16.866249089146805, 0.7820095820308862,
-    -22.459185157534648, -3.0458842304947247, -15.499954759265858, 1.2268158439687384,
-    -0.19013436574864748, 0.22974297712577063, 1.8431150831325274, -7.40651189996915,
-    15.640659957372135, 2.5015853916410538, 23.12566837703325, 5.091562724577509,
-    0.376534355625755, -0.6046197427119193, -1.2222497815776203e-06, -3.052052331573669e-06,
-    5.938884810265226e-07, -2.7559712837337674e-06, -1.2486775118656705e-06,
-    2.143208606244628e-06, 2.8353585587885726e-06, -1.3442232097822332e-06,
-    1.5750428469590649e-06, 2.18823835024958e-06, -1.5342422526384282e-06, 3.062735726007069e-06,
-    -3.6067533933394883e-07, -2.170157969570021e-06, -2.2946429411705304e-06,
-    1.6817753621456445e-06, -1.034505293081487e-07, 0.001, 2.0
+    0.04989635340560448, 0.44226973944079356, 0.6033027560606097, 0.04973197666618563,
+    0.44226973944061004, 0.603302756047546, 164.23193665999713, 95.34513993308002, 0.0,
+    -3.477367960501539, -0.6766253898452927, 0.0, -155.60231057797503, -121.24849969980134, 0.0,
+    -72.13189774683866, -67.81018159605406, 0.0, 93.92153829580346, 76.6115516053081, 0.0,
+    -8.021945883700356, 2.1464451004226843, 0.0, 1.4975611814268064, -5.5754088282036065, 0.0,
+    0.5649737270610024, 3.5596913874843246, 0.0, -181.29327788264158, -173.64891105968005, 0.0,
+    -2.1002863132134526, 33.745853164141316, 0.0, -98.66003790537822, -138.57258553471394, 0.0,
+    18.817876015765773, 14.981033256802483, 0.0, 253.89744773360016, 240.1992216845336, 0.0,
+    94.34064732979516, 94.14555903919764, 0.0, 6.716218244320448, -4.017357874256009, 0.0,
+    -15.099633638920828, -10.66047806219871, 0.0, -18.90737354227843, 0.9411724826485294,
+    -21.23087621804422, -3.767161332093985, -16.047150435049197, 1.625009347362691,
+    -0.12406955492159798, 0.24852202323593184, 17.469481815561856, -2.2269689037087277,
+    21.969118001121846, 2.7909687507657575, 25.56902927667925, 5.064179796127386,
+    0.25872233396023797, -2.925864212980597, -6.238795200835397e-07, -2.8087368451017427e-06,
+    6.347531142383524e-07, -3.4492893257099956e-06, -2.053610155210411e-06,
+    3.3309670079809466e-06, 1.7481903368139994e-06, -5.971215374116731e-07, 3.91894005175095e-07,
+    2.041942497482203e-06, -1.5166585209934658e-06, 3.354140107739579e-06,
+    -3.666363428514224e-07, -3.2066730107041134e-06, -1.747322580166662e-06,
+    3.393350723684013e-06, 1.0813527123138925e-06, 0.001, 2.0
 };
 #define TH (BLOB + 0)
 #define TS (BLOB + 3)
@@ -58,6 +58,10 @@ static const double BLOB[89] = {
 #define B2 (BLOB[86])
 #define CFG (BLOB + 87)
 
+#if defined(__clang__)   /* the kernels' helpers: each law uses some; clang (not gcc) warns on an unused inline */
+#pragma clang diagnostic push
+#pragma clang diagnostic ignored "-Wunused-function"
+#endif
 static inline double physics(const double *th, const double *phi)
 {   /* f_phy(θ, φ) of the built-in maps (pipeline.models.pgnn._fast_physics) */
 #if KIND == 0
@@ -91,7 +95,7 @@ static inline double gain(const double *th)
     return CFG[0] * CFG[0] * th[0];
 #else
     (void)th;
-    return NAN;
+    return (double)NAN;   /* NAN is a float: cast, not promoted implicitly */
 #endif
 }
 
@@ -163,7 +167,7 @@ static inline double analytic_solve(double *phi, double r_next, int use_start, i
     double a, psi, nn = 0.0, d;
     physics_affine(use_start ? TS : TH, phi, &a, &psi);
     if (with_nn) nn = nn_affine(phi, &d);
-    if (psi == 0.0) return NAN;
+    if (psi == 0.0) return (double)NAN;
     return (r_next - a - nn) / psi;
 }
 
@@ -171,10 +175,10 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
 {   /* [B1] Algorithm 1 (pipeline.invert.newton.newton_solve): at most K_NEWTON updates */
     int flags = 0, i;
     double u = analytic_solve(phi, r_next, 1, 0);   /* physics start, θ*_phy */
-    double a, psi, best_u, best_v = HUGE_VAL, first_v = NAN, last_v = NAN;
-    if (!isfinite(u)) { u = 0.0; flags |= FF_ANALYTIC_8B1DFF27_SINGULAR; }
-    if (u < U_MIN) { u = U_MIN; flags |= FF_ANALYTIC_8B1DFF27_BOUNDS; }
-    else if (u > U_MAX) { u = U_MAX; flags |= FF_ANALYTIC_8B1DFF27_BOUNDS; }
+    double a, psi, best_u, best_v = HUGE_VAL, first_v = (double)NAN, last_v = (double)NAN;
+    if (!isfinite(u)) { u = 0.0; flags |= FF_ANALYTIC_4D04B765_SINGULAR; }
+    if (u < U_MIN) { u = U_MIN; flags |= FF_ANALYTIC_4D04B765_BOUNDS; }
+    else if (u > U_MAX) { u = U_MAX; flags |= FF_ANALYTIC_4D04B765_BOUNDS; }
     phi[UIDX] = 0.0;
     physics_affine(TH, phi, &a, &psi);              /* θ̂_phy: ŷ = a + ψ u + f_NN */
     best_u = u;
@@ -183,26 +187,29 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
         phi[UIDX] = u;
         nn = nn_affine(phi, &dnn);
         V = r_next - (a + psi * u + nn);             /* [B1] (23) */
-        if (!isfinite(V)) { flags |= FF_ANALYTIC_8B1DFF27_SINGULAR; break; }
+        if (!isfinite(V)) { flags |= FF_ANALYTIC_4D04B765_SINGULAR; break; }
         av = fabs(V);
         if (i == 0) first_v = av;
         last_v = av;
         if (av < best_v) { best_u = u; best_v = av; }
         if (i == K_NEWTON || V == 0.0) break;
         dV = -(psi + dnn);                           /* [B1] (24), (25) */
-        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_ANALYTIC_8B1DFF27_SINGULAR; break; }
+        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_ANALYTIC_4D04B765_SINGULAR; break; }
         u_new = u - V / dV;
-        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_ANALYTIC_8B1DFF27_BOUNDS; break; }
+        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_ANALYTIC_4D04B765_BOUNDS; break; }
         u = u_new;
     }
-    if (last_v > first_v) flags |= FF_ANALYTIC_8B1DFF27_DIVERGED;
+    if (last_v > first_v) flags |= FF_ANALYTIC_4D04B765_DIVERGED;
     if (best_v == HUGE_VAL) best_u = u;
     phi[UIDX] = 0.0;
     *flags_out = flags;
     return best_u;
 }
+#if defined(__clang__)
+#pragma clang diagnostic pop
+#endif
 
-static inline double law_w(ff_analytic_8b1dff27_state *s, const double *rp)
+static inline double law_w(ff_analytic_4d04b765_state *s, const double *rp)
 {   /* one sample of the law: the model input w(t) from r(t .. t+NK+1) and the state */
     double *x = s->x, *rh = x + XRH, *uh = x + XUH, *rw = x + XRW, *phi = x + XPHI;
     double w;
@@ -228,7 +235,7 @@ static inline double law_w(ff_analytic_8b1dff27_state *s, const double *rp)
 #else                                               /* LAW_PHYSICS on a forward model */
     w = analytic_solve(phi, rw[0], 1, 0);
 #endif
-    if (!isfinite(w)) flags |= FF_ANALYTIC_8B1DFF27_SINGULAR;    /* as the kernels: kept (the guard falls back) */
+    if (!isfinite(w)) flags |= FF_ANALYTIC_4D04B765_SINGULAR;    /* as the kernels: kept (the guard falls back) */
     for (i = NB - 1; i > 0; --i) uh[i] = uh[i - 1];
     uh[0] = w;
     for (i = NRH - 1; i > 0; --i) rh[i] = rh[i - 1];
@@ -237,10 +244,10 @@ static inline double law_w(ff_analytic_8b1dff27_state *s, const double *rp)
     return w;
 }
 
-static void law_init(ff_analytic_8b1dff27_state *s, double r0)
+static void law_init(ff_analytic_4d04b765_state *s, double r0)
 {
     int i;
-    for (i = 0; i < FF_ANALYTIC_8B1DFF27_NX; ++i) s->x[i] = 0.0;
+    for (i = 0; i < FF_ANALYTIC_4D04B765_NX; ++i) s->x[i] = 0.0;
     for (i = 0; i < NRH; ++i) s->x[XRH + i] = r0;
     s->w_prev = 0.0;
     s->primed = 0;
@@ -248,13 +255,18 @@ static void law_init(ff_analytic_8b1dff27_state *s, double r0)
     s->n_flagged = 0;
     s->k = 0;
     s->n_invalid = 0;
+    s->n_back = 0u;
+    s->u_from = 0.0;
+    s->r_bad = 0u;
+    s->latched = 0;
     s->u_prev = 0.0;
     s->u_hold = 0.0;
+    s->u_static = 0.0;
     s->r_hist[0] = r0;
     s->r_hist[1] = r0;
 }
 
-static double law_step(ff_analytic_8b1dff27_state *s, const double *r_preview)
+static double law_step(ff_analytic_4d04b765_state *s, const double *r_preview)
 {
     double u;
     s->status = 0;
@@ -272,55 +284,114 @@ static double law_step(ff_analytic_8b1dff27_state *s, const double *r_preview)
 }
 
 /* ---- guard (issue 22): input sanitation, training envelope, fallback, saturation, slew limit ---- */
-#define G_PREVIEW FF_ANALYTIC_8B1DFF27_PREVIEW
+#if defined(__FAST_MATH__) || (defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__)
+/* -ffast-math (also implied by -Ofast) and -ffinite-math-only let the compiler assume no NaN/inf: it then
+ * deletes every isfinite() below, and a NaN reference or an overflow reaches the actuator unflagged */
+#error "ff_analytic.c: do not build the guarded feedforward with -ffast-math, -Ofast or -ffinite-math-only: they delete every isfinite() check of the guard (a NaN reference or an overflow would reach the actuator with no flag); drop that flag (use -O2 or -O3)"
+#endif
+#define G_PREVIEW FF_ANALYTIC_4D04B765_PREVIEW
 #define G_TS (0.001)
-#define U_LO ((-HUGE_VAL))           /* saturation [N] */
-#define U_HI (HUGE_VAL)
-#define DU_MAX (HUGE_VAL)         /* slew limit x Ts: the largest |u(t) - u(t-1)| [N] */
+#define U_LO (-376.4980271294816)           /* saturation [N] */
+#define U_HI (376.4980271294816)
+#define DU_MAX (478.2709150574738)         /* slew limit x Ts: the largest |u(t) - u(t-1)| [N] */
 #define FALLBACK_KIND 0        /* 0 hold, 1 physics, 2 ramp */
 #define ENVELOPE_FALLS_BACK 0  /* 1: out of the envelope is invalid; 0: flagged only */
-#define RAMP_N (100.0)         /* ramp_time / Ts: samples of the ramp to 0 */
+#define RAMP_N (100.0)         /* ramp_time / Ts: samples of the ramp to 0 and of the return to the law */
 static const double ENV_LO[3] = {-0.1205056140893973, -0.10878271303569609, -15.696705526759004};   /* training envelope of r, dr/dt, d2r/dt2 */
 static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717170017};
-#if FALLBACK_KIND == 1
-static const double PHYS[3] = {0.0, 0.0, 0.0};    /* physics fallback: M, F_v, F_c */
+#if FALLBACK_KIND == 1   /* physics fallback M d2r + sum_j p_j T_j(r, dr), every force term of the system */
+#define NPHYS 2
+static const double PHYS[NPHYS + 1] = {0.0, 0.0, 0.0};          /* M, p_1 .. p_n */
+static const int PHYS_CODES[NPHYS + 1] = {0, 1, 0};      /* T_j: pipeline.systems.force_terms codes */
+static const double PHYS_CONSTS[NPHYS + 1] = {0.0, 0.0, 0.0}; /* shape constant of each T_j (+ one unused) */
+
+static double phys_term(int code, double p, double q, double v)
+{   /* T(q, q̇) of one force term (pipeline.systems.force_terms.term; guard.py _term) */
+    const double sg = v > 0 ? 1.0 : (v < 0 ? -1.0 : 0.0);
+    double x;
+    switch (code) {
+    case 0: return v;                             /* viscous */
+    case 1: return sg;                            /* Coulomb, sign */
+    case 2: return tanh(v / p);                   /* Coulomb, smooth */
+    case 3: x = v / p; return sg * exp(-(x * x)); /* Stribeck */
+    case 4: return 1.0;                           /* offset (gravity) */
+    case 5: return cos(p * q);                    /* cogging cos */
+    default: return sin(p * q);                   /* cogging sin */
+    }
+}
 #endif
 
-void ff_analytic_8b1dff27_init(ff_analytic_8b1dff27_state *s, double r0)
+#define START_REST 0        /* 1: init puts every state at rest at r0 (pipeline/invert/start.py) */
+#define SETTLE_N 0u          /* rest samples the law needs to reach its steady state */
+#define STATIC_EXCLUDE 0  /* 1: the force at rest at r0 is taken off (the loop holds the load) */
+
+void ff_analytic_4d04b765_init(ff_analytic_4d04b765_state *s, double r0)
 {
-    law_init(s, isfinite(r0) ? r0 : 0.0);
+    const double r = isfinite(r0) ? r0 : 0.0;
+    law_init(s, r);
+#if START_REST   /* SETTLE_N + 1 law steps on a reference held at r0: the last is the law at rest, u_rest */
+    {
+        double rp[G_PREVIEW + 1], u = 0.0;
+        uint64_t k;
+        int i;
+        for (i = 0; i <= G_PREVIEW; ++i) rp[i] = r;
+        for (k = 0u; k <= SETTLE_N; ++k) u = law_step(s, rp);
+        if (!isfinite(u)) u = 0.0;     /* an absurd r0 overflowed the law: nothing to take off (Python alike) */
+        s->u_static = STATIC_EXCLUDE ? u : 0.0;
+        s->u_prev = u - s->u_static;   /* the output before t = 0: the law at rest (no slew from 0 N), */
+        if (s->u_prev > U_HI) s->u_prev = U_HI;         /* inside the force limits (no slew from outside) */
+        else if (s->u_prev < U_LO) s->u_prev = U_LO;
+        s->u_hold = s->u_prev;
+        s->status = 0;
+        s->primed = 0;   /* an averaged input computes w(0) from the real preview at t = 0, as the study does */
+    }
+#endif
 }
 
-double ff_analytic_8b1dff27_step(ff_analytic_8b1dff27_state *s, const double *r_preview)
+double ff_analytic_4d04b765_step(ff_analytic_4d04b765_state *s, const double *r_preview)
 {
     double ext[G_PREVIEW + 3];   /* r(t-2), r(t-1), r(t) .. r(t+P) after sanitation */
     double x[3], u;
-    int i, j, flags = 0, invalid, inside = 1;
+    int i, j, flags = 0, invalid, inside = 1, overflow = 0;
     ext[0] = s->r_hist[1];
     ext[1] = s->r_hist[0];
+    if (s->r_bad != 0u) {      /* r(t-1) or r(t-2) was replaced: a step in the law's differences */
+        flags |= FF_ANALYTIC_4D04B765_NONFINITE_INPUT;
+    }
     for (i = 0; i <= G_PREVIEW; ++i) {
         if (isfinite(r_preview[i])) {
             ext[i + 2] = r_preview[i];
         } else {
             ext[i + 2] = ext[i + 1];
-            flags |= FF_ANALYTIC_8B1DFF27_NONFINITE_INPUT;
+            flags |= FF_ANALYTIC_4D04B765_NONFINITE_INPUT;
         }
     }
+    s->r_bad = ((s->r_bad << 1u) | (isfinite(r_preview[0]) ? 0u : 1u)) & 3u;
     /* the envelope at every n = t .. t + P: the whole window r(t-2) .. r(t+P) the law is fed */
     for (j = 0; j <= G_PREVIEW; ++j) {
         x[0] = ext[j + 2];                                       /* r(n), n = t + j */
         x[1] = (ext[j + 2] - ext[j + 1]) / G_TS;                 /* backward differences */
         x[2] = (ext[j + 2] - 2.0 * ext[j + 1] + ext[j]) / (G_TS * G_TS);
-        for (i = 0; i < 3; ++i) {
-            if (!((ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
+        for (i = 0; i < 3; ++i) {   /* a non-finite regressor (an overflow) is outside any envelope */
+            if (!isfinite(x[i])) { overflow = 1; }
+            if (!(isfinite(x[i]) && (ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
         }
     }   /* x: the newest, n = t + P (the physics fallback's regressors) */
-    if (!inside) flags |= FF_ANALYTIC_8B1DFF27_OUT_OF_RANGE;
+    if (!inside) flags |= FF_ANALYTIC_4D04B765_OUT_OF_RANGE;
     u = law_step(s, ext + 2);
+#if START_REST
+    u -= s->u_static;
+#endif
     flags |= s->status;
-    invalid = ((flags & FF_ANALYTIC_8B1DFF27_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
+    if (!isfinite(u)) { s->latched = 1; }   /* the law's state may hold inf/NaN: not trusted until init */
+    if (s->latched != 0) { flags |= FF_ANALYTIC_4D04B765_SINGULAR; }
+    /* invalid: a replaced input, an overflow (inf regressor, non-finite output, the law's SINGULAR: Newton
+     * returns 0 N or its last finite iterate when it overflows), out of the envelope when that falls back */
+    invalid = ((flags & (FF_ANALYTIC_4D04B765_NONFINITE_INPUT | FF_ANALYTIC_4D04B765_SINGULAR)) != 0) || (overflow != 0) || (s->latched != 0)
+              || (ENVELOPE_FALLS_BACK && !inside);
     if (invalid) {
-        flags |= FF_ANALYTIC_8B1DFF27_FALLBACK;
+        flags |= FF_ANALYTIC_4D04B765_FALLBACK;
+        s->n_back = 0u;
         if (s->n_invalid < UINT64_MAX) s->n_invalid++;
 #if FALLBACK_KIND == 2                /* ramp to 0 over RAMP_N samples */
         {
@@ -328,9 +399,11 @@ double ff_analytic_8b1dff27_step(ff_analytic_8b1dff27_state *s, const double *r_
             u = s->u_hold * (g > 0.0 ? g : 0.0);
         }
 #elif FALLBACK_KIND == 1              /* physics on a finite reference, else hold */
-        if ((flags & FF_ANALYTIC_8B1DFF27_NONFINITE_INPUT) == 0) {
-            const double sg = x[1] > 0 ? 1.0 : (x[1] < 0 ? -1.0 : 0.0);
-            u = PHYS[0] * x[2] + PHYS[1] * x[1] + PHYS[2] * sg;
+        if ((flags & FF_ANALYTIC_4D04B765_NONFINITE_INPUT) == 0) {
+            u = PHYS[0] * x[2];
+            for (j = 0; j < NPHYS; ++j) {
+                u += PHYS[1 + j] * phys_term(PHYS_CODES[j], PHYS_CONSTS[j], x[0], x[1]);
+            }
             if (!isfinite(u)) u = s->u_hold;
         } else {
             u = s->u_hold;
@@ -338,13 +411,21 @@ double ff_analytic_8b1dff27_step(ff_analytic_8b1dff27_state *s, const double *r_
 #else                                 /* hold */
         u = s->u_hold;
 #endif
-    } else {
-        s->n_invalid = 0;
+    } else {   /* back from a fallback: linearly from its last output to the law's over RAMP_N samples */
+        if (s->n_invalid > 0u) { s->u_from = s->u_prev; s->n_back = 1u; }
+        else if (s->n_back > 0u) { s->n_back++; }
+        else { /* not returning */ }
+        s->n_invalid = 0u;
+        if (s->n_back > 0u) {
+            const double g = (double)s->n_back / RAMP_N;
+            if (g < 1.0) { u = s->u_from + (u - s->u_from) * g; flags |= FF_ANALYTIC_4D04B765_FALLBACK; }
+            else { s->n_back = 0u; }
+        }
     }
-    if (u > U_HI) { u = U_HI; flags |= FF_ANALYTIC_8B1DFF27_SATURATED; }
-    else if (u < U_LO) { u = U_LO; flags |= FF_ANALYTIC_8B1DFF27_SATURATED; }
-    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_ANALYTIC_8B1DFF27_RATE_LIMITED; }
-    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_ANALYTIC_8B1DFF27_RATE_LIMITED; }
+    if (u > U_HI) { u = U_HI; flags |= FF_ANALYTIC_4D04B765_SATURATED; }
+    else if (u < U_LO) { u = U_LO; flags |= FF_ANALYTIC_4D04B765_SATURATED; }
+    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_ANALYTIC_4D04B765_RATE_LIMITED; }
+    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_ANALYTIC_4D04B765_RATE_LIMITED; }
     if (!invalid) s->u_hold = u;
     s->u_prev = u;
     s->r_hist[1] = s->r_hist[0];

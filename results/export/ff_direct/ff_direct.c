@@ -30,28 +30,28 @@
  * [θ̂_phy (P) | θ*_phy, the physics start (P) | W, first layer with the input map folded in (H x NPHI) |
  *  b (H) | w2 = output weights x output scale (H) | b2 | physics map configuration] */
 static const double BLOB[88] = {
-    17.659366857779908, 6.748095795329704, 12.050123442759228, 17.66002608221686,
-    6.747834680232088, 12.007639933283246, 87.02235658183194, 77.4180302434932,
-    49.431640307671266, 20.511132191117664, 22.668758420389086, 12.04455161127621,
-    -55.411813838937384, -51.10640507214002, -47.30286567793829, -103.79306361080614,
-    -86.29770731383981, -54.44200443100794, -12.411252195429608, -13.933183386857305,
-    -0.03629144466459864, -2.1945413991231746, 15.44199437925198, 23.505313788866697,
-    -111.1883637053906, -123.89576598774912, -123.38896284370075, 116.18223228657627,
-    130.3450636220178, 165.0610895745903, 102.51697164003312, 106.7164401128084,
-    95.28097205013114, -1.946842416304451, 10.795215666115636, 11.179916201694219,
-    27.730543917579777, 44.01899247087712, 60.973034554847985, -64.75148749888344,
-    -71.07409295107936, -65.94871555729699, -34.554460548192736, -57.299308147539314,
-    -64.3867092215626, 103.15896337720162, 115.7700592281093, 118.94925718249928,
-    -75.36279419399855, -81.22954796045558, -74.15281229689995, -40.965440081575785,
-    -38.6566876585299, -14.611526960700491, 12.44977830939618, 3.474541776604013,
-    -12.26211592308759, 17.76011789230396, 0.05015236007434848, -4.007621669865278,
-    -0.5574478019862392, -9.684776574332796, -29.783387832113497, -0.8410653549685789,
-    7.6320942158575376, -16.567630524288603, 8.253880249062892, 9.00848203240472,
-    12.334314782942341, 5.022429063672858, -47.06901555545531, -70.14577123885199,
-    -50.534923179404196, -11.50013707458192, 41.346986657612646, -51.35113208220527,
-    -10.215623975184537, 7.647068528395158, 12.253965170287517, 23.88394571071524,
-    92.52789147973918, 29.47169678535564, -117.99431746564456, 10.309237557650103,
-    51.771115446049215, 76.77383867540469, -24.73876755384357, 0.001
+    17.65928727532208, 6.748204234189272, 12.05362384893134, 17.66002608221686,
+    6.747834680232088, 12.007639933283246, 87.53805036778004, 76.6803889406183,
+    47.27282699455257, 21.433896403559142, 22.543267706424853, 10.817028094174821,
+    -56.06395280560697, -51.68818232633539, -47.794887932015094, -108.8171909371678,
+    -90.2010830986524, -57.10411072170191, -13.02001087548501, -14.426362822894466,
+    -0.4356241655694581, -1.9196694161561465, 16.308571148133414, 24.904022033245575,
+    -109.47395261598108, -122.02827647290238, -121.36024944975674, 125.51172721510848,
+    140.3460085592834, 175.72428593601174, 105.86933866353219, 109.93808568200653,
+    98.43315228495283, -0.7602013723512395, 11.56354611053474, 11.503967635616766,
+    26.4893473122101, 43.43102164571206, 61.18808572600763, -65.3545121535271,
+    -71.65121619053822, -66.59501342672661, -34.45544933998006, -58.24940619010366,
+    -66.50599385165867, 105.79007875883339, 118.53354717255472, 121.82768034502875,
+    -77.0199828496792, -82.43438959939215, -74.84058254182197, -41.15432666099034,
+    -38.42645950554603, -13.919648614442163, 12.314075221132157, 3.4303506876784944,
+    -12.40522795142318, 18.59220518629447, 0.11176610875714568, -4.274069427601627,
+    -0.53720055679379, -10.357534572961178, -30.703440733373792, -0.9833511795368058,
+    7.5395505149486635, -16.710895734101516, 8.38478940240244, 9.23822520217934,
+    12.488583814973222, 4.95457980817964, -47.49796433391733, -72.37930700442534,
+    -50.72953303042807, -10.618523554455185, 41.780815317566265, -54.339128469764816,
+    -10.360723149243565, 7.263195464057675, 12.579045182093425, 30.60503467963634,
+    94.39587100398475, 29.84527089250581, -119.82203282682606, 10.133343726393518,
+    53.19608877686, 80.73481042812894, -26.91153126507843, 0.001
 };
 #define TH (BLOB + 0)
 #define TS (BLOB + 3)
@@ -61,6 +61,10 @@ static const double BLOB[88] = {
 #define B2 (BLOB[86])
 #define CFG (BLOB + 87)
 
+#if defined(__clang__)   /* the kernels' helpers: each law uses some; clang (not gcc) warns on an unused inline */
+#pragma clang diagnostic push
+#pragma clang diagnostic ignored "-Wunused-function"
+#endif
 static inline double physics(const double *th, const double *phi)
 {   /* f_phy(θ, φ) of the built-in maps (pipeline.models.pgnn._fast_physics) */
 #if KIND == 0
@@ -94,7 +98,7 @@ static inline double gain(const double *th)
     return CFG[0] * CFG[0] * th[0];
 #else
     (void)th;
-    return NAN;
+    return (double)NAN;   /* NAN is a float: cast, not promoted implicitly */
 #endif
 }
 
@@ -166,7 +170,7 @@ static inline double analytic_solve(double *phi, double r_next, int use_start, i
     double a, psi, nn = 0.0, d;
     physics_affine(use_start ? TS : TH, phi, &a, &psi);
     if (with_nn) nn = nn_affine(phi, &d);
-    if (psi == 0.0) return NAN;
+    if (psi == 0.0) return (double)NAN;
     return (r_next - a - nn) / psi;
 }
 
@@ -174,10 +178,10 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
 {   /* [B1] Algorithm 1 (pipeline.invert.newton.newton_solve): at most K_NEWTON updates */
     int flags = 0, i;
     double u = analytic_solve(phi, r_next, 1, 0);   /* physics start, θ*_phy */
-    double a, psi, best_u, best_v = HUGE_VAL, first_v = NAN, last_v = NAN;
-    if (!isfinite(u)) { u = 0.0; flags |= FF_DIRECT_2A4C7F0E_SINGULAR; }
-    if (u < U_MIN) { u = U_MIN; flags |= FF_DIRECT_2A4C7F0E_BOUNDS; }
-    else if (u > U_MAX) { u = U_MAX; flags |= FF_DIRECT_2A4C7F0E_BOUNDS; }
+    double a, psi, best_u, best_v = HUGE_VAL, first_v = (double)NAN, last_v = (double)NAN;
+    if (!isfinite(u)) { u = 0.0; flags |= FF_DIRECT_07B07023_SINGULAR; }
+    if (u < U_MIN) { u = U_MIN; flags |= FF_DIRECT_07B07023_BOUNDS; }
+    else if (u > U_MAX) { u = U_MAX; flags |= FF_DIRECT_07B07023_BOUNDS; }
     phi[UIDX] = 0.0;
     physics_affine(TH, phi, &a, &psi);              /* θ̂_phy: ŷ = a + ψ u + f_NN */
     best_u = u;
@@ -186,26 +190,29 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
         phi[UIDX] = u;
         nn = nn_affine(phi, &dnn);
         V = r_next - (a + psi * u + nn);             /* [B1] (23) */
-        if (!isfinite(V)) { flags |= FF_DIRECT_2A4C7F0E_SINGULAR; break; }
+        if (!isfinite(V)) { flags |= FF_DIRECT_07B07023_SINGULAR; break; }
         av = fabs(V);
         if (i == 0) first_v = av;
         last_v = av;
         if (av < best_v) { best_u = u; best_v = av; }
         if (i == K_NEWTON || V == 0.0) break;
         dV = -(psi + dnn);                           /* [B1] (24), (25) */
-        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_DIRECT_2A4C7F0E_SINGULAR; break; }
+        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_DIRECT_07B07023_SINGULAR; break; }
         u_new = u - V / dV;
-        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_DIRECT_2A4C7F0E_BOUNDS; break; }
+        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_DIRECT_07B07023_BOUNDS; break; }
         u = u_new;
     }
-    if (last_v > first_v) flags |= FF_DIRECT_2A4C7F0E_DIVERGED;
+    if (last_v > first_v) flags |= FF_DIRECT_07B07023_DIVERGED;
     if (best_v == HUGE_VAL) best_u = u;
     phi[UIDX] = 0.0;
     *flags_out = flags;
     return best_u;
 }
+#if defined(__clang__)
+#pragma clang diagnostic pop
+#endif
 
-static inline double law_w(ff_direct_2a4c7f0e_state *s, const double *rp)
+static inline double law_w(ff_direct_07b07023_state *s, const double *rp)
 {   /* one sample of the law: the model input w(t) from r(t .. t+NK+1) and the state */
     double *x = s->x, *rh = x + XRH, *uh = x + XUH, *rw = x + XRW, *phi = x + XPHI;
     double w;
@@ -231,7 +238,7 @@ static inline double law_w(ff_direct_2a4c7f0e_state *s, const double *rp)
 #else                                               /* LAW_PHYSICS on a forward model */
     w = analytic_solve(phi, rw[0], 1, 0);
 #endif
-    if (!isfinite(w)) flags |= FF_DIRECT_2A4C7F0E_SINGULAR;    /* as the kernels: kept (the guard falls back) */
+    if (!isfinite(w)) flags |= FF_DIRECT_07B07023_SINGULAR;    /* as the kernels: kept (the guard falls back) */
     for (i = NB - 1; i > 0; --i) uh[i] = uh[i - 1];
     uh[0] = w;
     for (i = NRH - 1; i > 0; --i) rh[i] = rh[i - 1];
@@ -240,10 +247,10 @@ static inline double law_w(ff_direct_2a4c7f0e_state *s, const double *rp)
     return w;
 }
 
-static void law_init(ff_direct_2a4c7f0e_state *s, double r0)
+static void law_init(ff_direct_07b07023_state *s, double r0)
 {
     int i;
-    for (i = 0; i < FF_DIRECT_2A4C7F0E_NX; ++i) s->x[i] = 0.0;
+    for (i = 0; i < FF_DIRECT_07B07023_NX; ++i) s->x[i] = 0.0;
     for (i = 0; i < NRH; ++i) s->x[XRH + i] = r0;
     s->w_prev = 0.0;
     s->primed = 0;
@@ -251,13 +258,18 @@ static void law_init(ff_direct_2a4c7f0e_state *s, double r0)
     s->n_flagged = 0;
     s->k = 0;
     s->n_invalid = 0;
+    s->n_back = 0u;
+    s->u_from = 0.0;
+    s->r_bad = 0u;
+    s->latched = 0;
     s->u_prev = 0.0;
     s->u_hold = 0.0;
+    s->u_static = 0.0;
     s->r_hist[0] = r0;
     s->r_hist[1] = r0;
 }
 
-static double law_step(ff_direct_2a4c7f0e_state *s, const double *r_preview)
+static double law_step(ff_direct_07b07023_state *s, const double *r_preview)
 {
     double u;
     s->status = 0;
@@ -275,55 +287,114 @@ static double law_step(ff_direct_2a4c7f0e_state *s, const double *r_preview)
 }
 
 /* ---- guard (issue 22): input sanitation, training envelope, fallback, saturation, slew limit ---- */
-#define G_PREVIEW FF_DIRECT_2A4C7F0E_PREVIEW
+#if defined(__FAST_MATH__) || (defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__)
+/* -ffast-math (also implied by -Ofast) and -ffinite-math-only let the compiler assume no NaN/inf: it then
+ * deletes every isfinite() below, and a NaN reference or an overflow reaches the actuator unflagged */
+#error "ff_direct.c: do not build the guarded feedforward with -ffast-math, -Ofast or -ffinite-math-only: they delete every isfinite() check of the guard (a NaN reference or an overflow would reach the actuator with no flag); drop that flag (use -O2 or -O3)"
+#endif
+#define G_PREVIEW FF_DIRECT_07B07023_PREVIEW
 #define G_TS (0.001)
-#define U_LO ((-HUGE_VAL))           /* saturation [N] */
-#define U_HI (HUGE_VAL)
-#define DU_MAX (HUGE_VAL)         /* slew limit x Ts: the largest |u(t) - u(t-1)| [N] */
+#define U_LO (-376.4980271294816)           /* saturation [N] */
+#define U_HI (376.4980271294816)
+#define DU_MAX (478.2709150574738)         /* slew limit x Ts: the largest |u(t) - u(t-1)| [N] */
 #define FALLBACK_KIND 0        /* 0 hold, 1 physics, 2 ramp */
 #define ENVELOPE_FALLS_BACK 0  /* 1: out of the envelope is invalid; 0: flagged only */
-#define RAMP_N (100.0)         /* ramp_time / Ts: samples of the ramp to 0 */
+#define RAMP_N (100.0)         /* ramp_time / Ts: samples of the ramp to 0 and of the return to the law */
 static const double ENV_LO[3] = {-0.1205056140893973, -0.10878271303569609, -15.696705526759004};   /* training envelope of r, dr/dt, d2r/dt2 */
 static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717170017};
-#if FALLBACK_KIND == 1
-static const double PHYS[3] = {0.0, 0.0, 0.0};    /* physics fallback: M, F_v, F_c */
+#if FALLBACK_KIND == 1   /* physics fallback M d2r + sum_j p_j T_j(r, dr), every force term of the system */
+#define NPHYS 2
+static const double PHYS[NPHYS + 1] = {0.0, 0.0, 0.0};          /* M, p_1 .. p_n */
+static const int PHYS_CODES[NPHYS + 1] = {0, 1, 0};      /* T_j: pipeline.systems.force_terms codes */
+static const double PHYS_CONSTS[NPHYS + 1] = {0.0, 0.0, 0.0}; /* shape constant of each T_j (+ one unused) */
+
+static double phys_term(int code, double p, double q, double v)
+{   /* T(q, q̇) of one force term (pipeline.systems.force_terms.term; guard.py _term) */
+    const double sg = v > 0 ? 1.0 : (v < 0 ? -1.0 : 0.0);
+    double x;
+    switch (code) {
+    case 0: return v;                             /* viscous */
+    case 1: return sg;                            /* Coulomb, sign */
+    case 2: return tanh(v / p);                   /* Coulomb, smooth */
+    case 3: x = v / p; return sg * exp(-(x * x)); /* Stribeck */
+    case 4: return 1.0;                           /* offset (gravity) */
+    case 5: return cos(p * q);                    /* cogging cos */
+    default: return sin(p * q);                   /* cogging sin */
+    }
+}
 #endif
 
-void ff_direct_2a4c7f0e_init(ff_direct_2a4c7f0e_state *s, double r0)
+#define START_REST 0        /* 1: init puts every state at rest at r0 (pipeline/invert/start.py) */
+#define SETTLE_N 0u          /* rest samples the law needs to reach its steady state */
+#define STATIC_EXCLUDE 0  /* 1: the force at rest at r0 is taken off (the loop holds the load) */
+
+void ff_direct_07b07023_init(ff_direct_07b07023_state *s, double r0)
 {
-    law_init(s, isfinite(r0) ? r0 : 0.0);
+    const double r = isfinite(r0) ? r0 : 0.0;
+    law_init(s, r);
+#if START_REST   /* SETTLE_N + 1 law steps on a reference held at r0: the last is the law at rest, u_rest */
+    {
+        double rp[G_PREVIEW + 1], u = 0.0;
+        uint64_t k;
+        int i;
+        for (i = 0; i <= G_PREVIEW; ++i) rp[i] = r;
+        for (k = 0u; k <= SETTLE_N; ++k) u = law_step(s, rp);
+        if (!isfinite(u)) u = 0.0;     /* an absurd r0 overflowed the law: nothing to take off (Python alike) */
+        s->u_static = STATIC_EXCLUDE ? u : 0.0;
+        s->u_prev = u - s->u_static;   /* the output before t = 0: the law at rest (no slew from 0 N), */
+        if (s->u_prev > U_HI) s->u_prev = U_HI;         /* inside the force limits (no slew from outside) */
+        else if (s->u_prev < U_LO) s->u_prev = U_LO;
+        s->u_hold = s->u_prev;
+        s->status = 0;
+        s->primed = 0;   /* an averaged input computes w(0) from the real preview at t = 0, as the study does */
+    }
+#endif
 }
 
-double ff_direct_2a4c7f0e_step(ff_direct_2a4c7f0e_state *s, const double *r_preview)
+double ff_direct_07b07023_step(ff_direct_07b07023_state *s, const double *r_preview)
 {
     double ext[G_PREVIEW + 3];   /* r(t-2), r(t-1), r(t) .. r(t+P) after sanitation */
     double x[3], u;
-    int i, j, flags = 0, invalid, inside = 1;
+    int i, j, flags = 0, invalid, inside = 1, overflow = 0;
     ext[0] = s->r_hist[1];
     ext[1] = s->r_hist[0];
+    if (s->r_bad != 0u) {      /* r(t-1) or r(t-2) was replaced: a step in the law's differences */
+        flags |= FF_DIRECT_07B07023_NONFINITE_INPUT;
+    }
     for (i = 0; i <= G_PREVIEW; ++i) {
         if (isfinite(r_preview[i])) {
             ext[i + 2] = r_preview[i];
         } else {
             ext[i + 2] = ext[i + 1];
-            flags |= FF_DIRECT_2A4C7F0E_NONFINITE_INPUT;
+            flags |= FF_DIRECT_07B07023_NONFINITE_INPUT;
         }
     }
+    s->r_bad = ((s->r_bad << 1u) | (isfinite(r_preview[0]) ? 0u : 1u)) & 3u;
     /* the envelope at every n = t .. t + P: the whole window r(t-2) .. r(t+P) the law is fed */
     for (j = 0; j <= G_PREVIEW; ++j) {
         x[0] = ext[j + 2];                                       /* r(n), n = t + j */
         x[1] = (ext[j + 2] - ext[j + 1]) / G_TS;                 /* backward differences */
         x[2] = (ext[j + 2] - 2.0 * ext[j + 1] + ext[j]) / (G_TS * G_TS);
-        for (i = 0; i < 3; ++i) {
-            if (!((ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
+        for (i = 0; i < 3; ++i) {   /* a non-finite regressor (an overflow) is outside any envelope */
+            if (!isfinite(x[i])) { overflow = 1; }
+            if (!(isfinite(x[i]) && (ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
         }
     }   /* x: the newest, n = t + P (the physics fallback's regressors) */
-    if (!inside) flags |= FF_DIRECT_2A4C7F0E_OUT_OF_RANGE;
+    if (!inside) flags |= FF_DIRECT_07B07023_OUT_OF_RANGE;
     u = law_step(s, ext + 2);
+#if START_REST
+    u -= s->u_static;
+#endif
     flags |= s->status;
-    invalid = ((flags & FF_DIRECT_2A4C7F0E_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
+    if (!isfinite(u)) { s->latched = 1; }   /* the law's state may hold inf/NaN: not trusted until init */
+    if (s->latched != 0) { flags |= FF_DIRECT_07B07023_SINGULAR; }
+    /* invalid: a replaced input, an overflow (inf regressor, non-finite output, the law's SINGULAR: Newton
+     * returns 0 N or its last finite iterate when it overflows), out of the envelope when that falls back */
+    invalid = ((flags & (FF_DIRECT_07B07023_NONFINITE_INPUT | FF_DIRECT_07B07023_SINGULAR)) != 0) || (overflow != 0) || (s->latched != 0)
+              || (ENVELOPE_FALLS_BACK && !inside);
     if (invalid) {
-        flags |= FF_DIRECT_2A4C7F0E_FALLBACK;
+        flags |= FF_DIRECT_07B07023_FALLBACK;
+        s->n_back = 0u;
         if (s->n_invalid < UINT64_MAX) s->n_invalid++;
 #if FALLBACK_KIND == 2                /* ramp to 0 over RAMP_N samples */
         {
@@ -331,9 +402,11 @@ double ff_direct_2a4c7f0e_step(ff_direct_2a4c7f0e_state *s, const double *r_prev
             u = s->u_hold * (g > 0.0 ? g : 0.0);
         }
 #elif FALLBACK_KIND == 1              /* physics on a finite reference, else hold */
-        if ((flags & FF_DIRECT_2A4C7F0E_NONFINITE_INPUT) == 0) {
-            const double sg = x[1] > 0 ? 1.0 : (x[1] < 0 ? -1.0 : 0.0);
-            u = PHYS[0] * x[2] + PHYS[1] * x[1] + PHYS[2] * sg;
+        if ((flags & FF_DIRECT_07B07023_NONFINITE_INPUT) == 0) {
+            u = PHYS[0] * x[2];
+            for (j = 0; j < NPHYS; ++j) {
+                u += PHYS[1 + j] * phys_term(PHYS_CODES[j], PHYS_CONSTS[j], x[0], x[1]);
+            }
             if (!isfinite(u)) u = s->u_hold;
         } else {
             u = s->u_hold;
@@ -341,13 +414,21 @@ double ff_direct_2a4c7f0e_step(ff_direct_2a4c7f0e_state *s, const double *r_prev
 #else                                 /* hold */
         u = s->u_hold;
 #endif
-    } else {
-        s->n_invalid = 0;
+    } else {   /* back from a fallback: linearly from its last output to the law's over RAMP_N samples */
+        if (s->n_invalid > 0u) { s->u_from = s->u_prev; s->n_back = 1u; }
+        else if (s->n_back > 0u) { s->n_back++; }
+        else { /* not returning */ }
+        s->n_invalid = 0u;
+        if (s->n_back > 0u) {
+            const double g = (double)s->n_back / RAMP_N;
+            if (g < 1.0) { u = s->u_from + (u - s->u_from) * g; flags |= FF_DIRECT_07B07023_FALLBACK; }
+            else { s->n_back = 0u; }
+        }
     }
-    if (u > U_HI) { u = U_HI; flags |= FF_DIRECT_2A4C7F0E_SATURATED; }
-    else if (u < U_LO) { u = U_LO; flags |= FF_DIRECT_2A4C7F0E_SATURATED; }
-    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_DIRECT_2A4C7F0E_RATE_LIMITED; }
-    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_DIRECT_2A4C7F0E_RATE_LIMITED; }
+    if (u > U_HI) { u = U_HI; flags |= FF_DIRECT_07B07023_SATURATED; }
+    else if (u < U_LO) { u = U_LO; flags |= FF_DIRECT_07B07023_SATURATED; }
+    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_DIRECT_07B07023_RATE_LIMITED; }
+    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_DIRECT_07B07023_RATE_LIMITED; }
     if (!invalid) s->u_hold = u;
     s->u_prev = u;
     s->r_hist[1] = s->r_hist[0];

@@ -30,29 +30,29 @@
  * [θ̂_phy (P) | θ*_phy, the physics start (P) | W, first layer with the input map folded in (H x NPHI) |
  *  b (H) | w2 = output weights x output scale (H) | b2 | physics map configuration] */
 static const double BLOB[89] = {
-    0.04973197666640182, 0.44226973944085685, 0.6033027560642179, 0.04973197666618563,
-    0.44226973944061004, 0.603302756047546, -8.023285976786875, 30.018496444381043,
-    0.018162334641412096, -43.573804581957475, -56.78155642293847, -0.0007225890621219983,
-    -39.93183651261783, 10.480499763385087, -0.02257350319089225, 23.09110976315033,
-    -6.365679749780962, 0.015183719363286836, 203.16658816418726, 219.99097428210573,
-    0.0010609474653250632, -59.86396901090975, -106.03676635026153, -0.0007076868839498617,
-    -57.57551432919463, 9.913941486699482, -0.0002631439324662384, 29.190668316088477,
-    15.698567635785116, 0.0003245181479828258, 26.19774941789768, 38.87154622916514,
-    0.0004409303815173318, -171.62632325009375, -181.6369606121568, -0.0015062722641955206,
-    164.8304605071433, 108.38402178540764, 0.0009676003189766091, 17.240446151010275,
-    14.935527145610724, 0.00042418339012893075, -2.9622347566011205, 6.3132499958578405,
-    0.009816944690913938, -175.61503492935378, -81.27321928453568, -0.00037549483312795663,
-    -143.5136074359868, -106.9541995211113, -0.0007990541686086622, 212.0382516986646,
-    138.33622817062815, -0.0011768430432801626, -0.6358575447354732, -3.7912677344564236,
-    0.7869650343382255, -0.5300302955589571, -9.988231433176185, 16.50566555423345,
-    -3.073738309486378, 1.0182750147211057, 2.3756089795306634, 17.154230942532454,
-    20.79814819548679, -1.7404782991018974, -0.11298913309385308, -0.5161607190316585,
-    24.62741711057743, -25.55777115835868, 2.38063522082688e-06, -6.1510756092342844e-06,
-    8.641793767542879e-07, -1.698831126353032e-06, -4.0547914051191326e-07,
-    -2.797370381132643e-06, -1.928449034058789e-06, 4.216206183775997e-06,
-    -1.0662811897326996e-05, 4.908502004459281e-07, -6.427454085827631e-07,
-    1.3550478978876197e-06, 1.6607869803333284e-07, 7.084569358371975e-07,
-    2.3459853037767214e-06, -4.418563477537266e-07, 3.564792444845963e-07, 0.001, 2.0
+    0.04973197666615259, 0.44226973944090225, 0.6033027560660155, 0.04973197666618563,
+    0.44226973944061004, 0.603302756047546, -6.1642898040382486, 27.670427356268462,
+    0.018555061472712995, -46.705321867468804, -55.612439311695375, -0.0007316328649225768,
+    -36.34556304303487, 7.436710278091807, -0.023269376289442145, 19.506442357555983,
+    -4.336695552249089, 0.014793148882015576, 202.72022702558232, 218.84540656051712,
+    0.0011013689802793919, -58.1501242324058, -97.62496806035924, -0.000567059032600226,
+    -49.72122549658988, 0.7890291571237106, -0.0002532177827756699, 25.950385552936545,
+    18.260378818601414, 0.00031209146498928863, 26.555976545763887, 38.903548088335256,
+    0.0004385083365202772, -168.9033939753875, -175.08999111745456, -0.0014841631661542116,
+    155.7441024895557, 115.73149588284988, 0.0009507698430093588, 19.82903156061229,
+    14.942152106303269, 0.0004256512926828516, -2.630416399213347, 7.739805784930589,
+    0.010049998774526801, -167.21354063824813, -87.14224726394953, -0.00040156508542684853,
+    -136.8476729841759, -108.76419833077904, -0.0006255959786610607, 205.77818483941127,
+    153.764859281432, -0.001260696032468078, -0.568216645545463, -3.865191888448459,
+    0.7136715846511551, -0.44019001374248495, -9.948374153919875, 15.49203320513631,
+    -3.2075330745504083, 0.9638263476504867, 2.3885331506940584, 16.706563108175796,
+    20.666867702838505, -1.8590807989362108, -0.11057190567767021, -0.5094264509116282,
+    24.136682964404923, -26.21992713052945, 1.9855170573009167e-06, -5.6708160000505115e-06,
+    7.732679213963745e-07, -1.478756031530313e-06, -4.037126814856154e-07,
+    -2.566845188489941e-06, -1.8100595840404204e-06, 3.940336874441435e-06,
+    -9.751950972141617e-06, 5.003274640809631e-07, -6.497757346192752e-07, 1.278823490823147e-06,
+    2.623083186288097e-07, 7.176359424560102e-07, 2.1317962028828896e-06, -4.305149965711313e-07,
+    3.041839064160443e-07, 0.001, 2.0
 };
 #define TH (BLOB + 0)
 #define TS (BLOB + 3)
@@ -62,6 +62,10 @@ static const double BLOB[89] = {
 #define B2 (BLOB[86])
 #define CFG (BLOB + 87)
 
+#if defined(__clang__)   /* the kernels' helpers: each law uses some; clang (not gcc) warns on an unused inline */
+#pragma clang diagnostic push
+#pragma clang diagnostic ignored "-Wunused-function"
+#endif
 static inline double physics(const double *th, const double *phi)
 {   /* f_phy(θ, φ) of the built-in maps (pipeline.models.pgnn._fast_physics) */
 #if KIND == 0
@@ -95,7 +99,7 @@ static inline double gain(const double *th)
     return CFG[0] * CFG[0] * th[0];
 #else
     (void)th;
-    return NAN;
+    return (double)NAN;   /* NAN is a float: cast, not promoted implicitly */
 #endif
 }
 
@@ -167,7 +171,7 @@ static inline double analytic_solve(double *phi, double r_next, int use_start, i
     double a, psi, nn = 0.0, d;
     physics_affine(use_start ? TS : TH, phi, &a, &psi);
     if (with_nn) nn = nn_affine(phi, &d);
-    if (psi == 0.0) return NAN;
+    if (psi == 0.0) return (double)NAN;
     return (r_next - a - nn) / psi;
 }
 
@@ -175,10 +179,10 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
 {   /* [B1] Algorithm 1 (pipeline.invert.newton.newton_solve): at most K_NEWTON updates */
     int flags = 0, i;
     double u = analytic_solve(phi, r_next, 1, 0);   /* physics start, θ*_phy */
-    double a, psi, best_u, best_v = HUGE_VAL, first_v = NAN, last_v = NAN;
-    if (!isfinite(u)) { u = 0.0; flags |= FF_NEWTON_FE1CD98B_SINGULAR; }
-    if (u < U_MIN) { u = U_MIN; flags |= FF_NEWTON_FE1CD98B_BOUNDS; }
-    else if (u > U_MAX) { u = U_MAX; flags |= FF_NEWTON_FE1CD98B_BOUNDS; }
+    double a, psi, best_u, best_v = HUGE_VAL, first_v = (double)NAN, last_v = (double)NAN;
+    if (!isfinite(u)) { u = 0.0; flags |= FF_NEWTON_92173A7A_SINGULAR; }
+    if (u < U_MIN) { u = U_MIN; flags |= FF_NEWTON_92173A7A_BOUNDS; }
+    else if (u > U_MAX) { u = U_MAX; flags |= FF_NEWTON_92173A7A_BOUNDS; }
     phi[UIDX] = 0.0;
     physics_affine(TH, phi, &a, &psi);              /* θ̂_phy: ŷ = a + ψ u + f_NN */
     best_u = u;
@@ -187,26 +191,29 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
         phi[UIDX] = u;
         nn = nn_affine(phi, &dnn);
         V = r_next - (a + psi * u + nn);             /* [B1] (23) */
-        if (!isfinite(V)) { flags |= FF_NEWTON_FE1CD98B_SINGULAR; break; }
+        if (!isfinite(V)) { flags |= FF_NEWTON_92173A7A_SINGULAR; break; }
         av = fabs(V);
         if (i == 0) first_v = av;
         last_v = av;
         if (av < best_v) { best_u = u; best_v = av; }
         if (i == K_NEWTON || V == 0.0) break;
         dV = -(psi + dnn);                           /* [B1] (24), (25) */
-        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_NEWTON_FE1CD98B_SINGULAR; break; }
+        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_NEWTON_92173A7A_SINGULAR; break; }
         u_new = u - V / dV;
-        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_NEWTON_FE1CD98B_BOUNDS; break; }
+        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_NEWTON_92173A7A_BOUNDS; break; }
         u = u_new;
     }
-    if (last_v > first_v) flags |= FF_NEWTON_FE1CD98B_DIVERGED;
+    if (last_v > first_v) flags |= FF_NEWTON_92173A7A_DIVERGED;
     if (best_v == HUGE_VAL) best_u = u;
     phi[UIDX] = 0.0;
     *flags_out = flags;
     return best_u;
 }
+#if defined(__clang__)
+#pragma clang diagnostic pop
+#endif
 
-static inline double law_w(ff_newton_fe1cd98b_state *s, const double *rp)
+static inline double law_w(ff_newton_92173a7a_state *s, const double *rp)
 {   /* one sample of the law: the model input w(t) from r(t .. t+NK+1) and the state */
     double *x = s->x, *rh = x + XRH, *uh = x + XUH, *rw = x + XRW, *phi = x + XPHI;
     double w;
@@ -232,7 +239,7 @@ static inline double law_w(ff_newton_fe1cd98b_state *s, const double *rp)
 #else                                               /* LAW_PHYSICS on a forward model */
     w = analytic_solve(phi, rw[0], 1, 0);
 #endif
-    if (!isfinite(w)) flags |= FF_NEWTON_FE1CD98B_SINGULAR;    /* as the kernels: kept (the guard falls back) */
+    if (!isfinite(w)) flags |= FF_NEWTON_92173A7A_SINGULAR;    /* as the kernels: kept (the guard falls back) */
     for (i = NB - 1; i > 0; --i) uh[i] = uh[i - 1];
     uh[0] = w;
     for (i = NRH - 1; i > 0; --i) rh[i] = rh[i - 1];
@@ -241,10 +248,10 @@ static inline double law_w(ff_newton_fe1cd98b_state *s, const double *rp)
     return w;
 }
 
-static void law_init(ff_newton_fe1cd98b_state *s, double r0)
+static void law_init(ff_newton_92173a7a_state *s, double r0)
 {
     int i;
-    for (i = 0; i < FF_NEWTON_FE1CD98B_NX; ++i) s->x[i] = 0.0;
+    for (i = 0; i < FF_NEWTON_92173A7A_NX; ++i) s->x[i] = 0.0;
     for (i = 0; i < NRH; ++i) s->x[XRH + i] = r0;
     s->w_prev = 0.0;
     s->primed = 0;
@@ -252,13 +259,18 @@ static void law_init(ff_newton_fe1cd98b_state *s, double r0)
     s->n_flagged = 0;
     s->k = 0;
     s->n_invalid = 0;
+    s->n_back = 0u;
+    s->u_from = 0.0;
+    s->r_bad = 0u;
+    s->latched = 0;
     s->u_prev = 0.0;
     s->u_hold = 0.0;
+    s->u_static = 0.0;
     s->r_hist[0] = r0;
     s->r_hist[1] = r0;
 }
 
-static double law_step(ff_newton_fe1cd98b_state *s, const double *r_preview)
+static double law_step(ff_newton_92173a7a_state *s, const double *r_preview)
 {
     double u;
     s->status = 0;
@@ -276,55 +288,114 @@ static double law_step(ff_newton_fe1cd98b_state *s, const double *r_preview)
 }
 
 /* ---- guard (issue 22): input sanitation, training envelope, fallback, saturation, slew limit ---- */
-#define G_PREVIEW FF_NEWTON_FE1CD98B_PREVIEW
+#if defined(__FAST_MATH__) || (defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__)
+/* -ffast-math (also implied by -Ofast) and -ffinite-math-only let the compiler assume no NaN/inf: it then
+ * deletes every isfinite() below, and a NaN reference or an overflow reaches the actuator unflagged */
+#error "ff_newton.c: do not build the guarded feedforward with -ffast-math, -Ofast or -ffinite-math-only: they delete every isfinite() check of the guard (a NaN reference or an overflow would reach the actuator with no flag); drop that flag (use -O2 or -O3)"
+#endif
+#define G_PREVIEW FF_NEWTON_92173A7A_PREVIEW
 #define G_TS (0.001)
-#define U_LO ((-HUGE_VAL))           /* saturation [N] */
-#define U_HI (HUGE_VAL)
-#define DU_MAX (HUGE_VAL)         /* slew limit x Ts: the largest |u(t) - u(t-1)| [N] */
+#define U_LO (-376.4980271294816)           /* saturation [N] */
+#define U_HI (376.4980271294816)
+#define DU_MAX (478.2709150574738)         /* slew limit x Ts: the largest |u(t) - u(t-1)| [N] */
 #define FALLBACK_KIND 0        /* 0 hold, 1 physics, 2 ramp */
 #define ENVELOPE_FALLS_BACK 0  /* 1: out of the envelope is invalid; 0: flagged only */
-#define RAMP_N (100.0)         /* ramp_time / Ts: samples of the ramp to 0 */
+#define RAMP_N (100.0)         /* ramp_time / Ts: samples of the ramp to 0 and of the return to the law */
 static const double ENV_LO[3] = {-0.1205056140893973, -0.10878271303569609, -15.696705526759004};   /* training envelope of r, dr/dt, d2r/dt2 */
 static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717170017};
-#if FALLBACK_KIND == 1
-static const double PHYS[3] = {0.0, 0.0, 0.0};    /* physics fallback: M, F_v, F_c */
+#if FALLBACK_KIND == 1   /* physics fallback M d2r + sum_j p_j T_j(r, dr), every force term of the system */
+#define NPHYS 2
+static const double PHYS[NPHYS + 1] = {0.0, 0.0, 0.0};          /* M, p_1 .. p_n */
+static const int PHYS_CODES[NPHYS + 1] = {0, 1, 0};      /* T_j: pipeline.systems.force_terms codes */
+static const double PHYS_CONSTS[NPHYS + 1] = {0.0, 0.0, 0.0}; /* shape constant of each T_j (+ one unused) */
+
+static double phys_term(int code, double p, double q, double v)
+{   /* T(q, q̇) of one force term (pipeline.systems.force_terms.term; guard.py _term) */
+    const double sg = v > 0 ? 1.0 : (v < 0 ? -1.0 : 0.0);
+    double x;
+    switch (code) {
+    case 0: return v;                             /* viscous */
+    case 1: return sg;                            /* Coulomb, sign */
+    case 2: return tanh(v / p);                   /* Coulomb, smooth */
+    case 3: x = v / p; return sg * exp(-(x * x)); /* Stribeck */
+    case 4: return 1.0;                           /* offset (gravity) */
+    case 5: return cos(p * q);                    /* cogging cos */
+    default: return sin(p * q);                   /* cogging sin */
+    }
+}
 #endif
 
-void ff_newton_fe1cd98b_init(ff_newton_fe1cd98b_state *s, double r0)
+#define START_REST 0        /* 1: init puts every state at rest at r0 (pipeline/invert/start.py) */
+#define SETTLE_N 0u          /* rest samples the law needs to reach its steady state */
+#define STATIC_EXCLUDE 0  /* 1: the force at rest at r0 is taken off (the loop holds the load) */
+
+void ff_newton_92173a7a_init(ff_newton_92173a7a_state *s, double r0)
 {
-    law_init(s, isfinite(r0) ? r0 : 0.0);
+    const double r = isfinite(r0) ? r0 : 0.0;
+    law_init(s, r);
+#if START_REST   /* SETTLE_N + 1 law steps on a reference held at r0: the last is the law at rest, u_rest */
+    {
+        double rp[G_PREVIEW + 1], u = 0.0;
+        uint64_t k;
+        int i;
+        for (i = 0; i <= G_PREVIEW; ++i) rp[i] = r;
+        for (k = 0u; k <= SETTLE_N; ++k) u = law_step(s, rp);
+        if (!isfinite(u)) u = 0.0;     /* an absurd r0 overflowed the law: nothing to take off (Python alike) */
+        s->u_static = STATIC_EXCLUDE ? u : 0.0;
+        s->u_prev = u - s->u_static;   /* the output before t = 0: the law at rest (no slew from 0 N), */
+        if (s->u_prev > U_HI) s->u_prev = U_HI;         /* inside the force limits (no slew from outside) */
+        else if (s->u_prev < U_LO) s->u_prev = U_LO;
+        s->u_hold = s->u_prev;
+        s->status = 0;
+        s->primed = 0;   /* an averaged input computes w(0) from the real preview at t = 0, as the study does */
+    }
+#endif
 }
 
-double ff_newton_fe1cd98b_step(ff_newton_fe1cd98b_state *s, const double *r_preview)
+double ff_newton_92173a7a_step(ff_newton_92173a7a_state *s, const double *r_preview)
 {
     double ext[G_PREVIEW + 3];   /* r(t-2), r(t-1), r(t) .. r(t+P) after sanitation */
     double x[3], u;
-    int i, j, flags = 0, invalid, inside = 1;
+    int i, j, flags = 0, invalid, inside = 1, overflow = 0;
     ext[0] = s->r_hist[1];
     ext[1] = s->r_hist[0];
+    if (s->r_bad != 0u) {      /* r(t-1) or r(t-2) was replaced: a step in the law's differences */
+        flags |= FF_NEWTON_92173A7A_NONFINITE_INPUT;
+    }
     for (i = 0; i <= G_PREVIEW; ++i) {
         if (isfinite(r_preview[i])) {
             ext[i + 2] = r_preview[i];
         } else {
             ext[i + 2] = ext[i + 1];
-            flags |= FF_NEWTON_FE1CD98B_NONFINITE_INPUT;
+            flags |= FF_NEWTON_92173A7A_NONFINITE_INPUT;
         }
     }
+    s->r_bad = ((s->r_bad << 1u) | (isfinite(r_preview[0]) ? 0u : 1u)) & 3u;
     /* the envelope at every n = t .. t + P: the whole window r(t-2) .. r(t+P) the law is fed */
     for (j = 0; j <= G_PREVIEW; ++j) {
         x[0] = ext[j + 2];                                       /* r(n), n = t + j */
         x[1] = (ext[j + 2] - ext[j + 1]) / G_TS;                 /* backward differences */
         x[2] = (ext[j + 2] - 2.0 * ext[j + 1] + ext[j]) / (G_TS * G_TS);
-        for (i = 0; i < 3; ++i) {
-            if (!((ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
+        for (i = 0; i < 3; ++i) {   /* a non-finite regressor (an overflow) is outside any envelope */
+            if (!isfinite(x[i])) { overflow = 1; }
+            if (!(isfinite(x[i]) && (ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
         }
     }   /* x: the newest, n = t + P (the physics fallback's regressors) */
-    if (!inside) flags |= FF_NEWTON_FE1CD98B_OUT_OF_RANGE;
+    if (!inside) flags |= FF_NEWTON_92173A7A_OUT_OF_RANGE;
     u = law_step(s, ext + 2);
+#if START_REST
+    u -= s->u_static;
+#endif
     flags |= s->status;
-    invalid = ((flags & FF_NEWTON_FE1CD98B_NONFINITE_INPUT) != 0) || !isfinite(u) || (ENVELOPE_FALLS_BACK && !inside);
+    if (!isfinite(u)) { s->latched = 1; }   /* the law's state may hold inf/NaN: not trusted until init */
+    if (s->latched != 0) { flags |= FF_NEWTON_92173A7A_SINGULAR; }
+    /* invalid: a replaced input, an overflow (inf regressor, non-finite output, the law's SINGULAR: Newton
+     * returns 0 N or its last finite iterate when it overflows), out of the envelope when that falls back */
+    invalid = ((flags & (FF_NEWTON_92173A7A_NONFINITE_INPUT | FF_NEWTON_92173A7A_SINGULAR)) != 0) || (overflow != 0) || (s->latched != 0)
+              || (ENVELOPE_FALLS_BACK && !inside);
     if (invalid) {
-        flags |= FF_NEWTON_FE1CD98B_FALLBACK;
+        flags |= FF_NEWTON_92173A7A_FALLBACK;
+        s->n_back = 0u;
         if (s->n_invalid < UINT64_MAX) s->n_invalid++;
 #if FALLBACK_KIND == 2                /* ramp to 0 over RAMP_N samples */
         {
@@ -332,9 +403,11 @@ double ff_newton_fe1cd98b_step(ff_newton_fe1cd98b_state *s, const double *r_prev
             u = s->u_hold * (g > 0.0 ? g : 0.0);
         }
 #elif FALLBACK_KIND == 1              /* physics on a finite reference, else hold */
-        if ((flags & FF_NEWTON_FE1CD98B_NONFINITE_INPUT) == 0) {
-            const double sg = x[1] > 0 ? 1.0 : (x[1] < 0 ? -1.0 : 0.0);
-            u = PHYS[0] * x[2] + PHYS[1] * x[1] + PHYS[2] * sg;
+        if ((flags & FF_NEWTON_92173A7A_NONFINITE_INPUT) == 0) {
+            u = PHYS[0] * x[2];
+            for (j = 0; j < NPHYS; ++j) {
+                u += PHYS[1 + j] * phys_term(PHYS_CODES[j], PHYS_CONSTS[j], x[0], x[1]);
+            }
             if (!isfinite(u)) u = s->u_hold;
         } else {
             u = s->u_hold;
@@ -342,13 +415,21 @@ double ff_newton_fe1cd98b_step(ff_newton_fe1cd98b_state *s, const double *r_prev
 #else                                 /* hold */
         u = s->u_hold;
 #endif
-    } else {
-        s->n_invalid = 0;
+    } else {   /* back from a fallback: linearly from its last output to the law's over RAMP_N samples */
+        if (s->n_invalid > 0u) { s->u_from = s->u_prev; s->n_back = 1u; }
+        else if (s->n_back > 0u) { s->n_back++; }
+        else { /* not returning */ }
+        s->n_invalid = 0u;
+        if (s->n_back > 0u) {
+            const double g = (double)s->n_back / RAMP_N;
+            if (g < 1.0) { u = s->u_from + (u - s->u_from) * g; flags |= FF_NEWTON_92173A7A_FALLBACK; }
+            else { s->n_back = 0u; }
+        }
     }
-    if (u > U_HI) { u = U_HI; flags |= FF_NEWTON_FE1CD98B_SATURATED; }
-    else if (u < U_LO) { u = U_LO; flags |= FF_NEWTON_FE1CD98B_SATURATED; }
-    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_NEWTON_FE1CD98B_RATE_LIMITED; }
-    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_NEWTON_FE1CD98B_RATE_LIMITED; }
+    if (u > U_HI) { u = U_HI; flags |= FF_NEWTON_92173A7A_SATURATED; }
+    else if (u < U_LO) { u = U_LO; flags |= FF_NEWTON_92173A7A_SATURATED; }
+    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_NEWTON_92173A7A_RATE_LIMITED; }
+    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_NEWTON_92173A7A_RATE_LIMITED; }
     if (!invalid) s->u_hold = u;
     s->u_prev = u;
     s->r_hist[1] = s->r_hist[0];

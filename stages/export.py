@@ -29,10 +29,10 @@ from __future__ import annotations
 import math
 import sys
 import warnings
-
-import numpy as np
 from dataclasses import asdict, field
 from typing import Literal, Optional
+
+import numpy as np
 
 from omegaconf import OmegaConf
 
@@ -41,9 +41,9 @@ from pipeline.errors import ConfigError
 from pipeline.export import law as laws
 from pipeline.export.c_code import c_name
 from pipeline.export.guard import Guard, envelope_of
-from pipeline.invert.start import settle_count
 from pipeline.export.misra import find_cppcheck
 from pipeline.export.package import check_prefix, find_compiler, reference_file_clash, write_package
+from pipeline.invert.start import settle_count
 from pipeline.params import COUNT_MAX, FORCE_MAX, FREQ_MAX, schema, spec
 from pipeline.runner import exportable, implementation
 from stages._common import reference_specs

@@ -447,11 +447,9 @@ def _core(law: Law, r: np.ndarray, **pgnn) -> tuple[np.ndarray, np.ndarray]:
             )
             u = rational_feedforward(_k_model(law), r).f
         else:
-            physics, ctrl = _rigid_body(law)   # RigidBodyPhysics.feedforward's operations, an overflow kept (flagged)
+            physics, ctrl = _rigid_body(law)   # feedforward's w, its overflow kept (applied_input refuses it)
+            w = physics.inverse_force(law.arrays["theta"], r)
             with np.errstate(over="ignore", invalid="ignore"):
-                rp = np.concatenate([[0.0], r, r[-1:], r[-1:]])                 # r(-1) = 0 .. r(N+1)
-                w = physics.inverse_features(np.stack([rp[2:], rp[1:-1], rp[:-2]], axis=1)) \
-                    @ physics.inverse_theta(law.arrays["theta"])
                 u = (0.5 * (w[:-1] + w[1:]) if law.averaged else w[:-1]) \
                     - ctrl.reference_force(r, float(r[0]) if law.start == "rest" else 0.0)   # from rest at r(0)
         return u, np.where(np.isfinite(u), 0, FLAG["SINGULAR"])

@@ -177,13 +177,18 @@ class LTIController:
         integral action and the same integral weight on r and y (B_r(1) = B_y(1) to the coefficients' digits) the
         integrator cancels: both are divided by (1 - z⁻¹), their remainders (the typed digits' rounding) dropped, so
         the filter has no pole at z = 1 left to integrate that rounding into a drift."""
+        db, den = self._difference()
+        if np.any(db) and self.integral_action and self._same_integral(db):
+            db, den = np.cumsum(db)[:-1], np.cumsum(den)[:-1]     # c(z⁻¹) / (1 - z⁻¹), ascending powers
+        return db, den
+
+    def _difference(self) -> tuple[np.ndarray, np.ndarray]:
+        """(B_r - B_y, A) padded to one length, as given."""
         n = max(self.b_r.size, self.b_y.size, self.a.size)
         db, den = np.zeros(n), np.zeros(n)
         db[:self.b_r.size] += self.b_r
         db[:self.b_y.size] -= self.b_y
         den[:self.a.size] = self.a
-        if np.any(db) and self.integral_action and self._same_integral(db):
-            db, den = np.cumsum(db)[:-1], np.cumsum(den)[:-1]     # c(z⁻¹) / (1 - z⁻¹), ascending powers
         return db, den
 
     def _same_integral(self, db: np.ndarray) -> bool:
@@ -204,18 +209,15 @@ class LTIController:
         integrator holds (it absorbs any constant), so the feedforward's controller term counts from
         r0: K0 = 0.  A pole at z = 1 that B_r - B_y does not cancel means the integrator sees r and y
         with different weights: no rest away from r = 0 exists (ValueError)."""
-        db, den = self.reference_filter()
-        s_db, s_den = float(np.sum(db)), float(np.sum(den))
         if self.integral_action:   # the same integral weight on r and y: B_r(1) = B_y(1) to the coefficients' digits
-            raw = np.zeros(max(self.b_r.size, self.b_y.size))
-            raw[:self.b_r.size] += self.b_r
-            raw[:self.b_y.size] -= self.b_y
+            raw = self._difference()[0]
             if np.any(raw) and not self._same_integral(raw):
                 raise ValueError(f"C_r - C_y of {self.describe()} integrates (B_r(1) = {float(np.sum(self.b_r)):.6g} "
                                  f"differs from B_y(1) = {float(np.sum(self.b_y)):.6g}): the loop has no rest away "
                                  "from r = 0; check num_r, or use start.at=zero")
             return 0.0
-        return s_db / s_den
+        db, den = self.reference_filter()
+        return float(np.sum(db)) / float(np.sum(den))
 
     def reference_force(self, r, r0: float = 0.0) -> np.ndarray:
         """(C_r - C_y) r · gtau [N]: the controller's force when the axis follows r exactly.  The

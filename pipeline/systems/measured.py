@@ -158,14 +158,19 @@ class RigidBodyPhysics(LinearMotorPhysics):
         dy = (phi_inv[..., 1] - phi_inv[..., 2]) / Ts
         return _stack([d2] + self.terms.columns(phi_inv[..., 1], dy), phi_inv)
 
-    def feedforward(self, theta, r) -> np.ndarray:
-        """w(k) = M δ²r(k+1) + Σ p_j T_j(r(k), δr(k)) with r(-1) = 0 and r held after the end,
-        then :meth:`applied_input` [N] (the analytic inverse, SPEC §6)."""
+    def inverse_force(self, theta, r) -> np.ndarray:
+        """w(k) = M δ²r(k+1) + Σ p_j T_j(r(k), δr(k)), k = 0 .. N, with r(-1) = 0 and r held after the end
+        (an overflow of an absurd reference is kept: the exported law flags it)."""
         p = self.inverse_theta(theta)
         r = check_signal("r", r)
         rp = np.concatenate([[0.0], r, r[-1:], r[-1:]])            # r(-1) .. r(N+1)
         phi_inv = np.stack([rp[2:], rp[1:-1], rp[:-2]], axis=1)    # k = 0 .. N
-        w = self.inverse_features(phi_inv) @ p                     # w(0) .. w(N)
+        with np.errstate(over="ignore", invalid="ignore"):
+            return self.inverse_features(phi_inv) @ p              # w(0) .. w(N)
+
+    def feedforward(self, theta, r) -> np.ndarray:
+        """:meth:`inverse_force` w(0) .. w(N-1), then :meth:`applied_input` [N] (the analytic inverse, SPEC §6)."""
+        w = self.inverse_force(theta, r)
         return self.applied_input(w[:-1], w_end=w[-1])
 
     def kernel_terms(self) -> tuple[np.ndarray, np.ndarray]:

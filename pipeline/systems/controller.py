@@ -3,6 +3,12 @@
 In z⁻¹ polynomials with a common denominator A (a[0] = 1)::
 
     A(z⁻¹) v(k) = B_r(z⁻¹) r(k) - B_y(z⁻¹) y(k)          C_r = B_r/A,  C_y = B_y/A
+
+Each path may come with its own denominator, as a drive's tuning tool gives it (issue 49):
+C_r = N_r/D_r, C_y = N_y/D_y.  :func:`common_denominator` writes them over the least common
+multiple A = D_r D_y / G, G the common factor of D_r and D_y (shared roots, e.g. the integrator
+of a PID on both paths), B_r = N_r D_y/G, B_y = N_y D_r/G: the controller's own order, no pole
+twice, nothing for the user to multiply out.
     c(k) = sat±v_sat(v(k) + u_ff(k)/gtau)                 controller output [controller units]
     u(k) = gtau (c(k - D) + d(k))                         applied force [N]
 
@@ -26,6 +32,7 @@ relative to ``‖A c_meas‖``, on the samples where the limit is not reached.  
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Literal, Optional
@@ -48,6 +55,8 @@ class Params:
     den: Optional[list[float]] = spec(None, fill=False, ge=-1e15, le=1e15, min_len=1, example=[1.0, -1.4361, 0.4361])
     num_r: Optional[list[float]] = spec(None, fill=False, ge=-1e15, le=1e15, min_len=1,
                                        example=[4.279e6, -8.212e6, 3.939e6])
+    # C_r's own denominator (a 2-DOF controller whose paths differ); null = den (one common denominator)
+    den_r: Optional[list[float]] = spec(None, fill=False, ge=-1e15, le=1e15, min_len=1, example=[1.0, -1.0])
     delay: Optional[int] = spec(None, fill=False, ge=0, le=100, unit="samples", example=1)
     # force per controller unit [N/unit]; 1 if the controller outputs newtons
     gtau: float = spec(1.0, gt=0, le=1e6, unit="N per controller unit")
@@ -58,6 +67,8 @@ class Params:
 KINDS = ("cascade", "lti")
 #: a root of A this close to z = 1 is an integrator (a pole typed with 7-10 significant digits lands ~1e-7 off)
 INTEGRATOR_TOL = 1e-6
+#: roots of D_r and D_y this close (relative to max(1, |p|)) are one common pole of the two paths
+COMMON_ROOT_TOL = 1e-6
 
 
 def _poly(name: str, v) -> np.ndarray:
@@ -81,6 +92,7 @@ class LTIController:
     delay: int = 0           # computational delay D of the output [samples]
     structure: str = "lti"   # 'cascade' | 'error feedback' | '2-DOF' (messages, tags)
     params: tuple = ()       # the config's numbers ((name, value), …): checked against a file's constants
+    given: tuple = ()        # ((N_r, D_r), (N_y, D_y)) as typed when the paths have their own denominators
 
     # ---- construction ---------------------------------------------------------------------------
     @classmethod
@@ -97,28 +109,34 @@ class LTIController:
                    (("kp", float(kp)), ("kv", float(kv)), ("gtau", float(gtau)), ("v_sat", float(v_sat))))
 
     @classmethod
-    def lti(cls, num, den=(1.0,), num_r=None, gtau: float = 1.0, v_sat: float = 1e9, delay: int = 0):
-        """C_y = num/den (and C_r = num_r/den; ``num_r`` None: error feedback, C_r = C_y)."""
+    def lti(cls, num, den=(1.0,), num_r=None, gtau: float = 1.0, v_sat: float = 1e9, delay: int = 0, den_r=None):
+        """C_y = num/den and C_r = num_r/den_r (``den_r`` None: den; ``num_r`` None: error feedback,
+        C_r = C_y); two denominators are written over their least common multiple
+        (:func:`common_denominator`)."""
         b_y, a = _poly("num", num), _poly("den", den)
         if a[0] == 0:
             raise ValueError(f"controller.den={list(den)}: the leading coefficient (of z⁰) must not be 0")
+        if den_r is not None and num_r is None:
+            raise ValueError("controller.den_r is the denominator of the reference path C_r = num_r/den_r: give "
+                             "num_r too (or drop den_r for error feedback on r - y)")
         b_r = b_y if num_r is None else _poly("num_r", num_r)
+        given = ()
+        if den_r is not None:
+            a_r = _poly("den_r", den_r)
+            if a_r[0] == 0:
+                raise ValueError(f"controller.den_r={list(den_r)}: the leading coefficient (of z⁰) must not be 0")
+            for name, p in (("den_r", a_r), ("den", a)):
+                _check_stable(name, p)
+            given = ((b_r / a_r[0], a_r / a_r[0]), (b_y / a[0], a / a[0]))
+            b_r, b_y, a = common_denominator(b_r, a_r, b_y, a)
         if not (math.isfinite(gtau) and gtau > 0 and v_sat > 0):
             raise ValueError(f"controller.gtau={gtau} and v_sat={v_sat} must be positive")
         if int(delay) != delay or delay < 0:
             raise ValueError(f"controller.delay={delay} must be a whole number of samples >= 0")
-        poles = np.roots(a / a[0]) if a.size > 1 else np.zeros(0)
-        if np.any(np.abs(poles) > 1.0 + INTEGRATOR_TOL):   # an integrator typed with few digits: |z| = 1 + 1e-7
-            z = float(np.abs(poles).max())
-            raise ValueError(f"controller.den={list(den)} has poles outside the unit circle "
-                             f"(|z| = {z:.10g}): an unstable controller cannot be replayed; "
-                             "check the coefficient order (powers of z⁻¹, a[0] first)"
-                             + ("; a pole this close to 1 is an integrator typed with too few digits: give den, num "
-                                "and num_r with every digit the drive's tuning tool shows (12 or more)"
-                                if z - 1.0 < 1e-3 else ""))
+        _check_stable("den", a)
         return cls(b_r / a[0], b_y / a[0], a / a[0], float(gtau), float(v_sat), int(delay),
                    "error feedback" if num_r is None else "2-DOF",
-                   (("gtau", float(gtau)), ("v_sat", float(v_sat))))
+                   (("gtau", float(gtau)), ("v_sat", float(v_sat))), given)
 
     @classmethod
     def from_config(cls, cfg: dict, Ts: float) -> "LTIController":
@@ -129,7 +147,7 @@ class LTIController:
         if kind not in KINDS:
             raise ValueError(f"controller.kind={kind!r}; choose one of {KINDS}")
         keys = {"cascade": ("kp", "kv", "gtau", "v_sat", "delay"),
-                "lti": ("num", "den", "num_r", "gtau", "v_sat", "delay")}[kind]
+                "lti": ("num", "den", "num_r", "den_r", "gtau", "v_sat", "delay")}[kind]
         extra = sorted(set(cfg) - set(keys))
         if extra:
             raise ValueError(f"controller.kind={kind} takes {list(keys)}, not {extra}" +
@@ -162,6 +180,10 @@ class LTIController:
         if self.structure == "cascade":
             p = dict(self.params)
             return f"the position/velocity cascade (kp {p['kp']:g}, kv {p['kv']:g}, gtau {p['gtau']:g}{d})"
+        if self.given:
+            (n_r, d_r), (n_y, d_y) = self.given
+            return (f"2-DOF C_r(z) = ({_fmt(n_r)}) / ({_fmt(d_r)}), C_y(z) = ({_fmt(n_y)}) / ({_fmt(d_y)}), "
+                    f"common denominator of order {self.a.size - 1}{d}")
         return (f"{self.structure} C(z) = ({_fmt(self.b_y)}) / ({_fmt(self.a)})"
                 + ("" if self.structure == "error feedback" else f", C_r num ({_fmt(self.b_r)})") + d)
 
@@ -262,8 +284,7 @@ class LTIController:
 
     def other_delays(self, r, y, u, d) -> dict[int, float]:
         """:meth:`check` of this controller with each other delay of 0..3 samples."""
-        return {D: LTIController(self.b_r, self.b_y, self.a, self.gtau, self.v_sat, D, self.structure,
-                                 self.params).check(r, y, u, d)
+        return {D: dataclasses.replace(self, delay=D).check(r, y, u, d)
                 for D in range(0, 4) if D != self.delay}
 
     def better_delay(self, r, y, u, d, rel: float, factor: float = 10.0) -> tuple[int, float] | None:
@@ -299,6 +320,60 @@ class LTIController:
             if res < tol:
                 hints.append(f"error feedback on e = r - y with this C_y fits (residual {100 * res:.2g} %)")
         return hints
+
+
+def _check_stable(name: str, a: np.ndarray) -> None:
+    """A denominator with a pole outside the unit circle (beyond INTEGRATOR_TOL) is refused."""
+    poles = np.roots(a / a[0]) if a.size > 1 else np.zeros(0)
+    if np.any(np.abs(poles) > 1.0 + INTEGRATOR_TOL):   # an integrator typed with few digits: |z| = 1 + 1e-7
+        z = float(np.abs(poles).max())
+        raise ValueError(f"controller.{name}={list(a)} has poles outside the unit circle "
+                         f"(|z| = {z:.10g}): an unstable controller cannot be replayed; "
+                         "check the coefficient order (powers of z⁻¹, a[0] first)"
+                         + ("; a pole this close to 1 is an integrator typed with too few digits: give den, num "
+                            "and num_r with every digit the drive's tuning tool shows (12 or more)"
+                            if z - 1.0 < 1e-3 else ""))
+
+
+def _common_roots(p_r: np.ndarray, p_y: np.ndarray) -> np.ndarray:
+    """The roots shared by two root sets (each used once), matched greedily nearest first within COMMON_ROOT_TOL
+    relative to max(1, |p|); a complex root comes with its conjugate, so the common factor is real."""
+    free = list(range(p_y.size))
+    out = []
+    for p in sorted(p_r, key=lambda z: (z.real, z.imag)):
+        if not free:
+            break
+        j = min(free, key=lambda k: abs(p_y[k] - p))
+        if abs(p_y[j] - p) <= COMMON_ROOT_TOL * max(1.0, abs(p)):
+            out.append(1.0 + 0j if abs(p - 1.0) <= INTEGRATOR_TOL else p)    # an integrator: exactly 1
+            free.remove(j)
+    return np.array(out, dtype=complex)
+
+
+def _deflate(a: np.ndarray, roots: np.ndarray) -> np.ndarray:
+    """A(z⁻¹) / Π (1 - p z⁻¹) for roots p of A: the quotient of the synthetic division (the remainder, the
+    typed digits' rounding of a shared root, is dropped).  a[0] = 1; ascending powers of z⁻¹ are the
+    descending powers of z of zⁿ A, so numpy's polynomial division applies as is."""
+    g = np.real_if_close(np.poly(roots), tol=1e6) if roots.size else np.ones(1)
+    if np.iscomplexobj(g):
+        raise ValueError("the common poles of den and den_r are not in conjugate pairs: check the coefficients")
+    q, _ = np.polydiv(a, g)
+    return np.atleast_1d(q)
+
+
+def common_denominator(n_r: np.ndarray, d_r: np.ndarray, n_y: np.ndarray, d_y: np.ndarray):
+    """(B_r, B_y, A) of C_r = N_r/D_r, C_y = N_y/D_y over the least common multiple A = D_r · D_y/G, G the
+    factor the two share (module docstring).  D_r, D_y are normalised (d[0] = 1) here."""
+    n_r, d_r = n_r / d_r[0], d_r / d_r[0]
+    n_y, d_y = n_y / d_y[0], d_y / d_y[0]
+    if d_r.size == d_y.size and np.array_equal(d_r, d_y):
+        return n_r, n_y, d_y
+    roots_r = np.roots(d_r) if d_r.size > 1 else np.zeros(0, complex)
+    roots_y = np.roots(d_y) if d_y.size > 1 else np.zeros(0, complex)
+    shared = _common_roots(roots_r, roots_y)
+    rest_y = _deflate(d_y, shared) if shared.size else d_y        # D_y / G
+    rest_r = _deflate(d_r, shared) if shared.size else d_r        # D_r / G
+    return np.convolve(n_r, rest_y), np.convolve(n_y, rest_r), np.convolve(d_r, rest_y)
 
 
 def _fmt(p: np.ndarray) -> str:

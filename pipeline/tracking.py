@@ -31,6 +31,7 @@ from hydra.core.utils import JobStatus
 from mlflow.entities import DatasetInput, InputTag, Metric, Param, RunTag
 from mlflow.tracking import MlflowClient
 
+import pipeline
 from pipeline import compare, interrupts
 from pipeline.cache import HOST, cache_dir, pid_alive, remove_stale_temporaries
 from pipeline.errors import ConfigError
@@ -161,7 +162,7 @@ class JobRun:
         self.client = client()
         exp_id = experiment_id(experiment, description)
         mark_dead_runs_killed(exp_id)
-        all_tags = {"git_sha": git_sha(), "host": _host(), "pid": str(os.getpid()),
+        all_tags = {"git_sha": git_sha(), "host": _host(), "pid": str(os.getpid()), "isa": pipeline.isa_setting(),
                     **slurm_tags(), **{k: str(v) for k, v in tags.items()}}
         parent = os.environ.get(PARENT_ENV)
         all_tags["sweep"] = "child" if parent else "single"

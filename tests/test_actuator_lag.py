@@ -187,3 +187,31 @@ def test_loop_replay_and_its_sensitivities_with_the_lag(recording):
         ym, taum, _ = simulate_loop(loop.with_theta(tm), s.ctrl, short)
         np.testing.assert_allclose(Sy[:, j], (yp - ym) / (2 * h), rtol=0, atol=1e-5 * np.abs(Sy[:, j]).max())
         np.testing.assert_allclose(St[:, j], (taup - taum) / (2 * h), rtol=0, atol=1e-5 * np.abs(St[:, j]).max())
+
+
+# ------------------------------------------------------------------------------------ the exported law
+@pytest.mark.parametrize("controller", [CTRL, {"kind": "cascade", "kp": 160.18, "kv": 243.45, "gtau": 35.15}],
+                         ids=["pid", "cascade"])
+def test_exported_law_runs_the_lag_inverse_in_c_as_in_python(controller, tmp_path):
+    """The law's lag stage (templates/averaged_step.c) against the invert stage's u_ff, C to 1e-9."""
+    import shutil
+
+    from pipeline.export.law import Law, feedforward, from_measured_physics
+    from pipeline.export.package import write_package
+    s = Recording("axis", TS, controller=controller, force_terms=TERMS, actuator={"lag_tau": TAU})
+    theta = s.physics.theta_from_physical({"M": M, "F_v": FV, "F_c": FC, "OF": OF})
+    r = TEST[:3000]
+    phys = s.physics.feedforward(theta, r)
+    u = phys - s.ctrl.reference_force(r)                                      # stages/invert
+    plain = s.physics.with_lag(None).feedforward(theta, r)
+    assert np.max(np.abs(phys - plain)) > 0.05 * np.max(np.abs(phys))         # the lag stage does something
+    law = from_measured_physics(s.physics, theta, s.ctrl)
+    assert law.floats["lag_tau"] == TAU and law.preview == 2
+    np.testing.assert_array_equal(feedforward(law, r), u)
+    law.save(tmp_path / "law")
+    np.testing.assert_array_equal(feedforward(Law.load(tmp_path / "law"), r), u)
+    if shutil.which("cc") is None:
+        pytest.skip("no C compiler on this machine")
+    man = write_package(law, "ff_physics", tmp_path / "pkg", {"ref": (r, u)}, source={"run_id": "test"},
+                        rtol=1e-9, timing_repeats=0)
+    assert man["compiled"] and man["c_max_rel_diff"] <= 1e-9 and man["python_max_rel_diff"] <= 1e-9, man

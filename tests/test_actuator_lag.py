@@ -215,3 +215,40 @@ def test_exported_law_runs_the_lag_inverse_in_c_as_in_python(controller, tmp_pat
     man = write_package(law, "ff_physics", tmp_path / "pkg", {"ref": (r, u)}, source={"run_id": "test"},
                         rtol=1e-9, timing_repeats=0)
     assert man["compiled"] and man["c_max_rel_diff"] <= 1e-9 and man["python_max_rel_diff"] <= 1e-9, man
+
+
+# ------------------------------------------------------------------------------------ through the pipeline
+def test_the_pipeline_identifies_the_lag_and_ships_its_inverse(store, cfg_of, tmp_path, recording):
+    """``system.actuator.lag_tau=auto`` on the command line: the baseline logs τ and its uncertainty, the
+    physics feedforward (invert stage) carries the lag's inverse, a rerun from the cache uses the same τ."""
+    import pandas as pd
+
+    from pipeline import runner, tracking
+    pd.DataFrame({"t": np.arange(TRAIN.size) * TS, "r": TRAIN, "u": recording["u"], "y": recording["y"]}).to_csv(
+        tmp_path / "train.csv", index=False)
+    test = simulate(TEST, seed=2)
+    pd.DataFrame({"t": np.arange(TEST.size) * TS, "r": TEST, "u": test["u"], "y": test["y"]}).to_csv(
+        tmp_path / "test.csv", index=False)
+    fl = lambda p: "[" + ",".join(repr(float(x)) for x in p) + "]"   # noqa: E731
+    args = ["system=measured", "system.name=lag_axis", f"system.Ts={TS}", f"system.controller.num={fl(NUM)}",
+            f"system.controller.den={fl(DEN)}", "system.force_terms.terms=[viscous,coulomb,offset]",
+            f"system.force_terms.coulomb_width={WC}", "system.actuator.lag_tau=auto", "data=measured",
+            f"data.path={tmp_path}", "data.file=train.csv", "evaluate=measured",
+            "evaluate.references=[{name:test,kind:measured,file:test.csv}]", "model=physics", "identify=none",
+            "invert=physics"]
+    runner.run_job(cfg_of(*args, "stages=[generate,baseline]", "experiment_name=lag_axis"))
+    run = tracking.search_runs("lag_axis").iloc[0]
+    assert abs(run["metrics.baseline/lag_tau"] - TAU) <= 0.1 * TAU
+    assert 0 < run["metrics.baseline/lag_tau_std"] < 0.05 * TAU
+    # a second job: the baseline comes from the cache (fit_physics does not run), the invert stage still inverts τ
+    res = runner.run_job(cfg_of(*args, "stages=[generate,baseline,train,invert]", "experiment_name=lag_axis_2"))
+    s = Recording(Ts=TS, controller=CTRL, force_terms=TERMS, actuator={"lag_tau": "auto"})
+    theta = s.fit_physics(recording["y"], recording["u"])
+    assert abs(s.lag_fit["tau"] - run["metrics.baseline/lag_tau"]) < 1e-12
+    # the invert stage starts at rest at r(0) with the static force excluded (the measured default): the
+    # study's lagged feedforward from zero force, less its value at rest, once its start transient (pole z_s) died
+    ff = s.physics.feedforward(theta, TEST)
+    got = res["invert"]["u_ff"]["test"]
+    np.testing.assert_allclose(got[20:], ff[20:] - ff[150], rtol=0, atol=1e-9 * np.abs(ff).max())
+    plain = s.physics.with_lag(None).feedforward(theta, TEST)
+    assert np.abs(got[20:] - plain[20:] + plain[150]).max() > 0.05 * np.abs(got).max()   # without the lag: far

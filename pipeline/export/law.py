@@ -296,7 +296,7 @@ def from_measured_physics(physics, theta, ctrl) -> Law:
 
 def _lag_floats(physics) -> dict:
     """{"lag_tau": τ} of a physics with an actuator lag (its inverse replaces the averaged input's), else {}."""
-    lag = getattr(physics, "lag", None)
+    lag = getattr(physics, "lag", None) or getattr(physics, "input_lag", None)   # input_lag: a PGNN's map on w
     return {} if lag is None else {"lag_tau": float(lag.tau)}
 
 

@@ -137,7 +137,7 @@ class LoopModel:
 
 def _lag(physics, averaged: bool) -> dict:
     """{lag_b, lag_a} of the physics' actuator lag where its input is the model input (else {})."""
-    lag = getattr(physics, "lag", None)
+    lag = getattr(physics, "lag", None) or getattr(physics, "input_lag", None)   # input_lag: a PGNN's map on w
     if lag is None or not averaged:
         return {}
     b, a = lag.coefficients()

@@ -112,6 +112,7 @@ class RigidBodyPhysics(LinearMotorPhysics):
             raise ValueError("an actuator lag (system.actuator.lag_tau) needs physics_input: averaged (the exact "
                              "sampling of the mass the lag's model extends); set physics_input: averaged")
         self.lag = lag      # None: the force is the command (pipeline.systems.actuator_lag)
+        self.input_lag = None   # with_direct_input: the lag that made its input w
 
     def with_lag(self, lag: ActuatorLag | None) -> "RigidBodyPhysics":
         """The same physics with the force lag ``lag`` (None: none)."""
@@ -134,8 +135,11 @@ class RigidBodyPhysics(LinearMotorPhysics):
         return "offset" in self.terms.names
 
     def with_direct_input(self) -> "RigidBodyPhysics":
-        """The same physics on an input that is already the model input w (no averaging)."""
-        return RigidBodyPhysics(self.Ts, averaged_input=False, terms=self.terms)
+        """The same physics on an input that is already the model input w (no averaging); ``input_lag``
+        remembers the actuator lag that made w (the loop kernel and the exported law apply it to u)."""
+        p = RigidBodyPhysics(self.Ts, averaged_input=False, terms=self.terms)
+        p.input_lag = self.lag
+        return p
 
     def theta_from_physical(self, physical: dict) -> np.ndarray:
         """θ from {M [kg], F_v, F_c, …}; a term the dict does not give is 0 (a datasheet that

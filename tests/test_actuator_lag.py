@@ -218,24 +218,29 @@ def test_exported_law_runs_the_lag_inverse_in_c_as_in_python(controller, tmp_pat
 
 
 # ------------------------------------------------------------------------------------ through the pipeline
+def _write_records(folder, recording):
+    import pandas as pd
+    test = simulate(TEST, seed=2)
+    for name, r, rec in (("train.csv", TRAIN, recording), ("test.csv", TEST, test)):
+        pd.DataFrame({"t": np.arange(r.size) * TS, "r": r, "u": rec["u"], "y": rec["y"]}).to_csv(folder / name,
+                                                                                              index=False)
+
+
+def _overrides(folder, lag: str) -> list[str]:
+    fl = lambda p: "[" + ",".join(repr(float(x)) for x in p) + "]"   # noqa: E731
+    return ["system=measured", "system.name=lag_axis", f"system.Ts={TS}", f"system.controller.num={fl(NUM)}",
+            f"system.controller.den={fl(DEN)}", "system.force_terms.terms=[viscous,coulomb,offset]",
+            f"system.force_terms.coulomb_width={WC}", f"system.actuator.lag_tau={lag}", "data=measured",
+            f"data.path={folder}", "data.file=train.csv", "evaluate=measured",
+            "evaluate.references=[{name:test,kind:measured,file:test.csv}]"]
+
+
 def test_the_pipeline_identifies_the_lag_and_ships_its_inverse(store, cfg_of, tmp_path, recording):
     """``system.actuator.lag_tau=auto`` on the command line: the baseline logs τ and its uncertainty, the
     physics feedforward (invert stage) carries the lag's inverse, a rerun from the cache uses the same τ."""
-    import pandas as pd
-
     from pipeline import runner, tracking
-    pd.DataFrame({"t": np.arange(TRAIN.size) * TS, "r": TRAIN, "u": recording["u"], "y": recording["y"]}).to_csv(
-        tmp_path / "train.csv", index=False)
-    test = simulate(TEST, seed=2)
-    pd.DataFrame({"t": np.arange(TEST.size) * TS, "r": TEST, "u": test["u"], "y": test["y"]}).to_csv(
-        tmp_path / "test.csv", index=False)
-    fl = lambda p: "[" + ",".join(repr(float(x)) for x in p) + "]"   # noqa: E731
-    args = ["system=measured", "system.name=lag_axis", f"system.Ts={TS}", f"system.controller.num={fl(NUM)}",
-            f"system.controller.den={fl(DEN)}", "system.force_terms.terms=[viscous,coulomb,offset]",
-            f"system.force_terms.coulomb_width={WC}", "system.actuator.lag_tau=auto", "data=measured",
-            f"data.path={tmp_path}", "data.file=train.csv", "evaluate=measured",
-            "evaluate.references=[{name:test,kind:measured,file:test.csv}]", "model=physics", "identify=none",
-            "invert=physics"]
+    _write_records(tmp_path, recording)
+    args = _overrides(tmp_path, "auto") + ["model=physics", "identify=none", "invert=physics"]
     runner.run_job(cfg_of(*args, "stages=[generate,baseline]", "experiment_name=lag_axis"))
     run = tracking.search_runs("lag_axis").iloc[0]
     assert abs(run["metrics.baseline/lag_tau"] - TAU) <= 0.1 * TAU
@@ -252,3 +257,22 @@ def test_the_pipeline_identifies_the_lag_and_ships_its_inverse(store, cfg_of, tm
     np.testing.assert_allclose(got[20:], ff[20:] - ff[150], rtol=0, atol=1e-9 * np.abs(ff).max())
     plain = s.physics.with_lag(None).feedforward(theta, TEST)
     assert np.abs(got[20:] - plain[20:] + plain[150]).max() > 0.05 * np.abs(got).max()   # without the lag: far
+
+
+@pytest.mark.slow
+def test_the_pgnn_learns_and_inverts_through_the_lag(store, cfg_of, tmp_path, recording):
+    """A simulation-error PGNN (one tanh layer, analytic inversion) with lag_tau=auto: its loop model carries the
+    lag, and its feedforward tracks the generator ≥ 3x better than the same PGNN without the lag (measured:
+    0.66 against 10.6 µm MAE; no feedforward 271 µm).  ~60 s (numba compiles the lagged loop kernel)."""
+    from pipeline import runner
+    _write_records(tmp_path, recording)
+    pgnn = ["model=pgnn", "identify=sim_error", "model.structure=invertible", "model.n_a=2", "model.n_b=1",
+            "model.hidden=[4]", "model.input_transform=delta", "identify.n_restarts=2", "identify.max_iter=200",
+            "regularizer=physics_l2", "regularizer.lam=0.01", "invert=analytic",
+            "stages=[generate,baseline,train,invert]"]
+    mae = {}
+    for lag in ("auto", "null"):
+        res = runner.run_job(cfg_of(*_overrides(tmp_path, lag), *pgnn, f"experiment_name=pgnn_{lag}"))
+        assert res["train"]["loop"].lag_b.size == (3 if lag == "auto" else 0)
+        mae[lag] = float(np.mean(np.abs(simulate(TEST, res["invert"]["u_ff"]["test"], seed=5)["e"])))
+    assert 3 * mae["auto"] <= mae["null"], mae

@@ -196,7 +196,7 @@ def test_exported_law_runs_the_lag_inverse_in_c_as_in_python(controller, tmp_pat
     """The law's lag stage (templates/averaged_step.c) against the invert stage's u_ff, C to 1e-9."""
     import shutil
 
-    from pipeline.export.law import Law, feedforward, from_measured_physics
+    from pipeline.export.law import Law, feedforward, from_measured_physics, guarded
     from pipeline.export.package import write_package
     s = Recording("axis", TS, controller=controller, force_terms=TERMS, actuator={"lag_tau": TAU})
     theta = s.physics.theta_from_physical({"M": M, "F_v": FV, "F_c": FC, "OF": OF})
@@ -213,6 +213,16 @@ def test_exported_law_runs_the_lag_inverse_in_c_as_in_python(controller, tmp_pat
     if shutil.which("cc") is None:
         pytest.skip("no C compiler on this machine")
     man = write_package(law, "ff_physics", tmp_path / "pkg", {"ref": (r, u)}, source={"run_id": "test"},
+                        rtol=1e-9, timing_repeats=0)
+    assert man["compiled"] and man["c_max_rel_diff"] <= 1e-9 and man["python_max_rel_diff"] <= 1e-9, man
+    # started at rest at r0 = 5 mm with the static force excluded (the measured default): the lag's registers
+    # settle at init in C as the study's law does on its rest samples
+    from stages.export import set_start
+    r5 = r + 0.005
+    set_start(law, {"at": "rest", "static": "exclude"}, [0.005])
+    u5, _ = guarded(law, r5)
+    assert law.settle > 0 and abs(u5[0]) < 1e-9 * np.abs(u5).max()
+    man = write_package(law, "ff_rest", tmp_path / "pkg_rest", {"ref": (r5, u5)}, source={"run_id": "test"},
                         rtol=1e-9, timing_repeats=0)
     assert man["compiled"] and man["c_max_rel_diff"] <= 1e-9 and man["python_max_rel_diff"] <= 1e-9, man
 

@@ -305,3 +305,13 @@ def test_continuous_replay_integrates_the_lag(recording):
             no_lag = replay_rk4(s.physics.with_lag(None), theta, s.ctrl, sig, 16)[0]
             assert np.sqrt(np.mean((no_lag - one) ** 2)) > 10 * np.sqrt(np.mean((cont - one) ** 2))
     assert gap["lag"] < 0.5, gap
+
+
+@pytest.mark.parametrize("bad,why", [("fast", "'auto'"), ("-0.001", "> 0"), ("2.0", "<= 1"), ("true", "'auto'")])
+def test_a_bad_lag_tau_is_one_config_line(cfg_of, bad, why):
+    from pipeline import schema
+    from pipeline.errors import ConfigError
+    with pytest.raises(ConfigError, match=r"^system\.actuator\.lag_tau=") as err:
+        schema.check(cfg_of("system=measured", "system.controller.num=[1.0]", f"system.actuator.lag_tau={bad}"))
+    assert why in str(err.value) and "\n" not in str(err.value), str(err.value)
+    schema.check(cfg_of("system=measured", "system.controller.num=[1.0]", "system.actuator.lag_tau=0.0004"))

@@ -7,8 +7,10 @@ RigidBodyPhysics`, direct input on w) and at most one tanh hidden layer ([B1] (1
            + s_out (W2 tanh(W1 x(k) + b1) + b2),       x(k) = P φ(k) + c,
     φ(k) = [y(k-1) … y(k-n_a), w(k-1) … w(k-n_b)],   w = ū = (u(k) + u(k-1))/2 or u,
 
-closed around the known controller (:class:`pipeline.systems.controller.LTIController`, any
-discrete LTI C_r, C_y with a common denominator A; the EMPS cascade is one instance)::
+(with an actuator lag, ``pipeline.systems.actuator_lag``, w is its exact sampling with the mass,
+w = B(q⁻¹)/(1 - a q⁻¹) u, in place of ū), closed around the known controller
+(:class:`pipeline.systems.controller.LTIController`, any discrete LTI C_r, C_y with a common denominator A;
+the EMPS cascade is one instance)::
 
     A v(k) = B_r r(k) - B_y ŷ(k),     c(k) = sat(v(k) + u_ff(k) / gtau)
     u(k) = gtau (c(k - D) + d(k))                   applied force [N]

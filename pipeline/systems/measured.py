@@ -361,6 +361,9 @@ class Recording(System):
     idim : dict or None
         Settings of the filtered inverse-model least squares (:meth:`RigidBodyPhysics.fit_filtered`:
         cutoff_hz, order, decimation, trim).
+    actuator : dict or None
+        ``lag_tau``: the drive's force lag τ [s] (τ Ḟ + F = u, :mod:`pipeline.systems.actuator_lag`),
+        ``'auto'`` (identified by :meth:`fit_physics` from the training records) or None (no lag).
     """
 
     measured = True

@@ -127,11 +127,11 @@ def identify_tau(physics, ys, us, *, n_grid: int = 25, **filt) -> dict:
     settings (idim).  Returns {"tau", "tau_std", "rss", "rss_no_lag", "at_bound"} (rss: the residual's
     energy at τ and at τ = Ts/100, i.e. without a lag; at_bound: the search ended at an end of its grid)."""
     Ts = physics.Ts
+    X0 = physics.with_lag(None).stacked_regression(ys, us, **filt)[0]     # the same for every τ
 
     def rows(tau):
         p = physics.with_lag(None if tau is None else ActuatorLag(float(tau), Ts))
-        X, z, _, _ = p.stacked_regression(ys, us, **filt)
-        return X, z
+        return X0, np.concatenate([p.filtered_target(u, **filt) for u in us])
 
     def rss(tau):
         X, z = rows(tau)

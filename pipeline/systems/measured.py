@@ -247,14 +247,17 @@ class RigidBodyPhysics(LinearMotorPhysics):
         v = np.gradient(qf, self.Ts)
         acc = np.gradient(v, self.Ts)
         X = np.stack([acc] + self.terms.columns(qf, v) + [qf, v], axis=1)   # [q̈, T_1(q, q̇), …, q, q̇]
-        # with a lag: the force the mass sees, filtered like q (actuator_lag; zero phase, as q̈)
-        z = u if self.lag is None else signal.filtfilt(b, a, self.lag.model_input(u))
-        if decimation > 1:
-            X = signal.decimate(X, int(decimation), axis=0, zero_phase=True)
-            z = signal.decimate(z, int(decimation), zero_phase=True)
-        k = max(1, trim // max(decimation, 1))
-        X, z = X[k:-k], z[k:-k]
-        return X[:, :-2], z, X[:, -2], X[:, -1]
+        X = _rows(X, decimation, trim)
+        return X[:, :-2], self.filtered_target(u, cutoff_hz, order, decimation, trim), X[:, -2], X[:, -1]
+
+    def filtered_target(self, u, cutoff_hz: float = 50.0, order: int = 4, decimation: int = 10,
+                        trim: int = 50) -> np.ndarray:
+        """The force rows of :meth:`filtered_regression`: u, or with a lag the force the mass sees
+        (actuator_lag), filtered like q (zero phase, as q̈)."""
+        if self.lag is not None:
+            b, a = self.butterworth(cutoff_hz, order)
+            u = signal.filtfilt(b, a, self.lag.model_input(u))
+        return _rows(u, decimation, trim)
 
     def stacked_regression(self, y, u, **filt):
         """:meth:`filtered_regression` of one record (arrays) or of several (lists of arrays, one
@@ -319,6 +322,15 @@ class RigidBodyPhysics(LinearMotorPhysics):
                     best = max(best, (share([np.cos(a), np.sin(a)]), float(P)))
                 out["cogging"], out["cogging_period"] = best
         return out
+
+
+def _rows(x, decimation: int, trim: int) -> np.ndarray:
+    """Parallel decimation (``scipy.signal.decimate``, zero phase) of the regression's columns, then
+    ``trim`` samples dropped at each end (filter transients)."""
+    if decimation > 1:
+        x = signal.decimate(x, int(decimation), axis=0, zero_phase=True)
+    k = max(1, trim // max(decimation, 1))
+    return x[k:-k]
 
 
 #: a term the config lacks that would explain this share of the residual's energy is missing (warning)

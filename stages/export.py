@@ -103,10 +103,11 @@ DEPENDS = ("invert", "start", "export.compile", "export.cc", "export.rtol", "exp
            "export.limits", "evaluate.references")
 
 
-VERSION = 6      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
+VERSION = 7      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
                  # is checked over the whole window r(t-2) .. r(t+P), not only at its newest sample; 5: the start at
                  # rest, default limits from the data, the guard's return ramp and latch (issue 48); 6: the start's
-                 # header text, the float harness's flag mask
+                 # header text, the float harness's flag mask; 7: one force_term (templates/force_term.c) for the
+                 # law and the guard, with the spring, position_poly and drag terms (issue 49)
 
 
 def validate(cfg, system) -> None:

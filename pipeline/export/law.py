@@ -172,8 +172,8 @@ class Law:
             return {"flops": int(flops), "elementary_calls": int(calls)}
         if self.family == "rigid_body":
             codes = self.arrays["codes"]
-            per = {0: 0, 1: 0, 2: 1, 3: 5, 4: 0, 5: 1, 6: 1}        # T_j beyond the velocity
-            w = 7 + 2 * codes.size + sum(per[int(c)] for c in codes)
+            per = {0: 0, 1: 0, 2: 1, 3: 5, 4: 0, 5: 1, 6: 1, 7: 1}  # T_j beyond the velocity; (q/p)^k: k
+            w = 7 + 2 * codes.size + sum(per.get(int(c), int(c) - 7) for c in codes)
             calls = int(sum(int(c) in (2, 3, 5, 6) for c in codes))
             flops = (2 if self.averaged else 1) * w + (3 if self.averaged else 0)
             calls *= 2 if self.averaged else 1

@@ -166,8 +166,9 @@ def physics_coefficients(system, theta) -> dict | None:
         return None
     if law == "linear_motor":          # [m, f_v, f_c], (8): viscous, sign (force_terms codes 0, 1)
         codes, consts = [0, 1], [0.0, 0.0]
-    else:
-        c, k = physics.terms.kernel()
+    else:                              # before the baseline an auto Coulomb width is not chosen: its shape is NaN
+        e = physics.terms.expanded() if theta is None else None
+        c, k = ([x[2] for x in e], [0.0] * len(e)) if e is not None else physics.terms.kernel()
         codes, consts = [int(v) for v in c], [float(v) for v in k]
     if theta is None:
         t = [0.0] * (1 + len(codes))

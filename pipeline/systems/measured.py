@@ -27,6 +27,7 @@ from scipy import signal
 
 from pipeline.identify.least_squares import solve_scaled
 from pipeline.params import DAMP_MAX, FORCE_MAX, FREQ_MAX, MASS_MAX, TS_MAX, schema, spec
+from pipeline.systems import coulomb_width
 from pipeline.systems.base import System, check_signal
 from pipeline.systems.controller import LTIController
 from pipeline.systems.controller import Params as ControllerParams
@@ -201,6 +202,13 @@ class RigidBodyPhysics(LinearMotorPhysics):
                              "or raise idim.cutoff_hz")
         return b, a
 
+    def filtered_states(self, y, cutoff_hz: float = 50.0, order: int = 4):
+        """(q, q̇, q̈) of the filtered least squares: Butterworth ``filtfilt`` of y, central differences."""
+        b, a = self.butterworth(cutoff_hz, order)
+        qf = signal.filtfilt(b, a, y)
+        v = np.gradient(qf, self.Ts)
+        return qf, v, np.gradient(v, self.Ts)
+
     def filtered_regression(self, y, u, cutoff_hz: float = 50.0, order: int = 4, decimation: int = 10,
                             trim: int = 50):
         """The rows of the filtered inverse-model least squares (IDIM-LS, the EMPS benchmark's
@@ -213,10 +221,7 @@ class RigidBodyPhysics(LinearMotorPhysics):
         if y.shape[0] < self.min_samples(decimation, trim):
             raise ValueError(f"{y.shape[0]} samples are too few for the filtered least squares "
                              f"(trim={trim}, decimation={decimation}); give a longer record")
-        b, a = self.butterworth(cutoff_hz, order)
-        qf = signal.filtfilt(b, a, y)
-        v = np.gradient(qf, self.Ts)
-        acc = np.gradient(v, self.Ts)
+        qf, v, acc = self.filtered_states(y, cutoff_hz, order)
         X = np.stack([acc] + self.terms.columns(qf, v) + [qf, v], axis=1)   # [q̈, T_1(q, q̇), …, q, q̇]
         z = u
         if decimation > 1:
@@ -251,12 +256,13 @@ class RigidBodyPhysics(LinearMotorPhysics):
         return np.concatenate([[1.0], p[1:]]) / p[0]   # M < 0 comes back as is: the baseline warns
 
     def residual_diagnostics(self, y, u, **filt) -> dict:
-        """What the configured terms leave in the force (issue 20 item 2): on the rows of the
-        filtered least squares, the residual r = τ - X p and, for each term the config does *not*
-        have, the share of ‖r‖² it would explain (its column made orthogonal to X, then fitted to
-        r): ``viscous`` (q̇), ``coulomb`` (sign q̇), ``offset`` (1) and ``cogging`` (cos, sin of
-        2πq/P at the best period P between 4 row spacings and a third of the travel, scanned on a
-        log grid).  Returns {"residual_rel": ‖r‖/‖τ‖, "<term>": share, "cogging_period": P}."""
+        """What the configured terms leave in the force (issue 20 item 2, issue 49 item 2): on the rows of
+        the filtered least squares, the residual r = τ - X p and, for each term the config does *not* have,
+        the share of ‖r‖² it would explain (its columns made orthogonal to X, then fitted to r):
+        ``viscous`` (q̇), ``coulomb`` (sign q̇), ``offset`` (1), ``spring`` (q), ``position_poly`` ((q/L)²,
+        (q/L)³ with L = max |q|, returned as ``position_scale``), ``drag`` (q̇|q̇|) and ``cogging`` (cos, sin
+        of 2πq/P at the best period P between 4 row spacings and a third of the travel, scanned on a log
+        grid).  Returns {"residual_rel": ‖r‖/‖τ‖, "<term>": share, "cogging_period": P, "position_scale": L}."""
         X, z, q, v = self.stacked_regression(y, u, **filt)
         Q, _ = np.linalg.qr(X / np.maximum(np.linalg.norm(X, axis=0), 1e-300))
         res = z - Q @ (Q.T @ z)
@@ -274,9 +280,14 @@ class RigidBodyPhysics(LinearMotorPhysics):
             return float(fit @ fit / rr)
 
         have = set(self.terms.names)
-        for name, col in (("viscous", v), ("coulomb", np.sign(v)), ("offset", np.ones_like(v))):
+        scale = float(np.max(np.abs(q))) or 1.0
+        for name, cols in (("viscous", [v]), ("coulomb", [np.sign(v)]), ("offset", [np.ones_like(v)]),
+                           ("spring", [q]), ("position_poly", [(q / scale) ** 2, (q / scale) ** 3]),
+                           ("drag", [v * np.abs(v)])):
             if name not in have:
-                out[name] = share([col])
+                out[name] = share(cols)
+        if "position_poly" not in have:
+            out["position_scale"] = scale
         if "cogging" not in have:
             travel = float(q.max() - q.min())
             # the 99.5th percentile, not the max: the jumps between stacked records are not steps
@@ -386,6 +397,15 @@ class Recording(System):
         inverse-model least squares."""
         return self.physics.fit_filtered(y, u, **self.idim)
 
+    def use_coulomb_width(self, width: float | None) -> None:
+        """Give the physics Coulomb width ``width`` [m/s] (None: sign): the one ``coulomb_width: auto`` chose."""
+        p = self._physics
+        self._physics = RigidBodyPhysics(self.Ts, p.averaged_input, p.terms.with_coulomb_width(width))
+
+    def choose_coulomb_width(self, y, u, val_fraction: float = 0.2) -> dict:
+        """:func:`pipeline.systems.coulomb_width.choose` on these training records (lists of arrays)."""
+        return coulomb_width.choose(self.physics, y, u, val_fraction, **self.idim)
+
     def missing_terms(self, y, u) -> tuple[dict, list[str]]:
         """(:meth:`RigidBodyPhysics.residual_diagnostics` on this record, a sentence per force term
         the config lacks that would explain ≥ MISSING_TERM_SHARE of the residual's energy)."""
@@ -393,6 +413,10 @@ class Recording(System):
         hints = {"viscous": "add 'viscous' to system.force_terms.terms",
                  "coulomb": "add 'coulomb' (sign, or smooth with coulomb_width)",
                  "offset": "add 'offset' (gravity, cable force)",
+                 "spring": "add 'spring' (a force K q: cable carrier, spring; with 'offset' it is K (q - q0))",
+                 "position_poly": f"add 'position_poly' with position_scale ≈ "
+                                  f"{diag.get('position_scale', math.nan):.3g} m (position_order 3)",
+                 "drag": "add 'drag' (F_d q̇|q̇|, a force quadratic in the velocity)",
                  "cogging": f"add 'cogging' with cogging_period ≈ {diag.get('cogging_period', math.nan):.4g} m"}
         found = [f"{k} would explain {100 * diag[k]:.0f} % of the residual force: {hints[k]}"
                  for k in hints if diag.get(k, 0.0) >= MISSING_TERM_SHARE]

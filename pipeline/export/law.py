@@ -279,10 +279,11 @@ def from_measured_physics(physics, theta, ctrl) -> Law:
     return Law(law="physics", family="rigid_body", Ts=float(physics.Ts), preview=1 + int(physics.averaged_input),
                rest="zero", averaged=bool(physics.averaged_input),
                ints={"n_terms": int(codes.size), "has_ctrl": int(has_ctrl), "n_den": int(den.size),
-                     "cogging_harmonics": int(t.cogging_harmonics)},
+                     "cogging_harmonics": int(t.cogging_harmonics), "position_order": int(t.position_order)},
                floats={"gtau": float(ctrl.gtau), "k0": float(k0), "stribeck_velocity": float(t.stribeck_velocity),
                        "coulomb_width": 0.0 if t.coulomb_width is None else float(t.coulomb_width),
-                       "cogging_period": 0.0 if t.cogging_period is None else float(t.cogging_period)},
+                       "cogging_period": 0.0 if t.cogging_period is None else float(t.cogging_period),
+                       "position_scale": 0.0 if t.position_scale is None else float(t.position_scale)},
                arrays={"theta": theta, "theta_inv": physics.inverse_theta(theta), "codes": codes,
                        "consts": consts, "b_r": ctrl.b_r, "b_y": ctrl.b_y, "a": ctrl.a,
                        "num": db / den[0], "den": den / den[0]},   # lfilter divides by den[0] first
@@ -500,7 +501,9 @@ def _rigid_body(law: Law):
     terms = ForceTerms(tuple(law.strings["terms"].split(",")) if law.strings["terms"] else (),
                        coulomb_width=f["coulomb_width"] or None, stribeck_velocity=f["stribeck_velocity"],
                        cogging_period=f["cogging_period"] or None,
-                       cogging_harmonics=law.ints["cogging_harmonics"])
+                       cogging_harmonics=law.ints["cogging_harmonics"],
+                       position_order=law.ints.get("position_order", 3),
+                       position_scale=f.get("position_scale", 0.0) or None)
     physics = RigidBodyPhysics(law.Ts, averaged_input=law.averaged, terms=terms)
     a = law.arrays
     if not (np.array_equal(terms.kernel()[0], a["codes"]) and np.array_equal(terms.kernel()[1], a["consts"])):

@@ -243,3 +243,56 @@ def test_the_exported_c_has_the_new_terms_to_1e_9(fallback, tmp_path):
     src = next((tmp_path / "pkg").rglob("ff_terms.c")).read_text()
     assert src.count("double force_term(") == 1 and ("case 7: return v * fabs(v);" in src)
     assert ("#define FALLBACK_KIND 1 " in src) == (fallback == "physics")
+
+
+# ---- through the pipeline: the hint, the chosen width handed to the later stages ----------------------
+@pytest.fixture(scope="module")
+def spring_folder(tmp_path_factory, spring_records):
+    import pandas as pd
+    folder = tmp_path_factory.mktemp("spring_axis")
+    ys, us = spring_records
+    refs = [reference(s) for s in (1, 2)]
+    for name, y, u, r in zip(("train", "test"), ys, us, refs):
+        pd.DataFrame({"t": np.arange(y.size) * TS, "r": r, "u": u, "y": y}).to_csv(folder / f"{name}.csv", index=False)
+    return folder
+
+
+def _overrides(folder, width, stages):
+    b, a = pid(SPRING_AXIS["M"])
+    fl = lambda p: "[" + ",".join(repr(float(x)) for x in p) + "]"   # noqa: E731
+    return ["system=measured", "system.name=spring_axis", f"system.Ts={TS}", f"system.controller.num={fl(b)}",
+            f"system.controller.den={fl(a)}", "system.force_terms.terms=[viscous,coulomb,offset,spring]",
+            f"system.force_terms.coulomb_width={width}", "system.idim.cutoff_hz=100", "data=measured",
+            f"data.path={folder}", "data.file=train.csv", "evaluate=measured",
+            "evaluate.references=[{name:test,kind:measured,file:test.csv}]", "model=physics", "identify=none",
+            "invert=physics", "experiment_name=spring_axis", f"stages={stages}"]
+
+
+def test_a_sign_coulomb_term_that_fits_poorly_is_hinted_with_the_width(store, cfg_of, spring_folder):
+    """sign on the generator's tanh friction: the baseline warns with the width to set (tag
+    physics_coulomb_hint, the width within a factor 2 of the generator's)."""
+    from pipeline import runner, tracking
+    with pytest.warns(UserWarning, match=r"sign Coulomb term .* coulomb_width ≈ \S+ m/s, would explain \d+ %"):
+        runner.run_job(cfg_of(*_overrides(spring_folder, "null", "[generate,baseline]")))
+    run = tracking.search_runs("spring_axis").iloc[0]
+    assert "system.force_terms.coulomb_width=" in run["tags.physics_coulomb_hint"]
+    assert run["metrics.baseline/residual/smooth_coulomb"] >= 0.2
+    assert 0.5 <= run["metrics.baseline/residual/smooth_coulomb_width"] / SPRING_AXIS["W_c"] <= 2.0
+
+
+def test_auto_width_reaches_every_later_stage(store, cfg_of, spring_folder):
+    """auto: the width is chosen (metric and tag coulomb_width_chosen, within a factor 2); a second run with
+    the baseline cached hands it to invert and export (the system is the one evaluate replays; an unchosen
+    auto width is refused by every force-term evaluation), and the exported law carries it."""
+    import json
+
+    from pipeline import runner, tracking
+    runner.run_job(cfg_of(*_overrides(spring_folder, "auto", "[generate,baseline]")))
+    run = tracking.search_runs("spring_axis").iloc[0]
+    w = run["metrics.baseline/coulomb_width_chosen"]
+    assert 0.5 <= w / SPRING_AXIS["W_c"] <= 2.0 and "m/s" in run["tags.coulomb_width_chosen"]
+    assert abs(run["metrics.baseline/K"] - SPRING_AXIS["K"]) <= 0.03 * SPRING_AXIS["K"]
+    res = runner.run_job(cfg_of(*_overrides(spring_folder, "auto", "[generate,baseline,train,invert,export]")))
+    assert res["baseline"]["coulomb_width"] == w
+    law = json.loads(next((store / "cache" / "export").rglob("law.json")).read_text())
+    assert law["floats"]["coulomb_width"] == w and "spring" in law["strings"]["terms"]

@@ -23,7 +23,7 @@ from omegaconf import OmegaConf
 
 from pipeline.errors import ConfigError
 from pipeline.identify.least_squares import fit_physics
-from pipeline.systems.coulomb_width import SMOOTH_SHARE
+from pipeline.systems.coulomb_width import HOLD_OUT, SMOOTH_SHARE
 
 UPSTREAM = ("generate",)
 DEPENDS = ("system", "identify.val_fraction")
@@ -69,12 +69,15 @@ def run(ctx) -> dict:
         ctx.tag("physics_warning", msg)
         warnings.warn(msg, stacklevel=1)
     if system.measured:      # a term the config lacks that the residual still holds
+        hinted = _smooth_hint(ctx, list(ys), list(us))
         diag, found = system.missing_terms(list(ys), list(us))
         for k, v in diag.items():
             ctx.metric(f"residual/{k}", v)
         if found:
             msg = (f"the physics of '{system.name}' leaves {100 * diag['residual_rel']:.1f} % of the force "
-                   "unexplained and it is structured: " + "; ".join(found))
+                   "unexplained and it is structured: " + "; ".join(found)
+                   + ("; but first smooth the Coulomb term (tag physics_coulomb_hint): a sign term's error leaks "
+                      "into the others" if hinted else ""))
             ctx.tag("physics_missing_term", msg)
             warnings.warn(msg, stacklevel=1)
         if diag["residual_rel"] > UNUSABLE_RESIDUAL:   # e.g. a prefilter cutoff below the motion's bandwidth
@@ -84,7 +87,6 @@ def run(ctx) -> dict:
                    "the force terms, and the signs and units of u and y")
             ctx.tag("physics_warning", msg)
             warnings.warn(msg, stacklevel=1)
-        _smooth_hint(ctx, list(ys), list(us))
     truth = getattr(system, "true_physical", None)
     if callable(truth):  # where the simulator knows its parameters, report the estimation error
         for k, v in truth().items():
@@ -114,17 +116,18 @@ def _auto_width(ctx, ys, us) -> dict:
     return {"coulomb_width": c["width"]}
 
 
-def _smooth_hint(ctx, ys, us) -> None:
+def _smooth_hint(ctx, ys, us) -> bool:
     """A ``sign`` Coulomb term: the same search; a hint (warning, tag ``physics_coulomb_hint``) when a smooth
-    width would explain ≥ 20 % of its held-out residual (a diagnosis: data it cannot use give no hint)."""
+    width would explain ≥ 20 % of its held-out residual (a diagnosis: data it cannot use give no hint).
+    Returns whether it hinted."""
     system = ctx.system
     terms = system.physics.terms
     if "coulomb" not in terms.names or terms.coulomb_width is not None:
-        return
+        return False
     try:
         c = system.choose_coulomb_width(ys, us, _val_fraction(ctx))
     except ValueError:
-        return
+        return False
     ctx.metric("residual/smooth_coulomb", c["share"])
     ctx.metric("residual/smooth_coulomb_width", c["width"])
     if c["share"] >= SMOOTH_SHARE:
@@ -134,11 +137,14 @@ def _smooth_hint(ctx, ys, us) -> None:
                f"system.force_terms.coulomb_width={c['width']:.3g} (or auto)")
         ctx.tag("physics_coulomb_hint", msg)
         warnings.warn(msg, stacklevel=1)
+        return True
+    return False
 
 
 def _val_fraction(ctx) -> float:
-    """The held-out tail of each training record: ``identify.val_fraction`` when set, else 0.2."""
-    return float(OmegaConf.select(ctx.cfg, "identify.val_fraction", default=0.0) or 0.0) or 0.2
+    """The held-out tail of each training record: ``identify.val_fraction`` when the identification has one
+    (> 0), else :data:`~pipeline.systems.coulomb_width.HOLD_OUT`."""
+    return float(OmegaConf.select(ctx.cfg, "identify.val_fraction") or 0.0) or HOLD_OUT
 
 
 def adopt(system, result: dict) -> None:

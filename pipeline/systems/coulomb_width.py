@@ -20,6 +20,8 @@ from pipeline.identify.least_squares import solve_scaled
 
 #: a smooth width that removes this share of the sign fit's held-out residual energy is hinted at
 SMOOTH_SHARE = 0.2
+#: the held-out tail of each training record when the identification sets no validation fraction
+HOLD_OUT = 0.2
 #: points of the log grid, and its span below the velocity range [decades]
 GRID, DECADES = 41, 4.0
 
@@ -67,7 +69,7 @@ def held_out_error(parts, w: float) -> float:
     return float(np.linalg.norm(e) / np.linalg.norm(z[~head]))
 
 
-def choose(physics, ys, us, val_fraction: float = 0.2, **filt) -> dict:
+def choose(physics, ys, us, val_fraction: float = HOLD_OUT, **filt) -> dict:
     """The Coulomb width [m/s] of least held-out force error on the training records ``ys``, ``us``
     (lists of arrays, one per record; the last ``val_fraction`` of each is held out).  Returns
     {"width", "error" (held out, at the width), "error_sign" (sign), "share" = 1 - error²/error_sign²

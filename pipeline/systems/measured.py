@@ -402,7 +402,7 @@ class Recording(System):
         p = self._physics
         self._physics = RigidBodyPhysics(self.Ts, p.averaged_input, p.terms.with_coulomb_width(width))
 
-    def choose_coulomb_width(self, y, u, val_fraction: float = 0.2) -> dict:
+    def choose_coulomb_width(self, y, u, val_fraction: float = coulomb_width.HOLD_OUT) -> dict:
         """:func:`pipeline.systems.coulomb_width.choose` on these training records (lists of arrays)."""
         return coulomb_width.choose(self.physics, y, u, val_fraction, **self.idim)
 

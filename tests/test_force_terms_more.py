@@ -296,3 +296,27 @@ def test_auto_width_reaches_every_later_stage(store, cfg_of, spring_folder):
     assert res["baseline"]["coulomb_width"] == w
     law = json.loads(next((store / "cache" / "export").rglob("law.json")).read_text())
     assert law["floats"]["coulomb_width"] == w and "spring" in law["strings"]["terms"]
+
+
+def test_closed_loop_sensitivities_of_the_new_terms_match_finite_differences():
+    """The loop kernel's exact ∂τ̂/∂θ (the simulation-error Jacobian) through spring, position_poly and drag:
+    their T and ∂T/∂q, ∂T/∂q̇ enter the chain through every past output; central differences agree (a
+    wrong partial errs by O(1), the differences by O(h²) plus rounding of τ/h)."""
+    from pipeline.identify.measured_loop import LoopModel, LoopSignals, simulate_loop
+    system = Recording("axis", TS, controller=controller(SPRING_AXIS),
+                       force_terms={"terms": ["viscous", "offset", "spring", "position_poly", "drag"],
+                                    "position_order": 3, "position_scale": 0.1}, physics_input="averaged")
+    th = system.physics.theta_from_physical({"M": 4.0, "F_v": 15.0, "OF": -4.0, "K": 300.0, "P2": 8.0, "P3": -5.0,
+                                             "F_d": 60.0})
+    r = reference(5, seconds=1.5)
+    sig = LoopSignals(r, np.zeros_like(r), 0.0)
+    m = LoopModel.physics_only(system.physics, th)
+    _, tau0, _, _, St = simulate_loop(m, system.ctrl, sig, sens=True)
+    for p in range(th.size):
+        h = 1e-5 * abs(th[p])
+        tp, tm = th.copy(), th.copy()
+        tp[p] += h
+        tm[p] -= h
+        ctrl = system.ctrl
+        fd = (simulate_loop(m.with_theta(tp), ctrl, sig)[1] - simulate_loop(m.with_theta(tm), ctrl, sig)[1]) / (2 * h)
+        assert np.linalg.norm(fd - St[:, p]) <= 1e-5 * np.linalg.norm(fd) + 1e-12 * np.linalg.norm(tau0) / h, p

@@ -30,7 +30,7 @@ DEPENDS = ("system", "identify.val_fraction")
 VERSION = 3   # 2: residual diagnostics of measured systems; 3: spring, position_poly, drag in the scan, the
               # Coulomb width chosen from data (auto) or hinted (issue 49)
 #: physical parameters that cannot be negative (masses, stiffnesses, friction and damping)
-POSITIVE = ("m", "M", "m1", "m2", "k", "k1", "k2", "c", "d2", "f_v", "F_v", "f_c", "F_c")
+POSITIVE = ("m", "M", "m1", "m2", "k", "k1", "k2", "c", "d2", "f_v", "F_v", "f_c", "F_c", "F_d")
 
 
 def nonphysical(physical: dict) -> list[str]:

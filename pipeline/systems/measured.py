@@ -330,8 +330,9 @@ class Recording(System):
         Input of the one-step physics model: ū(t-1) (exact ZOH, default) or u(t-1).
     force_terms : dict or None
         :class:`pipeline.systems.force_terms.ForceTerms` arguments: ``terms`` (the force terms of
-        ``M q̈ = τ - Σ``: viscous, coulomb, stribeck, offset, cogging) and their shape constants
-        (coulomb_width, stribeck_velocity, cogging_period, cogging_harmonics).  Default: EMPS's
+        ``M q̈ = τ - Σ``: viscous, coulomb, stribeck, offset, cogging, spring, position_poly, drag) and
+        their shape constants (coulomb_width, a width or 'auto', stribeck_velocity, cogging_period,
+        cogging_harmonics, position_order, position_scale).  Default: EMPS's
         viscous, Coulomb (sign) and offset.
     disturbance : str or None
         Column of the data holding a measured disturbance [V] added after the saturation

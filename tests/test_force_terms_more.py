@@ -347,3 +347,21 @@ def test_the_heldout_vertical_axis_with_spring_and_auto_width():
     p = ax.axis_params()
     true = {"M": ax.M, "K": ax.K_S, "F_v": ax.F_V, "F_c": ax.F_C, "OF": p["OF_at_q0"]}
     assert all(abs(got[k] - v) <= 0.01 * abs(v) for k, v in true.items()), (got, true)
+
+
+@pytest.mark.parametrize("overrides, expected", [
+    (["system.force_terms.coulomb_width=fast"], ["coulomb_width='fast' is not a width", "auto", "null (sign)"]),
+    (["system.force_terms.coulomb_width=-0.001"], ["coulomb_width=-0.001: give a positive width [m/s]"]),
+    (["system.force_terms.terms=[viscous,coulomb,position_poly]"], ["position_poly term needs position_scale",
+                                                                     "position_scale: 0.1"]),
+    (["system.force_terms.terms=[viscous,offset]", "system.force_terms.coulomb_width=auto"],
+     ["coulomb_width: auto", "add 'coulomb'"]),
+    (["system.force_terms.position_order=1"], ["position_order=1", ">= 2"]),
+], ids=["width-text", "width-negative", "poly-no-scale", "auto-no-coulomb", "order-1"])
+def test_bad_term_keys_fail_before_any_work_in_one_line(store, cfg_of, overrides, expected):
+    from pipeline import runner
+    with pytest.raises(runner.ConfigError) as err:
+        runner.run_job(cfg_of("experiment=emps_physics", "stages=[generate,baseline]", *overrides))
+    msg = str(err.value)
+    assert "\n" not in msg and all(part in msg for part in expected), msg
+    assert not (store / "cache" / "baseline").exists()

@@ -14,9 +14,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import optimize, signal
+from scipy import optimize
 
-from pipeline.identify.least_squares import solve_scaled
+from pipeline.identify.least_squares import decimated_rows, solve_scaled
 
 #: a smooth width that removes this share of the sign fit's held-out residual energy is hinted at
 SMOOTH_SHARE = 0.2
@@ -27,36 +27,28 @@ GRID, DECADES = 41, 4.0
 
 
 def _rows(physics, y, u, n_fit, cutoff_hz=50.0, order=4, decimation=10, trim=50):
-    """(X without the Coulomb column, that column's index, decimated q̇ source, τ, head mask) of one
-    record: the rows of ``physics.filtered_regression``, split at sample ``n_fit``."""
+    """(X with a sign Coulomb column, that column's index, the filtered q̇ (samples), τ, head mask, the
+    decimation settings) of one record: the rows of ``physics.filtered_regression``, split at sample n_fit."""
     terms = physics.terms.with_coulomb_width(None)
     j = 1 + [e[0] for e in terms.expanded()].index("fc_over_m")     # its column of X = [q̈, T_1, …]
     qf, v, acc = physics.filtered_states(y, cutoff_hz, order)
-    X = np.stack([acc] + terms.columns(qf, v), axis=1)
-    z = u
-    if decimation > 1:
-        X = signal.decimate(X, int(decimation), axis=0, zero_phase=True)
-        z = signal.decimate(u, int(decimation), zero_phase=True)
+    X = decimated_rows(np.stack([acc] + terms.columns(qf, v), axis=1), decimation, trim)
     k = max(1, trim // max(decimation, 1))
-    idx = (np.arange(X.shape[0]) * max(int(decimation), 1))[k:-k]
-    return X[k:-k], j, v, z[k:-k], idx < n_fit, (int(decimation), k)
+    sample = (np.arange(X.shape[0]) + k) * max(int(decimation), 1)
+    return X, j, v, decimated_rows(u, decimation, trim), sample < n_fit, (decimation, trim)
 
 
-def _column(v, w, dec_k):
-    """tanh(q̇/w) (w = 0: sign) decimated and trimmed as the other columns."""
-    dec, k = dec_k
-    c = np.sign(v) if w == 0 else np.tanh(v / w)
-    if dec > 1:
-        c = signal.decimate(c, dec, zero_phase=True)
-    return c[k:-k]
+def _column(v, w, filt):
+    """tanh(q̇/w) (w = 0: sign) on the rows of the other columns."""
+    return decimated_rows(np.sign(v) if w == 0 else np.tanh(v / w), *filt)
 
 
 def held_out_error(parts, w: float) -> float:
     """‖τ - X p̂‖/‖τ‖ on the records' tails, p̂ the filtered LS on their heads, Coulomb width w (0: sign)."""
     Xs, zs, heads = [], [], []
-    for X, j, v, z, head, dec_k in parts:
+    for X, j, v, z, head, filt in parts:
         X = X.copy()
-        X[:, j] = _column(v, w, dec_k)
+        X[:, j] = _column(v, w, filt)
         Xs.append(X)
         zs.append(z)
         heads.append(head)

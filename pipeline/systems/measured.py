@@ -25,7 +25,7 @@ from typing import Literal, Optional
 import numpy as np
 from scipy import signal
 
-from pipeline.identify.least_squares import solve_scaled
+from pipeline.identify.least_squares import decimated_rows, solve_scaled
 from pipeline.params import DAMP_MAX, FORCE_MAX, FREQ_MAX, MASS_MAX, TS_MAX, schema, spec
 from pipeline.systems import coulomb_width
 from pipeline.systems.base import System, check_signal
@@ -223,12 +223,7 @@ class RigidBodyPhysics(LinearMotorPhysics):
                              f"(trim={trim}, decimation={decimation}); give a longer record")
         qf, v, acc = self.filtered_states(y, cutoff_hz, order)
         X = np.stack([acc] + self.terms.columns(qf, v) + [qf, v], axis=1)   # [q̈, T_1(q, q̇), …, q, q̇]
-        z = u
-        if decimation > 1:
-            X = signal.decimate(X, int(decimation), axis=0, zero_phase=True)
-            z = signal.decimate(u, int(decimation), zero_phase=True)
-        k = max(1, trim // max(decimation, 1))
-        X, z = X[k:-k], z[k:-k]
+        X, z = decimated_rows(X, decimation, trim), decimated_rows(u, decimation, trim)
         return X[:, :-2], z, X[:, -2], X[:, -1]
 
     def stacked_regression(self, y, u, **filt):

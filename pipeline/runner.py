@@ -419,6 +419,9 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None,
                 else:
                     final, results[name], record = _compute(cfg, name, mod, key, keys, results, system,
                                                             store, cacheable, run.run_id)
+                adopt = getattr(mod, "adopt", None)   # what a stage hands the system (baseline: the chosen width)
+                if adopt is not None and system is not None:
+                    adopt(system, results[name])
             finally:
                 if lock is not None and lock.is_locked:
                     lock.release()

@@ -7,8 +7,11 @@ the system config gives them.  Physical parameters that must be positive (masses
 friction, damping) and come out negative are a warning: run tag ``physics_warning`` (the report
 shows it) and a Python warning, because the physics model does not fit the data.  On a measured
 system the least-squares residual is also searched for a force term the config lacks (velocity,
-velocity sign, offset, a position-periodic cogging force at any period): one that would explain
-≥ 20 % of the residual's energy is named, with its config key (tag ``physics_missing_term``).
+velocity sign, offset, a force linear or polynomial in position, a quadratic drag, a position-periodic
+cogging force at any period): one that would explain ≥ 20 % of the residual's energy is named, with its
+config key (tag ``physics_missing_term``).  ``coulomb_width: auto`` is chosen here, on the training
+records' tails, and handed to the later stages (:func:`adopt`); a ``sign`` Coulomb term that a smooth
+one would beat is hinted at (tag ``physics_coulomb_hint``).
 """
 from __future__ import annotations
 
@@ -16,14 +19,18 @@ import warnings
 
 import numpy as np
 
+from omegaconf import OmegaConf
+
 from pipeline.errors import ConfigError
 from pipeline.identify.least_squares import fit_physics
+from pipeline.systems.coulomb_width import HOLD_OUT, SMOOTH_SHARE
 
 UPSTREAM = ("generate",)
-DEPENDS = ("system",)
-VERSION = 2   # 2: residual diagnostics of measured systems
+DEPENDS = ("system", "identify.val_fraction")
+VERSION = 3   # 2: residual diagnostics of measured systems; 3: spring, position_poly, drag in the scan, the
+              # Coulomb width chosen from data (auto) or hinted (issue 49)
 #: physical parameters that cannot be negative (masses, stiffnesses, friction and damping)
-POSITIVE = ("m", "M", "m1", "m2", "k", "k1", "k2", "c", "d2", "f_v", "F_v", "f_c", "F_c")
+POSITIVE = ("m", "M", "m1", "m2", "k", "k1", "k2", "c", "d2", "f_v", "F_v", "f_c", "F_c", "F_d")
 
 
 def nonphysical(physical: dict) -> list[str]:
@@ -42,9 +49,12 @@ def run(ctx) -> dict:
         ctx.system.use_lag(None)       # identified afresh from these data (fit_physics)
     system = ctx.system
     physics = system.physics
+    result = {}
     try:
         if system.measured:   # each recording filtered on its own (data.files)
             ys, us = zip(*[(g["y"].to_numpy(np.float64), g["u"].to_numpy(np.float64)) for g in ds.segments()])
+            result = _auto_width(ctx, list(ys), list(us))
+            physics = system.physics
             theta = system.fit_physics(list(ys), list(us))
         else:
             theta = fit_physics(physics, ({c: seg[c].to_numpy() for c in ("y", "u", "r")}
@@ -61,12 +71,15 @@ def run(ctx) -> dict:
         ctx.tag("physics_warning", msg)
         warnings.warn(msg, stacklevel=1)
     if system.measured:      # a term the config lacks that the residual still holds
+        hinted = _smooth_hint(ctx, list(ys), list(us))
         diag, found = system.missing_terms(list(ys), list(us))
         for k, v in diag.items():
             ctx.metric(f"residual/{k}", v)
         if found:
             msg = (f"the physics of '{system.name}' leaves {100 * diag['residual_rel']:.1f} % of the force "
-                   "unexplained and it is structured: " + "; ".join(found))
+                   "unexplained and it is structured: " + "; ".join(found)
+                   + ("; but first smooth the Coulomb term (tag physics_coulomb_hint): a sign term's error leaks "
+                      "into the others" if hinted else ""))
             ctx.tag("physics_missing_term", msg)
             warnings.warn(msg, stacklevel=1)
         if diag["residual_rel"] > UNUSABLE_RESIDUAL:   # e.g. a prefilter cutoff below the motion's bandwidth
@@ -86,7 +99,7 @@ def run(ctx) -> dict:
         for k, v in published.items():
             if k in physical and v != 0:
                 ctx.metric(f"rel_error_published/{k}", (physical[k] - v) / abs(v))
-    out = {"theta": theta, "physical": physical}
+    out = {"theta": theta, "physical": physical, **result}
     if system.measured and system.physics.lag is not None:    # the actuator lag (system.actuator.lag_tau)
         lag = dict(getattr(system, "lag_fit", None) or {"tau": system.physics.lag.tau})
         ctx.metric("lag_tau", lag["tau"])
@@ -101,3 +114,58 @@ def run(ctx) -> dict:
                 warnings.warn(msg, stacklevel=1)
         out["lag"] = lag
     return out
+
+
+def _auto_width(ctx, ys, us) -> dict:
+    """``coulomb_width: auto``: the width of least held-out force error on the training records' tails
+    (``identify.val_fraction``, or 0.2; pipeline.systems.coulomb_width), given to the system for every later
+    stage (:func:`adopt`), metric and tag ``coulomb_width_chosen``."""
+    system = ctx.system
+    if not system.physics.terms.auto_width:
+        return {}
+    c = system.choose_coulomb_width(ys, us, _val_fraction(ctx))
+    system.use_coulomb_width(c["width"])
+    ctx.metric("coulomb_width_chosen", c["width"])
+    ctx.metric("coulomb_width_val_force_rel_error", 100 * c["error"])
+    ctx.tag("coulomb_width_chosen", f"{c['width']:.4g} m/s (held-out force error {100 * c['error']:.2f} %, "
+                                    f"sign {100 * c['error_sign']:.2f} %)")
+    return {"coulomb_width": c["width"]}
+
+
+def _smooth_hint(ctx, ys, us) -> bool:
+    """A ``sign`` Coulomb term: the same search; a hint (warning, tag ``physics_coulomb_hint``) when a smooth
+    width would explain ≥ 20 % of its held-out residual (a diagnosis: data it cannot use give no hint).
+    Returns whether it hinted."""
+    system = ctx.system
+    terms = system.physics.terms
+    if "coulomb" not in terms.names or terms.coulomb_width is not None:
+        return False
+    try:
+        c = system.choose_coulomb_width(ys, us, _val_fraction(ctx))
+    except ValueError:
+        return False
+    ctx.metric("residual/smooth_coulomb", c["share"])
+    ctx.metric("residual/smooth_coulomb_width", c["width"])
+    if c["share"] >= SMOOTH_SHARE:
+        msg = (f"the sign Coulomb term of '{system.name}' fits poorly: a smooth one, coulomb_width ≈ "
+               f"{c['width']:.3g} m/s, would explain {100 * c['share']:.0f} % of its held-out residual force "
+               f"(error {100 * c['error_sign']:.2f} % → {100 * c['error']:.2f} %): set "
+               f"system.force_terms.coulomb_width={c['width']:.3g} (or auto)")
+        ctx.tag("physics_coulomb_hint", msg)
+        warnings.warn(msg, stacklevel=1)
+        return True
+    return False
+
+
+def _val_fraction(ctx) -> float:
+    """The held-out tail of each training record: ``identify.val_fraction`` when the identification has one
+    (> 0), else :data:`~pipeline.systems.coulomb_width.HOLD_OUT`."""
+    return float(OmegaConf.select(ctx.cfg, "identify.val_fraction") or 0.0) or HOLD_OUT
+
+
+def adopt(system, result: dict) -> None:
+    """After the baseline (computed or cached): the chosen Coulomb width goes to the system, so train,
+    invert, evaluate and export use it (``coulomb_width: auto``)."""
+    w = result.get("coulomb_width")
+    if w is not None and getattr(system, "measured", False) and system.physics.terms.auto_width:
+        system.use_coulomb_width(w)

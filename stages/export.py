@@ -103,10 +103,11 @@ DEPENDS = ("invert", "start", "export.compile", "export.cc", "export.rtol", "exp
            "export.limits", "evaluate.references")
 
 
-VERSION = 6      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
+VERSION = 7      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
                  # is checked over the whole window r(t-2) .. r(t+P), not only at its newest sample; 5: the start at
                  # rest, default limits from the data, the guard's return ramp and latch (issue 48); 6: the start's
-                 # header text, the float harness's flag mask
+                 # header text, the float harness's flag mask; 7: one force_term (templates/force_term.c) for the
+                 # law and the guard, with the spring, position_poly and drag terms (issue 49)
 
 
 def validate(cfg, system) -> None:
@@ -165,8 +166,9 @@ def physics_coefficients(system, theta) -> dict | None:
         return None
     if law == "linear_motor":          # [m, f_v, f_c], (8): viscous, sign (force_terms codes 0, 1)
         codes, consts = [0, 1], [0.0, 0.0]
-    else:
-        c, k = physics.terms.kernel()
+    else:                              # before the baseline an auto Coulomb width is not chosen: its shape is NaN
+        e = physics.terms.expanded() if theta is None else None
+        c, k = ([x[2] for x in e], [0.0] * len(e)) if e is not None else physics.terms.kernel()
         codes, consts = [int(v) for v in c], [float(v) for v in k]
     if theta is None:
         t = [0.0] * (1 + len(codes))

@@ -100,6 +100,8 @@ TEMPLATES = {
     "mlp_input.c": "the [K] approximator g_φ: its input normalisation (opens the function)",
     "mlp_hidden.c": "the [K] approximator g_φ: one hidden layer",
     "mlp_output.c": "the [K] approximator g_φ: the output layer (closes the function)",
+    "force_term.c": "shared by rigid_body.c and the guard's physics fallback: T_j(q, q̇) of one force term "
+                    "(pipeline.systems.force_terms.term)",
     "rigid_body.c": "the physics feedforward of a measured system (rigid body with force terms, minus the controller)",
     "table.c": "the FHOFC / IL-FHOFC table replay",
     "harness.c": "the test harness main_<file>.c (CSV in, u_ff out, --flags, --time, --check)",
@@ -275,7 +277,8 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
         phys_codes=", ".join([str(c) for c in g.physics_codes] + ["0"]),        # + one unused: C99 has no
         phys_consts=", ".join([_num(v) for v in g.physics_consts] + ["0.0"]),   # empty arrays (no terms)
         start_rest=int(law.start == "rest"), settle_n=law.settle,
-        static_exclude=int(law.static == "exclude"))
+        static_exclude=int(law.static == "exclude"),
+        force_term="" if law.family == "rigid_body" else _text("force_term.c"))   # the law's own, defined once
     if zoh_n > 1:
         guard += "\n" + _template("zoh.c").substitute(common, **zoh)
     snippets, df2t = _snippets(), "\n" + _text("df2t.c")
@@ -311,7 +314,7 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
             arrays += (_array("NUM", a["num"], "B_r - B_y / A's first coefficient")
                        + _array("DEN", a["den"], "A in q^-1 / its first coefficient"))
         src = _template("rigid_body.c").substitute(
-            common, **snippets, arrays=arrays, df2t=df2t if i["has_ctrl"] else "",
+            common, **snippets, arrays=arrays, df2t=df2t if i["has_ctrl"] else "", force_term=_text("force_term.c"),
             n_terms=i["n_terms"], averaged=int(law.averaged), has_ctrl=i["has_ctrl"],
             nden=i["n_den"], gtau=_num(law.floats["gtau"]), start_rest=int(law.start == "rest"),
             k0=_num(law.floats.get("k0", 0.0)))

@@ -129,12 +129,13 @@ class Guard:
         if not all(math.isfinite(v) for v in self.physics + self.physics_consts):
             raise ExportError(f"the physics fallback's [M, p_1, ...] and shape constants must be finite, got "
                               f"{self.physics}, {self.physics_consts}")
+        from pipeline.systems.force_terms import MAX_CODE  # lazy: saves 0.6 s of start-up (numba kernels)
         n = len(self.physics) - 1
         if n < 0 or len(self.physics_codes) != n or len(self.physics_consts) != n or \
-                not all(0 <= c <= 6 for c in self.physics_codes):
-            raise ExportError(f"the physics fallback needs [M, p_1 .. p_n], n kernel codes in 0..6 and n shape "
-                              f"constants (force_terms.ForceTerms.kernel); got {self.physics}, {self.physics_codes}, "
-                              f"{self.physics_consts}")
+                not all(0 <= c <= MAX_CODE for c in self.physics_codes):
+            raise ExportError(f"the physics fallback needs [M, p_1 .. p_n], n kernel codes in 0..{MAX_CODE} and n "
+                              f"shape constants (force_terms.ForceTerms.kernel); got {self.physics}, "
+                              f"{self.physics_codes}, {self.physics_consts}")
 
     def du_max(self, Ts: float) -> float:
         """Largest |u(t) - u(t-1)| [N]: rate · Ts."""
@@ -274,7 +275,7 @@ def run_guard(g: Guard, Ts: float, preview: int, r: np.ndarray, r0: float, core,
 
 
 def _term(code: int, p: float, q: float, v: float) -> float:
-    """T(q, q̇) of one force term, as templates/guard.c's phys_term (force_terms.term, the C library's
+    """T(q, q̇) of one force term, as templates/force_term.c's force_term (force_terms.term, the C library's
     tanh/exp/cos/sin through math, so C and Python agree to the bit)."""
     sg = 1.0 if v > 0 else (-1.0 if v < 0 else 0.0)
     if code == 0:
@@ -288,6 +289,14 @@ def _term(code: int, p: float, q: float, v: float) -> float:
         return sg * math.exp(-(x * x))
     if code == 4:
         return 1.0
+    if code == 7:
+        return v * abs(v)
+    if code > 7:                      # (q/p)^k, k = code - 7, by the C's products
+        x = q / p
+        t = x
+        for _ in range(code - 8):
+            t = t * x
+        return t
     a = p * q
     if not math.isfinite(a):          # C's cos/sin(±inf) is NaN (math's raise)
         return math.nan

@@ -172,8 +172,8 @@ class Law:
             return {"flops": int(flops), "elementary_calls": int(calls)}
         if self.family == "rigid_body":
             codes = self.arrays["codes"]
-            per = {0: 0, 1: 0, 2: 1, 3: 5, 4: 0, 5: 1, 6: 1}        # T_j beyond the velocity
-            w = 7 + 2 * codes.size + sum(per[int(c)] for c in codes)
+            per = {0: 0, 1: 0, 2: 1, 3: 5, 4: 0, 5: 1, 6: 1, 7: 1}  # T_j beyond the velocity; (q/p)^k: k
+            w = 7 + 2 * codes.size + sum(per.get(int(c), int(c) - 7) for c in codes)
             calls = int(sum(int(c) in (2, 3, 5, 6) for c in codes))
             flops = (2 if self.averaged else 1) * w + (3 if self.averaged else 0)
             flops += 6 if "lag_tau" in self.floats else 0       # the actuator lag's inverse
@@ -283,10 +283,11 @@ def from_measured_physics(physics, theta, ctrl) -> Law:
     return Law(law="physics", family="rigid_body", Ts=float(physics.Ts), preview=1 + int(physics.averaged_input),
                rest="zero", averaged=bool(physics.averaged_input),
                ints={"n_terms": int(codes.size), "has_ctrl": int(has_ctrl), "n_den": int(den.size),
-                     "cogging_harmonics": int(t.cogging_harmonics)},
+                     "cogging_harmonics": int(t.cogging_harmonics), "position_order": int(t.position_order)},
                floats={"gtau": float(ctrl.gtau), "k0": float(k0), "stribeck_velocity": float(t.stribeck_velocity),
                        "coulomb_width": 0.0 if t.coulomb_width is None else float(t.coulomb_width),
                        "cogging_period": 0.0 if t.cogging_period is None else float(t.cogging_period),
+                       "position_scale": 0.0 if t.position_scale is None else float(t.position_scale),
                        **_lag_floats(physics)},
                arrays={"theta": theta, "theta_inv": physics.inverse_theta(theta), "codes": codes,
                        "consts": consts, "b_r": ctrl.b_r, "b_y": ctrl.b_y, "a": ctrl.a,
@@ -529,7 +530,9 @@ def _rigid_body(law: Law):
     terms = ForceTerms(tuple(law.strings["terms"].split(",")) if law.strings["terms"] else (),
                        coulomb_width=f["coulomb_width"] or None, stribeck_velocity=f["stribeck_velocity"],
                        cogging_period=f["cogging_period"] or None,
-                       cogging_harmonics=law.ints["cogging_harmonics"])
+                       cogging_harmonics=law.ints["cogging_harmonics"],
+                       position_order=law.ints.get("position_order", 3),
+                       position_scale=f.get("position_scale", 0.0) or None)
     physics = RigidBodyPhysics(law.Ts, averaged_input=law.averaged, terms=terms, lag=lag_of(law))
     a = law.arrays
     if not (np.array_equal(terms.kernel()[0], a["codes"]) and np.array_equal(terms.kernel()[1], a["consts"])):

@@ -4,6 +4,7 @@ from __future__ import annotations
 from typing import Iterable
 
 import numpy as np
+from scipy import signal
 
 from pipeline.systems.base import PhysicsModel
 
@@ -49,3 +50,13 @@ def fit_physics(physics: PhysicsModel, segments: Iterable[dict]) -> np.ndarray:
         rows.append(Phi)
         targets.append(z)
     return solve_scaled(np.vstack(rows), np.concatenate(targets))
+
+
+def decimated_rows(x: np.ndarray, decimation: int = 10, trim: int = 50) -> np.ndarray:
+    """The rows of the filtered least squares from samples x (columns along axis 0): ``scipy.signal.decimate``
+    (zero phase) by ``decimation``, then ``trim // decimation`` rows (at least 1) dropped at each end; row i
+    is sample (i + that) · decimation."""
+    if decimation > 1:
+        x = signal.decimate(x, int(decimation), axis=0, zero_phase=True)
+    k = max(1, trim // max(decimation, 1))
+    return x[k:-k]

@@ -25,8 +25,9 @@ from typing import Literal, Optional
 import numpy as np
 from scipy import signal
 
-from pipeline.identify.least_squares import solve_scaled
+from pipeline.identify.least_squares import decimated_rows, solve_scaled
 from pipeline.params import DAMP_MAX, FORCE_MAX, FREQ_MAX, MASS_MAX, TS_MAX, schema, spec
+from pipeline.systems import coulomb_width
 from pipeline.systems.actuator_lag import ActuatorLag, identify_tau
 from pipeline.systems.actuator_lag import Params as ActuatorParams
 from pipeline.systems.base import System, check_signal
@@ -230,6 +231,13 @@ class RigidBodyPhysics(LinearMotorPhysics):
                              "or raise idim.cutoff_hz")
         return b, a
 
+    def filtered_states(self, y, cutoff_hz: float = 50.0, order: int = 4):
+        """(q, q̇, q̈) of the filtered least squares: Butterworth ``filtfilt`` of y, central differences."""
+        b, a = self.butterworth(cutoff_hz, order)
+        qf = signal.filtfilt(b, a, y)
+        v = np.gradient(qf, self.Ts)
+        return qf, v, np.gradient(v, self.Ts)
+
     def filtered_regression(self, y, u, cutoff_hz: float = 50.0, order: int = 4, decimation: int = 10,
                             trim: int = 50):
         """The rows of the filtered inverse-model least squares (IDIM-LS, the EMPS benchmark's
@@ -242,12 +250,9 @@ class RigidBodyPhysics(LinearMotorPhysics):
         if y.shape[0] < self.min_samples(decimation, trim):
             raise ValueError(f"{y.shape[0]} samples are too few for the filtered least squares "
                              f"(trim={trim}, decimation={decimation}); give a longer record")
-        b, a = self.butterworth(cutoff_hz, order)
-        qf = signal.filtfilt(b, a, y)
-        v = np.gradient(qf, self.Ts)
-        acc = np.gradient(v, self.Ts)
+        qf, v, acc = self.filtered_states(y, cutoff_hz, order)
         X = np.stack([acc] + self.terms.columns(qf, v) + [qf, v], axis=1)   # [q̈, T_1(q, q̇), …, q, q̇]
-        X = _rows(X, decimation, trim)
+        X = decimated_rows(X, decimation, trim)
         return X[:, :-2], self.filtered_target(u, cutoff_hz, order, decimation, trim), X[:, -2], X[:, -1]
 
     def filtered_target(self, u, cutoff_hz: float = 50.0, order: int = 4, decimation: int = 10,
@@ -257,7 +262,7 @@ class RigidBodyPhysics(LinearMotorPhysics):
         if self.lag is not None:
             b, a = self.butterworth(cutoff_hz, order)
             u = signal.filtfilt(b, a, self.lag.model_input(u))
-        return _rows(u, decimation, trim)
+        return decimated_rows(u, decimation, trim)
 
     def stacked_regression(self, y, u, **filt):
         """:meth:`filtered_regression` of one record (arrays) or of several (lists of arrays, one
@@ -284,12 +289,13 @@ class RigidBodyPhysics(LinearMotorPhysics):
         return np.concatenate([[1.0], p[1:]]) / p[0]   # M < 0 comes back as is: the baseline warns
 
     def residual_diagnostics(self, y, u, **filt) -> dict:
-        """What the configured terms leave in the force (issue 20 item 2): on the rows of the
-        filtered least squares, the residual r = τ - X p and, for each term the config does *not*
-        have, the share of ‖r‖² it would explain (its column made orthogonal to X, then fitted to
-        r): ``viscous`` (q̇), ``coulomb`` (sign q̇), ``offset`` (1) and ``cogging`` (cos, sin of
-        2πq/P at the best period P between 4 row spacings and a third of the travel, scanned on a
-        log grid).  Returns {"residual_rel": ‖r‖/‖τ‖, "<term>": share, "cogging_period": P}."""
+        """What the configured terms leave in the force (issue 20 item 2, issue 49 item 2): on the rows of
+        the filtered least squares, the residual r = τ - X p and, for each term the config does *not* have,
+        the share of ‖r‖² it would explain (its columns made orthogonal to X, then fitted to r):
+        ``viscous`` (q̇), ``coulomb`` (sign q̇), ``offset`` (1), ``spring`` (q), ``position_poly`` ((q/L)²,
+        (q/L)³ with L = max |q|, returned as ``position_scale``), ``drag`` (q̇|q̇|) and ``cogging`` (cos, sin
+        of 2πq/P at the best period P between 4 row spacings and a third of the travel, scanned on a log
+        grid).  Returns {"residual_rel": ‖r‖/‖τ‖, "<term>": share, "cogging_period": P, "position_scale": L}."""
         X, z, q, v = self.stacked_regression(y, u, **filt)
         Q, _ = np.linalg.qr(X / np.maximum(np.linalg.norm(X, axis=0), 1e-300))
         res = z - Q @ (Q.T @ z)
@@ -307,9 +313,14 @@ class RigidBodyPhysics(LinearMotorPhysics):
             return float(fit @ fit / rr)
 
         have = set(self.terms.names)
-        for name, col in (("viscous", v), ("coulomb", np.sign(v)), ("offset", np.ones_like(v))):
+        scale = float(np.max(np.abs(q))) or 1.0
+        for name, cols in (("viscous", [v]), ("coulomb", [np.sign(v)]), ("offset", [np.ones_like(v)]),
+                           ("spring", [q]), ("position_poly", [(q / scale) ** 2, (q / scale) ** 3]),
+                           ("drag", [v * np.abs(v)])):
             if name not in have:
-                out[name] = share([col])
+                out[name] = share(cols)
+        if "position_poly" not in have:
+            out["position_scale"] = scale
         if "cogging" not in have:
             travel = float(q.max() - q.min())
             # the 99.5th percentile, not the max: the jumps between stacked records are not steps
@@ -322,15 +333,6 @@ class RigidBodyPhysics(LinearMotorPhysics):
                     best = max(best, (share([np.cos(a), np.sin(a)]), float(P)))
                 out["cogging"], out["cogging_period"] = best
         return out
-
-
-def _rows(x, decimation: int, trim: int) -> np.ndarray:
-    """Parallel decimation (``scipy.signal.decimate``, zero phase) of the regression's columns, then
-    ``trim`` samples dropped at each end (filter transients)."""
-    if decimation > 1:
-        x = signal.decimate(x, int(decimation), axis=0, zero_phase=True)
-    k = max(1, trim // max(decimation, 1))
-    return x[k:-k]
 
 
 #: a term the config lacks that would explain this share of the residual's energy is missing (warning)
@@ -361,8 +363,9 @@ class Recording(System):
         Input of the one-step physics model: ū(t-1) (exact ZOH, default) or u(t-1).
     force_terms : dict or None
         :class:`pipeline.systems.force_terms.ForceTerms` arguments: ``terms`` (the force terms of
-        ``M q̈ = τ - Σ``: viscous, coulomb, stribeck, offset, cogging) and their shape constants
-        (coulomb_width, stribeck_velocity, cogging_period, cogging_harmonics).  Default: EMPS's
+        ``M q̈ = τ - Σ``: viscous, coulomb, stribeck, offset, cogging, spring, position_poly, drag) and
+        their shape constants (coulomb_width, a width or 'auto', stribeck_velocity, cogging_period,
+        cogging_harmonics, position_order, position_scale).  Default: EMPS's
         viscous, Coulomb (sign) and offset.
     disturbance : str or None
         Column of the data holding a measured disturbance [V] added after the saturation
@@ -457,6 +460,15 @@ class Recording(System):
             self.lag_fit = self.identify_lag(y, u)
         return self.physics.fit_filtered(y, u, **self.idim)
 
+    def use_coulomb_width(self, width: float | None) -> None:
+        """Give the physics Coulomb width ``width`` [m/s] (None: sign): the one ``coulomb_width: auto`` chose."""
+        p = self._physics
+        self._physics = RigidBodyPhysics(self.Ts, p.averaged_input, p.terms.with_coulomb_width(width), lag=p.lag)
+
+    def choose_coulomb_width(self, y, u, val_fraction: float = coulomb_width.HOLD_OUT) -> dict:
+        """:func:`pipeline.systems.coulomb_width.choose` on these training records (lists of arrays)."""
+        return coulomb_width.choose(self.physics, y, u, val_fraction, **self.idim)
+
     def missing_terms(self, y, u) -> tuple[dict, list[str]]:
         """(:meth:`RigidBodyPhysics.residual_diagnostics` on this record, a sentence per force term
         the config lacks that would explain ≥ MISSING_TERM_SHARE of the residual's energy)."""
@@ -464,6 +476,10 @@ class Recording(System):
         hints = {"viscous": "add 'viscous' to system.force_terms.terms",
                  "coulomb": "add 'coulomb' (sign, or smooth with coulomb_width)",
                  "offset": "add 'offset' (gravity, cable force)",
+                 "spring": "add 'spring' (a force K q: cable carrier, spring; with 'offset' it is K (q - q0))",
+                 "position_poly": f"add 'position_poly' with position_scale ≈ "
+                                  f"{diag.get('position_scale', math.nan):.3g} m (position_order 3)",
+                 "drag": "add 'drag' (F_d q̇|q̇|, a force quadratic in the velocity)",
                  "cogging": f"add 'cogging' with cogging_period ≈ {diag.get('cogging_period', math.nan):.4g} m"}
         found = [f"{k} would explain {100 * diag[k]:.0f} % of the residual force: {hints[k]}"
                  for k in hints if diag.get(k, 0.0) >= MISSING_TERM_SHARE]

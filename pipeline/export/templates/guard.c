@@ -20,21 +20,7 @@ static const double PHYS[NPHYS + 1] = {${phys}};          /* M, p_1 .. p_n */
 static const int PHYS_CODES[NPHYS + 1] = {${phys_codes}};      /* T_j: pipeline.systems.force_terms codes */
 static const double PHYS_CONSTS[NPHYS + 1] = {${phys_consts}}; /* shape constant of each T_j (+ one unused) */
 
-static double phys_term(int code, double p, double q, double v)
-{   /* T(q, q̇) of one force term (pipeline.systems.force_terms.term; guard.py _term) */
-    const double sg = v > 0 ? 1.0 : (v < 0 ? -1.0 : 0.0);
-    double x;
-    switch (code) {
-    case 0: return v;                             /* viscous */
-    case 1: return sg;                            /* Coulomb, sign */
-    case 2: return tanh(v / p);                   /* Coulomb, smooth */
-    case 3: x = v / p; return sg * exp(-(x * x)); /* Stribeck */
-    case 4: return 1.0;                           /* offset (gravity) */
-    case 5: return cos(p * q);                    /* cogging cos */
-    default: return sin(p * q);                   /* cogging sin */
-    }
-}
-#endif
+${force_term}#endif
 
 #define START_REST ${start_rest}        /* 1: init puts every state at rest at r0 (pipeline/invert/start.py) */
 #define SETTLE_N ${settle_n}u          /* rest samples the law needs to reach its steady state */
@@ -117,7 +103,7 @@ double ${name}_step(${name}_state *s, const double *r_preview)
         if ((flags & ${NAME}_NONFINITE_INPUT) == 0) {
             u = PHYS[0] * x[2];
             for (j = 0; j < NPHYS; ++j) {
-                u += PHYS[1 + j] * phys_term(PHYS_CODES[j], PHYS_CONSTS[j], x[0], x[1]);
+                u += PHYS[1 + j] * force_term(PHYS_CODES[j], PHYS_CONSTS[j], x[0], x[1]);
             }
             if (!isfinite(u)) u = s->u_hold;
         } else {

@@ -1,0 +1,63 @@
+"""``pgnn-ff learn``: a learning campaign from the command line (README "Learn on the machine").
+
+    pgnn-ff learn init CAMPAIGN --config campaign.yaml --reference ref.csv [--u-ff0 u_ff.csv] [--force]
+    pgnn-ff learn CAMPAIGN --recording trial_<j>.csv --out u_ff_<j+1>.csv
+    pgnn-ff learn run CAMPAIGN --machine sim:<module>:<function> [--trials 10]
+
+Bad input (a recording of another reference or feedforward, a diverging gain, …) is one line on stderr and
+exit code 2.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from pipeline.errors import ConfigError
+from pipeline.learn import campaign, machine
+
+
+def _line(h: dict) -> str:
+    return (f"trial {h['trial']}: rms {h['rms']:.4g} m, MAE {h['mae']:.4g} m, max {h['max']:.4g} m, noise floor "
+            f"{h['noise_floor']:.3g} m -> {h['decision']} (gain {h['gain']:g})")
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        if argv[:1] == ["init"]:
+            p = argparse.ArgumentParser(prog="pgnn-ff learn init")
+            p.add_argument("campaign")
+            p.add_argument("--config", required=True, help="the campaign config (YAML/JSON: Ts, controller, model, "
+                           "learn, safety)")
+            p.add_argument("--reference", required=True, help="CSV with t, r: the motion the machine repeats")
+            p.add_argument("--u-ff0", default=None, help="CSV with u_ff: the first trial's feedforward (default 0)")
+            p.add_argument("--force", action="store_true", help="start even if the convergence check fails")
+            p.add_argument("--no-mlflow", action="store_true", help="log nothing to MLflow")
+            a = p.parse_args(argv[1:])
+            c = campaign.init(a.campaign, Path(a.config), Path(a.reference), a.u_ff0 and Path(a.u_ff0), a.force,
+                              not a.no_mlflow)
+            conv = c.state["convergence"]
+            print(f"campaign {a.campaign}: convergence check {'passed' if conv['ok'] else 'FAILED (forced)'} "
+                  f"(max ρ {conv['rho_max']:.3g} at {conv['f_at_max']:.3g} Hz); apply {c.u_ff_path(0)} in trial 0")
+        elif argv[:1] == ["run"]:
+            p = argparse.ArgumentParser(prog="pgnn-ff learn run")
+            p.add_argument("campaign")
+            p.add_argument("--machine", required=True, help="sim:<module>:<function> (r, u_ff) -> {u, y}")
+            p.add_argument("--trials", type=int, default=10)
+            a = p.parse_args(argv[1:])
+            for h in machine.run(a.campaign, a.machine, a.trials):
+                print(_line(h), flush=True)
+        else:
+            p = argparse.ArgumentParser(prog="pgnn-ff learn", description="One trial of a learning campaign "
+                                        "(README \"Learn on the machine\"); also: learn init, learn run")
+            p.add_argument("campaign")
+            p.add_argument("--recording", required=True, help="the trial's recording: t, r, u, y, u_ff")
+            p.add_argument("--out", default=None, help="also write the next u_ff here")
+            a = p.parse_args(argv)
+            h = campaign.step(a.campaign, Path(a.recording), a.out and Path(a.out))
+            print(_line(h) + f"; next: {campaign.load(a.campaign).u_ff_path(h['trial'] + 1)}")
+    except (ConfigError, FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0

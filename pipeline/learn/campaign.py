@@ -63,8 +63,8 @@ class LearnLaw:
     w_f: float = spec(0.0, ge=0, le=1e6, unit="× max|G|²")
     w_df: float = spec(1e-4, ge=0, le=1e6, unit="× max|G|²")
     maxiter: int = spec(300, ge=1, le=ITER_MAX)
-    # linearise G along the reference (the smooth Coulomb slope as damping; model.coulomb_width > 0)
-    along_trajectory: bool = False
+    # the model's Coulomb force along r and the recorded y in L (model_ilc; needs model.F_c, coulomb_width > 0)
+    along_trajectory: bool = True
 
 
 @schema

@@ -57,7 +57,7 @@ class LearnModel:
 class LearnLaw:
     """The update law (pipeline.learn.update)."""
     law: Literal["model_ilc", "norm_optimal"] = "model_ilc"
-    gain: float = spec(1.0, gt=0, le=2.0)
+    gain: float = spec(1.0, gt=0, le=4.0)
     q_cutoff_hz: float = spec(150.0, gt=0, le=FREQ_MAX, unit="Hz")
     q_order: int = spec(2, ge=1, le=8)
     w_f: float = spec(0.0, ge=0, le=1e6, unit="× max|G|²")

@@ -62,7 +62,7 @@ class LearnLaw:
     q_order: int = spec(2, ge=1, le=8)
     w_f: float = spec(0.0, ge=0, le=1e6, unit="× max|G|²")
     w_df: float = spec(1e-4, ge=0, le=1e6, unit="× max|G|²")
-    maxiter: int = spec(300, ge=1, le=ITER_MAX)
+    maxiter: int = spec(100, ge=1, le=ITER_MAX)     # norm_optimal: CG iterations per trial (100: ~5 s at N = 48 000)
     # the model's Coulomb force along r and the recorded y in L (model_ilc; needs model.F_c, coulomb_width > 0)
     along_trajectory: bool = True
 

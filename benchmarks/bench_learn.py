@@ -54,7 +54,8 @@ def main() -> None:
                 updates.append(time.perf_counter() - t0)
                 cpu.append(time.process_time() - c0)
             print(f"{law}: one trial (step: read, check, update, write) {np.median(steps):.2f} s wall, the update "
-                  f"alone {np.median(updates):.2f} s wall, {np.median(cpu):.2f} s CPU (median of {a.repeat}, N = {r.size})", flush=True)
+                  f"alone {np.median(updates):.2f} s wall, {np.median(cpu):.2f} s CPU (median of {a.repeat}, "
+                  f"N = {r.size})", flush=True)
 
 
 if __name__ == "__main__":

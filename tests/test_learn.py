@@ -181,7 +181,7 @@ def test_a_recording_the_campaign_did_not_ask_for_is_refused_in_one_line(tmp_pat
 def test_a_diverging_gain_is_refused_naming_the_band_and_a_forced_campaign_rolls_back(tmp_path, capsys):
     """Gain 2.4, δ = 0.4: ρ = q (|1 - 2.4 q| + 0.96 q) with q = |Q| ≥ 1 from the lowest frequencies up to where
     3.36 q² - q = 1, q = (1 + √14.44)/6.72 = 0.714, i.e. (tan(π f Ts)/tan(π 100 Hz Ts))⁴ = 1/q - 1 (the bilinear
-    Butterworth's |H|²): f = 91.5 Hz."""
+    Butterworth's |H|²): f = 80.4 Hz."""
     cfg = _config(tmp_path, gain=2.4)
     assert learn_main(["init", str(tmp_path / "camp"), "--config", str(cfg), "--reference",
                        str(tmp_path / "ref.csv"), "--no-mlflow"]) == 2

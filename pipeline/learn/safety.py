@@ -57,11 +57,12 @@ def convergence_check(update, gain: float, delta0: float, growth_hz: float | Non
         while j + 1 < f.size and bad[j + 1]:
             j += 1
         out["band"] = (float(f[i]), float(f[j]))
+        cut = f", lower learn.q_cutoff_hz below {f[i]:.3g} Hz" if i > 0 else ""
         out["message"] = (f"the learning does not converge on {f[i]:.3g}-{f[j]:.3g} Hz: |Q(1 - α L G)| with the "
                           f"model's uncertainty δ = {delta0:g} reaches {rho[i:j + 1].max():.3g} ≥ 1 there (learning "
-                          f"gain α = {gain:g}); lower learn.gain (ρ ≈ |1 - α| + α δ where Q ≈ 1), lower "
-                          f"learn.q_cutoff_hz below {f[i]:.3g} Hz, or identify the model better (safety.uncertainty); "
-                          "--force runs it anyway, with the rollback as the only guard")
+                          f"gain α = {gain:g}); lower learn.gain (ρ ≈ |1 - α| + α δ where Q ≈ 1){cut}, or identify "
+                          "the model better (safety.uncertainty); --force runs it anyway, with the rollback as the "
+                          "only guard")
     return out
 
 

@@ -19,6 +19,7 @@ import json
 import math
 import os
 import shutil
+import warnings
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Literal, Optional
@@ -408,3 +409,57 @@ def _log_trial(c: Campaign, entry: dict) -> None:
     client.log_artifact(run.info.run_id, str(c.u_ff_path(j + 1)))
     client.set_terminated(run.info.run_id, "FINISHED")
     client.log_artifact(m["parent"], str(c.folder / "errors.png"))
+
+
+# ---- the model learns (pipeline.learn.refit) ----------------------------------------------------------------
+def refit_model(folder) -> dict:
+    """Refit the campaign's physics on every trial's recording (:func:`pipeline.learn.refit.refit`); stored in
+    the state and written as ``model_refit.yaml`` (the ``model`` section of a next campaign)."""
+    import yaml  # lazy: saves 0.1 s of start-up (only learn init and refit write YAML)
+    from pipeline.learn import refit  # lazy: saves 0.4 s of start-up (the measured-system physics)
+    c = load(folder)
+    if not c.state["trials"]:
+        raise ConfigError(f"{folder}: no trial recorded yet; the refit needs the trials' recordings")
+    recs = []
+    for h in c.state["trials"]:
+        frame = pd.read_csv(c.folder / "recordings" / f"trial_{h['trial']}.csv")
+        recs.append({"u": frame["u"].to_numpy(np.float64), "y": frame["y"].to_numpy(np.float64)})
+    model, res = refit.refit(c.update().model, recs)
+    out = {"M": model.M, "F_v": model.F_v, "K": model.K, "F_c": model.F_c, "coulomb_width": model.coulomb_width}
+    c.state["refit"] = {**out, "residual": res, "recordings": len(recs)}
+    _atomic(c.folder / "model_refit.yaml", lambda p: Path(p).write_text(yaml.safe_dump({"model": out})))
+    c.save()
+    return c.state["refit"]
+
+
+def feedforward_for(folder, reference: Path, out: Path, refitted: bool = True) -> Path:
+    """The model's feedforward for a reference the campaign never ran (t, r, u_ff, flags), from the refitted
+    model (or the campaign's own), within the campaign's limits."""
+    from pipeline.learn import refit  # lazy: saves 0.4 s of start-up (the measured-system physics)
+    c = load(folder)
+    cfg = c.cfg
+    m = cfg.model
+    if refitted:
+        if "refit" not in c.state:
+            raise ConfigError(f"{folder}: not refitted yet; run `pgnn-ff learn refit {folder}` first")
+        m = LearnModel(**{k: c.state["refit"][k] for k in ("M", "F_v", "K", "F_c", "coulomb_width")})
+    frame = pd.read_csv(reference)
+    if "r" not in frame or "t" not in frame:
+        raise ConfigError(f"{reference}: a reference needs columns t, r; found {list(frame.columns)[:8]}")
+    r = frame["r"].to_numpy(np.float64)
+    model = LoopModel(c.Ts, m.M, m.F_v, m.K, c.controller(), m.F_c, m.coulomb_width)
+    u = refit.feedforward(make_update(model, "model_ilc", cfg.learn.q_cutoff_hz, cfg.learn.q_order), r)
+    # only the limits the config states: the ones from the campaign's recordings are its reference's, and a
+    # new reference may need more (a faster move); beyond them is a warning
+    s = cfg.safety
+    u, flags = safety.limited(u, s.u_max or math.inf, s.rate or math.inf, c.Ts)
+    lim = c.state["limits"]
+    peak, slew = float(np.max(np.abs(u))), float(np.max(np.abs(np.diff(u)))) / c.Ts
+    if lim and (peak > lim["u_max"] or slew > lim["rate"]):
+        warnings.warn(f"{Path(out).name}: u_ff reaches {peak:.4g} N and {slew:.4g} N/s, beyond the campaign's "
+                      f"limits from its recordings ({lim['u_max']:.4g} N, {lim['rate']:.4g} N/s): a faster motion "
+                      "than the campaign's; set safety.u_max and safety.rate to the actuator's",
+                      stacklevel=2)
+    frame = pd.DataFrame({"t": frame["t"], "r": r, "u_ff": u, "flags": flags})
+    _atomic(Path(out), lambda p: frame.to_csv(p, index=False, float_format="%.17g"))
+    return Path(out)

@@ -3,6 +3,8 @@
     pgnn-ff learn init CAMPAIGN --config campaign.yaml --reference ref.csv [--u-ff0 u_ff.csv] [--force]
     pgnn-ff learn CAMPAIGN --recording trial_<j>.csv --out u_ff_<j+1>.csv
     pgnn-ff learn run CAMPAIGN --machine sim:<module>:<function> [--trials 10]
+    pgnn-ff learn refit CAMPAIGN                      # the physics refitted on the trials' recordings
+    pgnn-ff learn feedforward CAMPAIGN --reference new.csv --out u_ff.csv [--campaign-model]
 
 Bad input (a recording of another reference or feedforward, a diverging gain, …) is one line on stderr and
 exit code 2.
@@ -48,6 +50,22 @@ def main(argv: list[str] | None = None) -> int:
             a = p.parse_args(argv[1:])
             for h in machine.run(a.campaign, a.machine, a.trials):
                 print(_line(h), flush=True)
+        elif argv[:1] == ["refit"]:
+            p = argparse.ArgumentParser(prog="pgnn-ff learn refit")
+            p.add_argument("campaign")
+            a = p.parse_args(argv[1:])
+            f = campaign.refit_model(a.campaign)
+            print(f"refit on {f['recordings']} recordings: M {f['M']:.6g} kg, F_v {f['F_v']:.6g} N s/m, K {f['K']:.6g} "
+                  f"N/m, F_c {f['F_c']:.6g} N (force residual {100 * f['residual']:.3g} %); "
+                  f"{Path(a.campaign) / 'model_refit.yaml'}")
+        elif argv[:1] == ["feedforward"]:
+            p = argparse.ArgumentParser(prog="pgnn-ff learn feedforward")
+            p.add_argument("campaign")
+            p.add_argument("--reference", required=True, help="CSV with t, r (a motion the campaign never ran)")
+            p.add_argument("--out", required=True)
+            p.add_argument("--campaign-model", action="store_true", help="the campaign's model, not the refit")
+            a = p.parse_args(argv[1:])
+            print(campaign.feedforward_for(a.campaign, Path(a.reference), Path(a.out), not a.campaign_model))
         else:
             p = argparse.ArgumentParser(prog="pgnn-ff learn", description="One trial of a learning campaign "
                                         "(README \"Learn on the machine\"); also: learn init, learn run")

@@ -291,3 +291,17 @@ def test_the_heldout_vertical_axis_learns_to_the_noise_floor_through_files(tmp_p
         assert rec["saturated"] == 0
         mae[tag] = float(np.mean(np.abs(rec["e"])))
     assert mae["before"] / mae["after"] >= 2.0, mae
+
+
+def test_the_learned_feedforward_exports_as_a_verified_c_table(tmp_path, capsys):
+    """The campaign's latest u_ff as the exporter's table family: the package's u_ff equals the CSV's (the
+    manifest's check, compiled when a C compiler exists)."""
+    cfg = _config(tmp_path)
+    campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", tracking=False)
+    machine.run(tmp_path / "camp", "sim:learn_machine:simulate", 2)
+    assert learn_main(["export", str(tmp_path / "camp"), "--out", str(tmp_path / "export")]) == 0
+    man = json.loads((tmp_path / "export" / "ff_learn_2" / "manifest.json").read_text())
+    assert man["family"] == "table" and man["trial"] == 2 and man["python_max_rel_diff"] == 0.0
+    assert not man["compiled"] or man["c_max_rel_diff"] <= 1e-9
+    u = pd.read_csv(tmp_path / "export" / "ff_learn_2" / "u_ff_reference.csv").iloc[:, -1].to_numpy()
+    assert np.allclose(u, campaign.load(tmp_path / "camp").u_ff(2), rtol=0, atol=1e-12)

@@ -463,3 +463,19 @@ def feedforward_for(folder, reference: Path, out: Path, refitted: bool = True) -
     frame = pd.DataFrame({"t": frame["t"], "r": r, "u_ff": u, "flags": flags})
     _atomic(Path(out), lambda p: frame.to_csv(p, index=False, float_format="%.17g"))
     return Path(out)
+
+
+def export(folder, out: Path, trial: int | None = None, cc: str | None = "cc") -> dict:
+    """The u_ff of ``trial`` (default: the latest the campaign wrote) as a C99 package (pipeline.export): the
+    table family, the law IL-FHOFC's tables use (a signal learned by trials for one reference; the manifest's law
+    reads il_fhofc), verified against the CSV and compiled with ``cc`` when one is found."""
+    from pipeline.export.law import from_table  # lazy: saves 0.5 s of start-up (the exporter)
+    from pipeline.export.package import write_package  # lazy: saves 0.5 s of start-up (the exporter)
+    c = load(folder)
+    j = len(c.state["trials"]) if trial is None else int(trial)
+    if not c.u_ff_path(j).exists():
+        raise ConfigError(f"{folder}: no u_ff_{j}.csv; the campaign has u_ff_0 .. u_ff_{len(c.state['trials'])}")
+    u = c.u_ff(j)
+    law = from_table("il_fhofc", c.Ts, c.reference, u)
+    return write_package(law, f"ff_learn_{j}", Path(out), {"reference": (c.reference, u)}, cc=cc,
+                         source={"campaign": str(c.folder.resolve()), "trial": j})

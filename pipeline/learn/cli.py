@@ -5,6 +5,7 @@
     pgnn-ff learn run CAMPAIGN --machine sim:<module>:<function> [--trials 10]
     pgnn-ff learn refit CAMPAIGN                      # the physics refitted on the trials' recordings
     pgnn-ff learn feedforward CAMPAIGN --reference new.csv --out u_ff.csv [--campaign-model]
+    pgnn-ff learn export CAMPAIGN --out DIR [--trial j] [--cc CC]   # the u_ff as C99 (the table family)
 
 Bad input (a recording of another reference or feedforward, a diverging gain, …) is one line on stderr and
 exit code 2.
@@ -15,7 +16,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, ExportError
 from pipeline.learn import campaign, machine
 
 
@@ -58,6 +59,16 @@ def main(argv: list[str] | None = None) -> int:
             print(f"refit on {f['recordings']} recordings: M {f['M']:.6g} kg, F_v {f['F_v']:.6g} N s/m, K {f['K']:.6g} "
                   f"N/m, F_c {f['F_c']:.6g} N (force residual {100 * f['residual']:.3g} %); "
                   f"{Path(a.campaign) / 'model_refit.yaml'}")
+        elif argv[:1] == ["export"]:
+            p = argparse.ArgumentParser(prog="pgnn-ff learn export")
+            p.add_argument("campaign")
+            p.add_argument("--out", required=True)
+            p.add_argument("--trial", type=int, default=None, help="default: the latest u_ff of the campaign")
+            p.add_argument("--cc", default="cc")
+            a = p.parse_args(argv[1:])
+            man = campaign.export(a.campaign, Path(a.out), a.trial, a.cc)
+            print(f"{Path(a.out) / man['name']}: {man['law']} table of {len(campaign.load(a.campaign).reference)} "
+                  f"samples ({'compiled and checked' if man.get('compiled') else 'not compiled'})")
         elif argv[:1] == ["feedforward"]:
             p = argparse.ArgumentParser(prog="pgnn-ff learn feedforward")
             p.add_argument("campaign")
@@ -75,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
             a = p.parse_args(argv)
             h = campaign.step(a.campaign, Path(a.recording), a.out and Path(a.out))
             print(_line(h) + f"; next: {campaign.load(a.campaign).u_ff_path(h['trial'] + 1)}")
-    except (ConfigError, FileNotFoundError, ValueError) as exc:
+    except (ConfigError, ExportError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     return 0

@@ -45,29 +45,36 @@ def _pid() -> tuple[list, list]:
 NUM, DEN = _pid()
 
 
-def _plant_ss():
+def _plant_ss(lag: float = LAG):
     """Force → measured position: lag 1/(τ s + 1), mass-damper 1/(M s² + F_v s), mode ω²/(s² + 2ζω s + ω²)."""
     wm = 2 * math.pi * F_MODE
     num = np.polymul([1.0], [wm ** 2])
-    den = np.polymul(np.polymul([LAG, 1.0], [M_TRUE, FV_TRUE, 0.0]), [1.0, 2 * Z_MODE * wm, wm ** 2])
+    den = np.polymul(np.polymul([lag, 1.0], [M_TRUE, FV_TRUE, 0.0]), [1.0, 2 * Z_MODE * wm, wm ** 2])
     A, B, C, D, _ = signal.cont2discrete(signal.tf2ss(num, den), TS, method="zoh")
     return A, B.ravel(), C.ravel(), float(D.ravel()[0])
 
 
 _A, _B, _C, _D = _plant_ss()
+_LAG3 = _plant_ss(3e-3)
 
 
-def simulate(r, u_ff, seed: int = 0) -> dict:
+def simulate_lag3(r, u_ff, seed: int = 0) -> dict:
+    """The same machine with a 3 ms actuator lag."""
+    return simulate(r, u_ff, seed, _LAG3)
+
+
+def simulate(r, u_ff, seed: int = 0, plant=None) -> dict:
     """The loop from rest at r(0) = 0: c = sat(v + u_ff), u(k) = c(k-1), y = quantised position + noise."""
+    A, B, C = (plant or (_A, _B, _C, _D))[:3]
     r = np.asarray(r, np.float64)
     noise = NOISE * np.random.default_rng(seed).standard_normal(r.size)
     b, a = np.asarray(NUM), np.asarray(DEN)
-    x = np.zeros(_A.shape[0])
+    x = np.zeros(A.shape[0])
     e_h, v_h = np.zeros(b.size), np.zeros(a.size)
     c_prev = 0.0
     y, u = np.empty(r.size), np.empty(r.size)
     for k in range(r.size):
-        yk = QUANT * np.round((_C @ x) / QUANT) + noise[k]
+        yk = QUANT * np.round((C @ x) / QUANT) + noise[k]
         e_h = np.roll(e_h, 1)
         e_h[0] = r[k] - yk
         vk = b @ e_h - a[1:] @ v_h[:-1]
@@ -75,7 +82,7 @@ def simulate(r, u_ff, seed: int = 0) -> dict:
         v_h[0] = vk
         uk = c_prev
         c_prev = float(np.clip(vk + u_ff[k], -U_MAX, U_MAX))
-        x = _A @ x + _B * uk
+        x = A @ x + B * uk
         y[k], u[k] = yk, uk
     return {"t": np.arange(r.size) * TS, "r": r, "u": u, "y": y}
 
@@ -179,30 +186,31 @@ def test_a_recording_the_campaign_did_not_ask_for_is_refused_in_one_line(tmp_pat
 
 
 def test_a_diverging_gain_is_refused_naming_the_band_and_a_forced_campaign_rolls_back(tmp_path, capsys):
-    """Gain 2.4, δ = 0.4: ρ = q (|1 - 2.4 q| + 0.96 q) with q = |Q| ≥ 1 from the lowest frequencies up to where
-    3.36 q² - q = 1, q = (1 + √14.44)/6.72 = 0.714, i.e. (tan(π f Ts)/tan(π 100 Hz Ts))⁴ = 1/q - 1 (the bilinear
-    Butterworth's |H|²): f = 80.4 Hz."""
-    cfg = _config(tmp_path, gain=2.4)
+    """Gain 3, δ = 0.4: ρ = q (|1 - 3 q| + 1.2 q) with q = |Q| is ≥ 1 from the lowest frequencies up to where
+    4.2 q² - q = 1, q = (1 + √17.8)/8.4 = 0.621, i.e. (tan(π f Ts)/tan(π 100 Hz Ts))⁴ = 1/q - 1 (the bilinear
+    Butterworth's |H|²): f = 88.9 Hz. Forced, the first trial's error grows 1.34x: rollback, gain 1.5 (then
+    the trials measure ρ̂ = 0.85 and the error falls)."""
+    cfg = _config(tmp_path, gain=3.0)
     assert learn_main(["init", str(tmp_path / "camp"), "--config", str(cfg), "--reference",
                        str(tmp_path / "ref.csv"), "--no-mlflow"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "does not converge on 0.125-" in err
     hi = float(err.split("does not converge on 0.125-")[1].split(" Hz")[0])
-    q = (1 + math.sqrt(1 + 4 * 3.36)) / (2 * 3.36)
+    a = 3.0 * 1.4
+    q = (1 + math.sqrt(1 + 4 * a)) / (2 * a)
     edge = math.atan(math.tan(math.pi * 100.0 * TS) * (1 / q - 1) ** 0.25) / (math.pi * TS)
     assert abs(hi - edge) < 0.25, (hi, edge)
     assert (tmp_path / "camp" / "convergence.png").exists()          # the plot of the refusal
     # forced: on the true plant the gain diverges, the campaign rolls back to the best trial and halves it
     campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", force=True, tracking=False)
-    log = machine.run(tmp_path / "camp", "sim:learn_machine:simulate", 8)
+    log = machine.run(tmp_path / "camp", "sim:learn_machine:simulate", 6)
     dec = [h["decision"] for h in log]
-    assert "rollback" in dec, dec
-    k = dec.index("rollback")
-    best = min(range(k), key=lambda i: log[i]["rms"])
-    assert log[k]["rms"] > 1.2 * log[best]["rms"] and log[k]["gain"] == pytest.approx(1.2)
+    assert dec[1] == "rollback", dec
+    assert log[1]["rms"] > 1.2 * log[0]["rms"] and log[1]["gain"] == pytest.approx(1.5)
     c = campaign.load(tmp_path / "camp")
-    assert np.array_equal(c.u_ff(k + 1), c.u_ff(best))               # the best trial's feedforward again
-    assert log[k + 1]["rms"] == pytest.approx(log[best]["rms"], rel=0.2)
+    assert np.array_equal(c.u_ff(2), c.u_ff(0))                      # the best trial's feedforward again
+    assert log[2]["rms"] == pytest.approx(log[0]["rms"], rel=0.01)   # the same error again (noise aside)
+    assert min(h["rms"] for h in log[3:]) < 0.2 * log[0]["rms"]      # and it learns at the lower gain
 
 
 def test_the_convergence_bound_is_the_closed_form_for_the_model_ilc():
@@ -322,3 +330,20 @@ def test_the_refit_recovers_the_held_out_axis_physics_from_one_recording():
     assert model.M == pytest.approx(ha.M, rel=0.005) and model.K == pytest.approx(ha.K_S, rel=0.02)
     assert model.F_v == pytest.approx(ha.F_V, rel=0.02) and model.F_c == pytest.approx(ha.F_C, rel=0.02)
     assert res < 0.05
+
+
+def test_a_phase_error_the_model_check_misses_is_measured_from_two_trials_and_slows_the_learning(tmp_path):
+    """A 3 ms actuator lag the model lacks (48° at 60 Hz): the model's check passes (δ = 0.4 covers no phase),
+    but the first two trials' difference measures |Q(1 - α L Ĝ)| = 1.19 on 21-27 Hz; the campaign halves α there
+    and the error then falls every trial (measured: 59 → 6.7 → 3.2 → 2.0 → 1.5 µm rms; at α = 1 it stalls at
+    5.8 µm and grows)."""
+    cfg = _config(tmp_path)
+    c = campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", tracking=False)
+    assert c.state["convergence"]["ok"]
+    log = machine.run(tmp_path / "camp", "sim:learn_machine:simulate_lag3", 5)
+    assert log[1]["decision"] == "slow" and log[1]["gain"] == 0.5
+    assert log[1]["measured_rho"] == pytest.approx(1.19, abs=0.03)
+    lo, hi = log[1]["measured_band"]
+    assert lo < 25 < hi
+    rms = [h["rms"] for h in log]
+    assert all(b < a for a, b in zip(rms, rms[1:])) and all((h["measured_rho"] or 0) < 1 for h in log[2:]), rms

@@ -310,11 +310,20 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
     err, mae, emax = safety.rms(e), float(np.mean(np.abs(e))), float(np.max(np.abs(e)))
     floor = safety.noise_floor(rec["r"], e, int(round(s.settle_s / c.Ts)))
     history = c.state["trials"]
+    measured = {"rho_max": math.nan, "band": None}
+    prev = c.folder / "recordings" / f"trial_{j - 1}.csv"
+    if j >= 1 and prev.exists():       # the convergence condition on the plant the last two trials measured
+        dphi = rec["u_ff"] - c.u_ff(j - 1)
+        if np.max(np.abs(dphi)) > 0:
+            y_prev = pd.read_csv(prev)["y"].to_numpy(np.float64)
+            measured = safety.measured_rho(c.update(), c.state["gain"], dphi, rec["y"] - y_prev, floor)
     decision = "stop" if c.state["stopped"] else safety.decide(history, err, floor, s.rollback_factor, s.stop_factor)
     gain = c.state["gain"]
+    if decision == "learn" and measured["rho_max"] >= 1.0:   # the measured loop does not contract: slow down
+        decision, gain = "slow", gain / 2.0
     best = min(history + [{"rms": err, "trial": j}], key=lambda h: h["rms"])
     kr = c.controller_term()
-    if decision == "learn":
+    if decision in ("learn", "slow"):
         u_next = c.update().next(e, rec["u_ff"], gain, kr)
     elif decision == "rollback":
         gain = gain / 2.0
@@ -329,7 +338,9 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
     c.write_u_ff(j + 1, u_next, flags, out)
     entry = {"trial": j, "recording": str(recording), "sha256": digest, "rms": err, "mae": mae, "max": emax,
              "noise_floor": floor, "decision": decision, "gain": gain, "controller_error": rec["controller_error"],
-             "limited_samples": int(np.count_nonzero(flags)), "max_abs_u": float(np.max(np.abs(rec["u"])))}
+             "limited_samples": int(np.count_nonzero(flags)), "max_abs_u": float(np.max(np.abs(rec["u"]))),
+             "measured_rho": None if math.isnan(measured["rho_max"]) else measured["rho_max"],
+             "measured_band": measured["band"]}
     c.state["trials"].append(entry)
     c.state["gain"] = gain
     plot_errors(c.state["trials"], c.folder / "errors.png")
@@ -401,9 +412,9 @@ def _log_trial(c: Campaign, entry: dict) -> None:
     j = entry["trial"]
     run = client.create_run(m["experiment"], run_name=f"trial_{j}", tags={"mlflow.parentRunId": m["parent"],
                                                                          "decision": entry["decision"]})
-    keys = ("rms", "mae", "max", "noise_floor", "gain", "controller_error", "limited_samples")
+    keys = ("rms", "mae", "max", "noise_floor", "gain", "controller_error", "limited_samples", "measured_rho")
     now = 0
-    vals = [(k, float(entry[k])) for k in keys if math.isfinite(float(entry[k]))]
+    vals = [(k, float(entry[k])) for k in keys if entry[k] is not None and math.isfinite(float(entry[k]))]
     client.log_batch(run.info.run_id, metrics=[Metric(k, v, now, j) for k, v in vals])
     client.log_batch(m["parent"], metrics=[Metric(f"trial/{k}", v, now, j) for k, v in vals])
     client.log_artifact(run.info.run_id, str(c.u_ff_path(j + 1)))

@@ -21,8 +21,14 @@ from pipeline.learn import campaign, machine
 
 
 def _line(h: dict) -> str:
+    meas = h.get("measured_rho")
+    warn = ""
+    if meas is not None and meas >= 1.0:   # two trials measured the loop
+        lo, hi = h["measured_band"]
+        warn = (f"; WARNING: the last two trials measure |Q(1 - α L G)| = {meas:.3g} ≥ 1 on {lo:.3g}-{hi:.3g} Hz "
+                "(the plant differs from the model there: lower learn.gain or learn.q_cutoff_hz)")
     return (f"trial {h['trial']}: rms {h['rms']:.4g} m, MAE {h['mae']:.4g} m, max {h['max']:.4g} m, noise floor "
-            f"{h['noise_floor']:.3g} m -> {h['decision']} (gain {h['gain']:g})")
+            f"{h['noise_floor']:.3g} m -> {h['decision']} (gain {h['gain']:g})" + warn)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -14,8 +14,10 @@ checked on a grid up to the Nyquist frequency; a failure names the band where ρ
 (the export's default limits: 1.5 × the largest |u - (C_r - C_y) r| and its largest slew of the first
 recording, ``stages.export.data_limits``), flagged as the exported laws flag (SATURATED, RATE_LIMITED);
 an error that grows beyond ``rollback_factor`` × the best trial's rolls back to the best trial's feedforward
-and halves the learning gain; the campaign stops when the error reaches the recording's noise floor
-(:func:`noise_floor`, from its standstill samples): noise is not learned.
+and halves the learning gain; from the second trial on, the convergence condition is checked against the plant
+the last two trials measured (:func:`measured_rho`) and a band with ρ̂ ≥ 1 halves the gain ('slow'); the
+campaign stops when the error reaches the recording's noise floor (:func:`noise_floor`, from its standstill
+samples): noise is not learned.
 """
 from __future__ import annotations
 
@@ -61,8 +63,8 @@ def convergence_check(update, gain: float, delta0: float, growth_hz: float | Non
         out["message"] = (f"the learning does not converge on {f[i]:.3g}-{f[j]:.3g} Hz: |Q(1 - α L G)| with the "
                           f"model's uncertainty δ = {delta0:g} reaches {rho[i:j + 1].max():.3g} ≥ 1 there (learning "
                           f"gain α = {gain:g}); lower learn.gain (ρ ≈ |1 - α| + α δ where Q ≈ 1){cut}, or identify "
-                          "the model better (safety.uncertainty); --force runs it anyway, with the rollback as the "
-                          "only guard")
+                          "the model better (safety.uncertainty); --force runs it anyway, guarded by the rollback and "
+                          "the check measured on the trials")
     return out
 
 
@@ -116,3 +118,40 @@ def decide(history: list[dict], err: float, floor: float, rollback_factor: float
     if err > rollback_factor * best:
         return "rollback"
     return "learn"
+
+
+def measured_rho(update, gain: float, dphi: np.ndarray, dy: np.ndarray, noise: float = 0.0, nbands: int = 30,
+                 snr: float = 10.0) -> dict:
+    """The convergence condition against the plant the recordings measured: two trials' differences give the
+    loop's response Ĝ = ΔY ΔΦ* / |ΔΦ|² (cross-spectrum over log-spaced bands: the measurement noise in Δy
+    averages out), and ρ̂ = |Q| |1 - α L Ĝ| per band, L = (L G)/G of the model (:meth:`Update.learning`). Bands
+    where Δφ has under 1e-6 of its largest band's energy, |Q| < 0.01, or Δy under ``snr`` times the energy of
+    the two recordings' white noise (std ``noise`` each: 2 noise² n per frequency bin) are left out: near the
+    floor Δy is noise and Ĝ means nothing. Returns {f_lo, f_hi,
+    rho (NaN where left out), rho_max, band (f_lo, f_hi) of the worst band, or None}."""
+    Ts = update.model.Ts
+    n = dphi.size
+    X, Y = np.fft.rfft(dphi), np.fft.rfft(dy)
+    f = np.fft.rfftfreq(n, Ts)
+    w = 2 * math.pi * f
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lin = update.learning(w[1:]) / update.model.response(w[1:])
+    X, Y, f, q = X[1:], Y[1:], f[1:], update.q(w[1:])
+    edges = np.geomspace(f[0], f[-1] * (1 + 1e-12), nbands + 1)
+    idx = np.clip(np.searchsorted(edges, f, side="right") - 1, 0, nbands - 1)
+    sxx = np.bincount(idx, np.abs(X) ** 2, nbands)
+    lg = np.bincount(idx, (lin * Y * np.conj(X)).real, nbands) + 1j * np.bincount(idx, (lin * Y * np.conj(X)).imag,
+                                                                                   nbands)
+    qb = np.bincount(idx, q * np.abs(X) ** 2, nbands)
+    syy = np.bincount(idx, np.abs(Y) ** 2, nbands)
+    nbins = np.bincount(idx, None, nbands)
+    noise = noise if math.isfinite(noise) else 0.0
+    ok = (sxx > 1e-6 * sxx.max()) & (syy > snr * nbins * 2.0 * noise ** 2 * n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        qb, lg = qb / sxx, lg / sxx
+    rho = np.where(ok & (qb >= 0.01), qb * np.abs(1.0 - gain * lg), np.nan)
+    if not np.any(np.isfinite(rho)):
+        return {"f_lo": edges[:-1], "f_hi": edges[1:], "rho": rho, "rho_max": math.nan, "band": None}
+    k = int(np.nanargmax(rho))
+    return {"f_lo": edges[:-1], "f_hi": edges[1:], "rho": rho, "rho_max": float(rho[k]),
+            "band": (float(edges[k]), float(edges[k + 1]))}

@@ -1,0 +1,492 @@
+"""A learning campaign driven by files (issue 50 item 1): one folder, one command per trial.
+
+The folder holds ``campaign.json`` (the config: Ts, controller, model, learn, safety; and the state: every
+trial's recording, error norms, decision, the learning gain; written atomically, so any interruption leaves
+the last complete step and rerunning the same command resumes), ``reference.csv`` (t, r), ``u_ff_<j>.csv``
+(t, r, u_ff, flags: what trial j must apply), ``recordings/trial_<j>.csv`` (the recordings as received),
+``convergence.png`` (the check before the campaign) and ``errors.png`` (‖e_j‖ and max|e_j| per trial).
+MLflow: the campaign is a parent run (experiment ``learn``), each trial a child run.
+
+A trial's recording (the measured-data format plus the applied ``u_ff``) is checked against the campaign
+before any work, each problem refused in one line: the same reference and the u_ff the campaign gave
+(to 1e-9 relative), the configured controller (equation error < 5 %, ``LTIController.check`` with the u_ff
+as the command's known part), no sample at the limit, finite (``pipeline.data.load``).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import shutil
+import warnings
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+import numpy as np
+import pandas as pd
+
+from pipeline import data
+from pipeline.errors import ConfigError
+from pipeline.learn import safety
+from pipeline.learn.update import LoopModel, make_update
+from pipeline.params import DAMP_MAX, FORCE_MAX, FREQ_MAX, ITER_MAX, MASS_MAX, SPEED_MAX, STIFF_MAX, TS_MAX, \
+    schema, spec
+from pipeline.systems.controller import LTIController
+
+__all__ = ["Campaign", "init", "step", "load", "CONTROLLER_RTOL"]
+
+#: a recording whose u is further than this from the controller's output (relative equation error) is refused
+CONTROLLER_RTOL = 0.05
+#: r and u_ff of a recording must equal the campaign's to this (relative to their largest magnitude)
+MATCH_RTOL = 1e-9
+STATE = "campaign.json"
+
+
+@schema
+class LearnModel:
+    """The identified loop the laws invert (pipeline.learn.update.LoopModel)."""
+    M: float = spec(gt=0, le=MASS_MAX, unit="kg", example=3.4)
+    F_v: float = spec(0.0, ge=0, le=DAMP_MAX, unit="N s/m")
+    K: float = spec(0.0, ge=0, le=STIFF_MAX, unit="N/m")
+    F_c: float = spec(0.0, ge=0, le=FORCE_MAX, unit="N")
+    coulomb_width: float = spec(0.0, ge=0, le=SPEED_MAX, unit="m/s")
+
+
+@schema
+class LearnLaw:
+    """The update law (pipeline.learn.update)."""
+    law: Literal["model_ilc", "norm_optimal"] = "model_ilc"
+    gain: float = spec(1.0, gt=0, le=4.0)
+    q_cutoff_hz: float = spec(150.0, gt=0, le=FREQ_MAX, unit="Hz")
+    q_order: int = spec(2, ge=1, le=8)
+    w_f: float = spec(0.0, ge=0, le=1e6, unit="× max|G|²")
+    w_df: float = spec(1e-4, ge=0, le=1e6, unit="× max|G|²")
+    maxiter: int = spec(100, ge=1, le=ITER_MAX)     # norm_optimal: CG iterations per trial (100: ~5 s at N = 48 000)
+    # the model's Coulomb force along r and the recorded y in L (model_ilc; needs model.F_c, coulomb_width > 0)
+    along_trajectory: bool = True
+
+
+@schema
+class LearnSafety:
+    """The rules of pipeline.learn.safety."""
+    uncertainty: float = spec(0.3, ge=0, le=100)
+    uncertainty_hz: Optional[float] = spec(None, gt=0, le=FREQ_MAX, unit="Hz")
+    u_max: Optional[float] = spec(None, gt=0, le=FORCE_MAX, unit="N")
+    rate: Optional[float] = spec(None, gt=0, le=1e12, unit="N/s")
+    data_margin: float = spec(0.5, ge=0, le=100)
+    rollback_factor: float = spec(1.2, gt=1, le=100)
+    stop_factor: float = spec(1.2, gt=0, le=100)
+    settle_s: float = spec(0.2, gt=0, le=100, unit="s")
+
+
+@schema
+class CampaignConfig:
+    """A campaign's config file (README "Learn on the machine")."""
+    Ts: float = spec(gt=0, le=TS_MAX, unit="s", example=0.00025)
+    controller: Any = spec(example={"kind": "lti", "num": [1.0], "den": [1.0]})
+    model: LearnModel = spec(example={"M": 3.4})
+    learn: LearnLaw = field(default_factory=LearnLaw)
+    safety: LearnSafety = field(default_factory=LearnSafety)
+
+
+_SECTIONS = {"model": LearnModel, "learn": LearnLaw, "safety": LearnSafety}
+
+
+def _build(cls, node: dict):
+    """The config's dataclasses from its (checked) mapping."""
+    return cls(**{f.name: (_build(_SECTIONS[f.name], node[f.name]) if f.name in _SECTIONS else node[f.name])
+                  for f in fields(cls) if f.name in node})
+
+
+def read_config(path: Path) -> CampaignConfig:
+    """The campaign config (YAML or JSON), every key checked (pipeline.schema) before any work."""
+    import yaml  # lazy: saves 0.1 s of start-up (only learn init reads YAML)
+    from pipeline import schema as sch  # lazy: saves 0.3 s of start-up (the config schema machinery)
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"campaign config {path} does not exist; README \"Learn on the machine\" shows one")
+    node = yaml.safe_load(path.read_text())
+    sch._check_node(CampaignConfig, node, "", f"a campaign config ({path.name})")
+    return _build(CampaignConfig, node)
+
+
+@dataclass
+class Campaign:
+    """A campaign folder (module docstring)."""
+
+    folder: Path
+    config: dict
+    reference: np.ndarray
+    state: dict
+
+    # ---- objects ----------------------------------------------------------------------------------
+    @property
+    def cfg(self) -> CampaignConfig:
+        return _build(CampaignConfig, self.config)
+
+    @property
+    def Ts(self) -> float:
+        return float(self.config["Ts"])
+
+    def controller(self) -> LTIController:
+        return LTIController.from_config(self.config["controller"], self.Ts)
+
+    def update(self):
+        c = self.cfg
+        model = LoopModel(self.Ts, c.model.M, c.model.F_v, c.model.K, self.controller(), c.model.F_c,
+                          c.model.coulomb_width)
+        weights = {} if c.learn.law == "model_ilc" else {"w_f": c.learn.w_f, "w_df": c.learn.w_df,
+                                                         "maxiter": c.learn.maxiter}
+        upd = make_update(model, c.learn.law, c.learn.q_cutoff_hz, c.learn.q_order, **weights)
+        return upd.along(self.reference) if c.learn.along_trajectory else upd
+
+    def controller_term(self) -> np.ndarray:
+        """gtau (C_r - C_y) r from rest at r(0) (LTIController.reference_force)."""
+        return self.controller().reference_force(self.reference, float(self.reference[0]))
+
+    # ---- files ------------------------------------------------------------------------------------
+    def u_ff_path(self, j: int) -> Path:
+        return self.folder / f"u_ff_{j}.csv"
+
+    def u_ff(self, j: int) -> np.ndarray:
+        return pd.read_csv(self.u_ff_path(j))["u_ff"].to_numpy(np.float64)
+
+    def write_u_ff(self, j: int, u: np.ndarray, flags: np.ndarray, out: Path | None = None) -> Path:
+        t = np.arange(self.reference.size) * self.Ts
+        frame = pd.DataFrame({"t": t, "r": self.reference, "u_ff": u, "flags": flags.astype(np.int64)})
+        path = self.u_ff_path(j)
+        _atomic(path, lambda p: frame.to_csv(p, index=False, float_format="%.17g"))
+        if out is not None and Path(out).resolve() != path.resolve():
+            _atomic(Path(out), lambda p: shutil.copyfile(path, p))
+        return path
+
+    def save(self) -> None:
+        body = json.dumps({"config": self.config, "state": self.state}, indent=1, default=_json)
+        _atomic(self.folder / STATE, lambda p: Path(p).write_text(body))
+
+
+def _json(x):
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    raise TypeError(type(x).__name__)
+
+
+def _atomic(path: Path, write) -> None:
+    """Write through a temporary file in the same folder and rename: never half-written."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    write(tmp)
+    os.replace(tmp, path)
+
+
+def load(folder) -> Campaign:
+    folder = Path(folder)
+    state = folder / STATE
+    if not state.exists():
+        raise ConfigError(f"{folder} is not a learning campaign (no {STATE}); start one with "
+                          f"`pgnn-ff learn init {folder} --config campaign.yaml --reference ref.csv`")
+    body = json.loads(state.read_text())
+    ref = pd.read_csv(folder / "reference.csv")["r"].to_numpy(np.float64)
+    return Campaign(folder, body["config"], ref, body["state"])
+
+
+def _limits(c: Campaign, rec: dict) -> tuple[float, float, str]:
+    """(u_max, rate, where from): safety.u_max/rate, else (1 + data_margin) × the first recording's largest
+    |u - (C_r - C_y) r| and its slew (the export's defaults, stages.export.data_limits)."""
+    from stages.export import data_limits  # lazy: saves 0.5 s of start-up (the export stage)
+    s = c.cfg.safety
+    u_abs, du_abs = data_limits([(rec["u"], rec["r"])], c.Ts, c.controller(), rest=True)
+    f = 1.0 + s.data_margin
+    u_max = s.u_max if s.u_max is not None else f * u_abs
+    rate = s.rate if s.rate is not None else f * du_abs
+    return u_max, rate, ("safety.u_max/rate" if s.u_max is not None and s.rate is not None else
+                         f"±{f:g} × {u_abs:.6g} N and {f:g} × {du_abs:.6g} N/s of the first recording")
+
+
+def init(folder, config: Path, reference: Path, u_ff0: Path | None = None, force: bool = False,
+         tracking: bool = True) -> Campaign:
+    """A new campaign in ``folder``: config checked, the convergence check passed (or ``force``), u_ff_0.csv
+    written (zero, or ``u_ff0``'s u_ff column)."""
+    folder = Path(folder)
+    if (folder / STATE).exists():
+        raise ConfigError(f"{folder} already holds a campaign; continue it with `pgnn-ff learn {folder} "
+                          "--recording …`, or give a new folder")
+    cfg = read_config(config)
+    if not Path(reference).exists():
+        raise ConfigError(f"reference {reference} does not exist; give a CSV with columns t, r")
+    frame = pd.read_csv(reference)
+    if "r" not in frame or "t" not in frame:
+        raise ConfigError(f"{reference}: a reference needs columns t, r; found {list(frame.columns)[:8]}")
+    r = frame["r"].to_numpy(np.float64)
+    t = frame["t"].to_numpy(np.float64)
+    if not np.all(np.isfinite(r)) or r.size < 100:
+        raise ConfigError(f"{reference}: r must be at least 100 finite samples, got {r.size}")
+    try:
+        data.sample_time(t, cfg.Ts, str(reference))
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    c = Campaign(folder, json.loads(json.dumps(asdict(cfg))), r, {"trials": [], "gain": cfg.learn.gain,
+                                                                  "stopped": False, "limits": None})
+    c.controller()   # the controller config, checked before any work
+    check = safety.convergence_check(c.update(), cfg.learn.gain, cfg.safety.uncertainty, cfg.safety.uncertainty_hz)
+    folder.mkdir(parents=True, exist_ok=True)
+    plot_check(check, folder / "convergence.png")
+    if not check["ok"] and not force:
+        raise ConfigError(check["message"])
+    c.state["convergence"] = {"ok": check["ok"], "rho_max": check["rho_max"], "f_at_max": check["f_at_max"],
+                              "band": check["band"], "forced": bool(force and not check["ok"])}
+    pd.DataFrame({"t": np.arange(r.size) * cfg.Ts, "r": r}).to_csv(folder / "reference.csv", index=False,
+                                                                    float_format="%.17g")
+    u0 = np.zeros(r.size) if u_ff0 is None else pd.read_csv(u_ff0)["u_ff"].to_numpy(np.float64)
+    if u0.shape != r.shape or not np.all(np.isfinite(u0)):
+        raise ConfigError(f"{u_ff0}: its u_ff must be {r.size} finite samples (one per reference sample)")
+    c.write_u_ff(0, u0, np.zeros(r.size, np.int64))
+    if tracking:
+        c.state["mlflow"] = _parent_run(folder, c)
+    c.save()
+    return c
+
+
+def check_recording(c: Campaign, path: Path, j: int) -> dict:
+    """The recording of trial j against the campaign (module docstring); its signals."""
+    name = Path(path).name
+    ds = data.load(path)
+    if "u_ff" not in ds.frame:
+        raise ConfigError(f"{name}: no u_ff column; a trial's recording holds t, r, u, y and the u_ff applied "
+                          f"(the campaign's u_ff_{j}.csv)")
+    if abs(ds.Ts - c.Ts) > data.TS_RTOL * c.Ts:
+        raise ConfigError(f"{name}: sampled at Ts = {ds.Ts:.6g} s, the campaign at {c.Ts:g} s")
+    rec = {k: ds[k] for k in ("t", "r", "u", "y", "u_ff")}
+    if rec["r"].size != c.reference.size:
+        raise ConfigError(f"{name}: {rec['r'].size} samples, the campaign's reference has {c.reference.size}: "
+                          "record the whole reference")
+    dr = np.abs(rec["r"] - c.reference)
+    if dr.max() > MATCH_RTOL * max(np.abs(c.reference).max(), 1e-300):
+        k = int(np.argmax(dr))
+        raise ConfigError(f"{name}: another reference than the campaign's (r differs by {dr[k]:.3g} m at sample {k}); "
+                          "run the campaign's reference.csv")
+    expect = c.u_ff(j)
+    du = np.abs(rec["u_ff"] - expect)
+    if du.max() > MATCH_RTOL * max(np.abs(expect).max(), 1.0):
+        k = int(np.argmax(du))
+        raise ConfigError(f"{name}: its u_ff is not the campaign's u_ff_{j}.csv (differs by {du[k]:.3g} N at "
+                          f"sample {k}); "
+                          f"apply u_ff_{j}.csv for trial {j}")
+    ctrl = c.controller()
+    at_limit = np.abs(rec["u"] / ctrl.gtau) >= ctrl.v_sat * (1 - 1e-9)
+    if at_limit.any():
+        raise ConfigError(f"{name}: {int(at_limit.sum())} samples at the actuator limit ±{ctrl.v_sat * ctrl.gtau:g} N "
+                          f"(first at sample {int(np.flatnonzero(at_limit)[0])}): not learned from; lower "
+                          "learn.gain or the limits (safety.u_max, safety.rate) and rerun the best trial's u_ff")
+    d = np.concatenate([np.full(ctrl.delay, rec["u_ff"][0]), rec["u_ff"][:rec["u_ff"].size - ctrl.delay]]) / ctrl.gtau
+    rel = ctrl.check(rec["r"], rec["y"], rec["u"], d)
+    if not rel < CONTROLLER_RTOL:
+        raise ConfigError(f"{name}: the recorded u is not {ctrl.describe()} plus the applied u_ff (relative equation "
+                          f"error {100 * rel:.3g} % > {100 * CONTROLLER_RTOL:.0f} %); record u as the force applied "
+                          "and u_ff as the feedforward added before the limit")
+    rec["controller_error"] = rel
+    return rec
+
+
+def step(folder, recording: Path, out: Path | None = None) -> dict:
+    """One trial: check the recording of the next trial, decide (learn, rollback, stop), write the next u_ff.
+    Returns the trial's log entry. The same recording again (an interrupted run) returns its entry unchanged."""
+    c = load(folder)
+    digest = hashlib.sha256(Path(recording).read_bytes()).hexdigest()
+    for h in c.state["trials"]:
+        if h["sha256"] == digest:         # resumed: the step was done
+            if out is not None:
+                shutil.copyfile(c.u_ff_path(h["trial"] + 1), out)
+            return h
+    j = len(c.state["trials"])
+    rec = check_recording(c, recording, j)
+    s = c.cfg.safety
+    if c.state["limits"] is None:
+        u_max, rate, src = _limits(c, rec)
+        c.state["limits"] = {"u_max": u_max, "rate": rate, "source": src}
+    e = rec["r"] - rec["y"]
+    err, mae, emax = safety.rms(e), float(np.mean(np.abs(e))), float(np.max(np.abs(e)))
+    floor = safety.noise_floor(rec["r"], e, int(round(s.settle_s / c.Ts)))
+    history = c.state["trials"]
+    measured = {"rho_max": math.nan, "band": None}
+    prev = c.folder / "recordings" / f"trial_{j - 1}.csv"
+    if j >= 1 and prev.exists():       # the convergence condition on the plant the last two trials measured
+        dphi = rec["u_ff"] - c.u_ff(j - 1)
+        if np.max(np.abs(dphi)) > 0:
+            y_prev = pd.read_csv(prev)["y"].to_numpy(np.float64)
+            measured = safety.measured_rho(c.update(), c.state["gain"], dphi, rec["y"] - y_prev, floor)
+    decision = "stop" if c.state["stopped"] else safety.decide(history, err, floor, s.rollback_factor, s.stop_factor)
+    gain = c.state["gain"]
+    if decision == "learn" and measured["rho_max"] >= 1.0:   # the measured loop does not contract: slow down
+        decision, gain = "slow", gain / 2.0
+    best = min(history + [{"rms": err, "trial": j}], key=lambda h: h["rms"])
+    kr = c.controller_term()
+    if decision in ("learn", "slow"):
+        u_next = c.update().next(e, rec["u_ff"], gain, kr)
+    elif decision == "rollback":
+        gain = gain / 2.0
+        u_next = c.u_ff(best["trial"])
+    else:   # stop: the best trial's feedforward from now on
+        c.state["stopped"] = True
+        u_next = c.u_ff(best["trial"])
+    lim = c.state["limits"]
+    u_next, flags = safety.limited(u_next, lim["u_max"], lim["rate"], c.Ts)
+    (c.folder / "recordings").mkdir(exist_ok=True)
+    shutil.copyfile(recording, c.folder / "recordings" / f"trial_{j}.csv")
+    c.write_u_ff(j + 1, u_next, flags, out)
+    entry = {"trial": j, "recording": str(recording), "sha256": digest, "rms": err, "mae": mae, "max": emax,
+             "noise_floor": floor, "decision": decision, "gain": gain, "controller_error": rec["controller_error"],
+             "limited_samples": int(np.count_nonzero(flags)), "max_abs_u": float(np.max(np.abs(rec["u"]))),
+             "measured_rho": None if math.isnan(measured["rho_max"]) else measured["rho_max"],
+             "measured_band": measured["band"]}
+    c.state["trials"].append(entry)
+    c.state["gain"] = gain
+    plot_errors(c.state["trials"], c.folder / "errors.png")
+    c.save()
+    if c.state.get("mlflow"):
+        _log_trial(c, entry)
+    return entry
+
+
+# ---- plots and MLflow --------------------------------------------------------------------------------------
+def plot_check(check: dict, path: Path) -> None:
+    import matplotlib  # lazy: saves 0.3 s of start-up (matplotlib)
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # lazy: saves 0.3 s of start-up (matplotlib)
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    ax.semilogx(check["f_hz"], check["rho"], label="|Q(1 - αLG)| + uncertainty")
+    ax.axhline(1.0, color="r", lw=0.8, label="1: divergence")
+    if check["band"]:
+        ax.axvspan(*check["band"], color="r", alpha=0.15)
+    ax.set_xlabel("frequency [Hz]")
+    ax.set_ylabel("ρ")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def plot_errors(trials: list[dict], path: Path) -> None:
+    import matplotlib  # lazy: saves 0.3 s of start-up (matplotlib)
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # lazy: saves 0.3 s of start-up (matplotlib)
+    j = [h["trial"] for h in trials]
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    ax.semilogy(j, [h["rms"] for h in trials], "o-", label="‖e_j‖ (rms)")
+    ax.semilogy(j, [h["max"] for h in trials], "s-", label="max|e_j|")
+    floors = [h["noise_floor"] for h in trials if math.isfinite(h["noise_floor"])]
+    if floors:
+        ax.axhline(floors[-1], color="gray", ls="--", label="noise floor")
+    for h in trials:
+        if h["decision"] == "rollback":
+            ax.axvline(h["trial"], color="r", alpha=0.3)
+    ax.set_xlabel("trial j")
+    ax.set_ylabel("error [m]")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _parent_run(folder: Path, c: Campaign) -> dict:
+    from pipeline import tracking  # lazy: saves 1.5 s of start-up (mlflow)
+    client = tracking.client()
+    exp = tracking.experiment_id("learn", "learning campaigns: a parent run per campaign, a child per trial")
+    run = client.create_run(exp, run_name=folder.resolve().name, tags={"kind": "learn_campaign",
+                                                                      "folder": str(folder.resolve())})
+    from mlflow.entities import Param  # lazy: saves 1.5 s of start-up (mlflow)
+    flat = {f"{k}.{kk}": str(vv) for k, v in c.config.items() if isinstance(v, dict) for kk, vv in v.items()}
+    client.log_batch(run.info.run_id, params=[Param(k[:250], v[:6000]) for k, v in sorted(flat.items())])
+    client.log_artifact(run.info.run_id, str(folder / "convergence.png"))
+    client.set_terminated(run.info.run_id, "FINISHED")
+    return {"experiment": exp, "parent": run.info.run_id}
+
+
+def _log_trial(c: Campaign, entry: dict) -> None:
+    from mlflow.entities import Metric  # lazy: saves 1.5 s of start-up (mlflow)
+    from pipeline import tracking  # lazy: saves 1.5 s of start-up (mlflow)
+    client = tracking.client()
+    m = c.state["mlflow"]
+    j = entry["trial"]
+    run = client.create_run(m["experiment"], run_name=f"trial_{j}", tags={"mlflow.parentRunId": m["parent"],
+                                                                         "decision": entry["decision"]})
+    keys = ("rms", "mae", "max", "noise_floor", "gain", "controller_error", "limited_samples", "measured_rho")
+    now = 0
+    vals = [(k, float(entry[k])) for k in keys if entry[k] is not None and math.isfinite(float(entry[k]))]
+    client.log_batch(run.info.run_id, metrics=[Metric(k, v, now, j) for k, v in vals])
+    client.log_batch(m["parent"], metrics=[Metric(f"trial/{k}", v, now, j) for k, v in vals])
+    client.log_artifact(run.info.run_id, str(c.u_ff_path(j + 1)))
+    client.set_terminated(run.info.run_id, "FINISHED")
+    client.log_artifact(m["parent"], str(c.folder / "errors.png"))
+
+
+# ---- the model learns (pipeline.learn.refit) ----------------------------------------------------------------
+def refit_model(folder) -> dict:
+    """Refit the campaign's physics on every trial's recording (:func:`pipeline.learn.refit.refit`); stored in
+    the state and written as ``model_refit.yaml`` (the ``model`` section of a next campaign)."""
+    import yaml  # lazy: saves 0.1 s of start-up (only learn init and refit write YAML)
+    from pipeline.learn import refit  # lazy: saves 0.4 s of start-up (the measured-system physics)
+    c = load(folder)
+    if not c.state["trials"]:
+        raise ConfigError(f"{folder}: no trial recorded yet; the refit needs the trials' recordings")
+    recs = []
+    for h in c.state["trials"]:
+        frame = pd.read_csv(c.folder / "recordings" / f"trial_{h['trial']}.csv")
+        recs.append({"u": frame["u"].to_numpy(np.float64), "y": frame["y"].to_numpy(np.float64)})
+    model, res = refit.refit(c.update().model, recs)
+    out = {"M": model.M, "F_v": model.F_v, "K": model.K, "F_c": model.F_c, "coulomb_width": model.coulomb_width}
+    c.state["refit"] = {**out, "residual": res, "recordings": len(recs)}
+    _atomic(c.folder / "model_refit.yaml", lambda p: Path(p).write_text(yaml.safe_dump({"model": out})))
+    c.save()
+    return c.state["refit"]
+
+
+def feedforward_for(folder, reference: Path, out: Path, refitted: bool = True) -> Path:
+    """The model's feedforward for a reference the campaign never ran (t, r, u_ff, flags), from the refitted
+    model (or the campaign's own), within the campaign's limits."""
+    from pipeline.learn import refit  # lazy: saves 0.4 s of start-up (the measured-system physics)
+    c = load(folder)
+    cfg = c.cfg
+    m = cfg.model
+    if refitted:
+        if "refit" not in c.state:
+            raise ConfigError(f"{folder}: not refitted yet; run `pgnn-ff learn refit {folder}` first")
+        m = LearnModel(**{k: c.state["refit"][k] for k in ("M", "F_v", "K", "F_c", "coulomb_width")})
+    frame = pd.read_csv(reference)
+    if "r" not in frame or "t" not in frame:
+        raise ConfigError(f"{reference}: a reference needs columns t, r; found {list(frame.columns)[:8]}")
+    r = frame["r"].to_numpy(np.float64)
+    model = LoopModel(c.Ts, m.M, m.F_v, m.K, c.controller(), m.F_c, m.coulomb_width)
+    u = refit.feedforward(make_update(model, "model_ilc", cfg.learn.q_cutoff_hz, cfg.learn.q_order), r)
+    # only the limits the config states: the ones from the campaign's recordings are its reference's, and a
+    # new reference may need more (a faster move); beyond them is a warning
+    s = cfg.safety
+    u, flags = safety.limited(u, s.u_max or math.inf, s.rate or math.inf, c.Ts)
+    lim = c.state["limits"]
+    peak, slew = float(np.max(np.abs(u))), float(np.max(np.abs(np.diff(u)))) / c.Ts
+    if lim and (peak > lim["u_max"] or slew > lim["rate"]):
+        warnings.warn(f"{Path(out).name}: u_ff reaches {peak:.4g} N and {slew:.4g} N/s, beyond the campaign's "
+                      f"limits from its recordings ({lim['u_max']:.4g} N, {lim['rate']:.4g} N/s): a faster motion "
+                      "than the campaign's; set safety.u_max and safety.rate to the actuator's",
+                      stacklevel=2)
+    frame = pd.DataFrame({"t": frame["t"], "r": r, "u_ff": u, "flags": flags})
+    _atomic(Path(out), lambda p: frame.to_csv(p, index=False, float_format="%.17g"))
+    return Path(out)
+
+
+def export(folder, out: Path, trial: int | None = None, cc: str | None = "cc") -> dict:
+    """The u_ff of ``trial`` (default: the latest the campaign wrote) as a C99 package (pipeline.export): the
+    table family, the law IL-FHOFC's tables use (a signal learned by trials for one reference; the manifest's law
+    reads il_fhofc), verified against the CSV and compiled with ``cc`` when one is found."""
+    from pipeline.export.law import from_table  # lazy: saves 0.5 s of start-up (the exporter)
+    from pipeline.export.package import write_package  # lazy: saves 0.5 s of start-up (the exporter)
+    c = load(folder)
+    j = len(c.state["trials"]) if trial is None else int(trial)
+    if not c.u_ff_path(j).exists():
+        raise ConfigError(f"{folder}: no u_ff_{j}.csv; the campaign has u_ff_0 .. u_ff_{len(c.state['trials'])}")
+    u = c.u_ff(j)
+    law = from_table("il_fhofc", c.Ts, c.reference, u)
+    return write_package(law, f"ff_learn_{j}", Path(out), {"reference": (c.reference, u)}, cc=cc,
+                         source={"campaign": str(c.folder.resolve()), "trial": j})

@@ -1,0 +1,98 @@
+"""``pgnn-ff learn``: a learning campaign from the command line (README "Learn on the machine").
+
+    pgnn-ff learn init CAMPAIGN --config campaign.yaml --reference ref.csv [--u-ff0 u_ff.csv] [--force]
+    pgnn-ff learn CAMPAIGN --recording trial_<j>.csv --out u_ff_<j+1>.csv
+    pgnn-ff learn run CAMPAIGN --machine sim:<module>:<function> [--trials 10]
+    pgnn-ff learn refit CAMPAIGN                      # the physics refitted on the trials' recordings
+    pgnn-ff learn feedforward CAMPAIGN --reference new.csv --out u_ff.csv [--campaign-model]
+    pgnn-ff learn export CAMPAIGN --out DIR [--trial j] [--cc CC]   # the u_ff as C99 (the table family)
+
+Bad input (a recording of another reference or feedforward, a diverging gain, …) is one line on stderr and
+exit code 2.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from pipeline.errors import ConfigError, ExportError
+from pipeline.learn import campaign, machine
+
+
+def _line(h: dict) -> str:
+    meas = h.get("measured_rho")
+    warn = ""
+    if meas is not None and meas >= 1.0:   # two trials measured the loop
+        lo, hi = h["measured_band"]
+        warn = (f"; WARNING: the last two trials measure |Q(1 - α L G)| = {meas:.3g} ≥ 1 on {lo:.3g}-{hi:.3g} Hz "
+                "(the plant differs from the model there: lower learn.gain or learn.q_cutoff_hz)")
+    return (f"trial {h['trial']}: rms {h['rms']:.4g} m, MAE {h['mae']:.4g} m, max {h['max']:.4g} m, noise floor "
+            f"{h['noise_floor']:.3g} m -> {h['decision']} (gain {h['gain']:g})" + warn)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        if argv[:1] == ["init"]:
+            p = argparse.ArgumentParser(prog="pgnn-ff learn init")
+            p.add_argument("campaign")
+            p.add_argument("--config", required=True, help="the campaign config (YAML/JSON: Ts, controller, model, "
+                           "learn, safety)")
+            p.add_argument("--reference", required=True, help="CSV with t, r: the motion the machine repeats")
+            p.add_argument("--u-ff0", default=None, help="CSV with u_ff: the first trial's feedforward (default 0)")
+            p.add_argument("--force", action="store_true", help="start even if the convergence check fails")
+            p.add_argument("--no-mlflow", action="store_true", help="log nothing to MLflow")
+            a = p.parse_args(argv[1:])
+            c = campaign.init(a.campaign, Path(a.config), Path(a.reference), a.u_ff0 and Path(a.u_ff0), a.force,
+                              not a.no_mlflow)
+            conv = c.state["convergence"]
+            print(f"campaign {a.campaign}: convergence check {'passed' if conv['ok'] else 'FAILED (forced)'} "
+                  f"(max ρ {conv['rho_max']:.3g} at {conv['f_at_max']:.3g} Hz); apply {c.u_ff_path(0)} in trial 0")
+        elif argv[:1] == ["run"]:
+            p = argparse.ArgumentParser(prog="pgnn-ff learn run")
+            p.add_argument("campaign")
+            p.add_argument("--machine", required=True, help="sim:<module>:<function> (r, u_ff) -> {u, y}")
+            p.add_argument("--trials", type=int, default=10)
+            a = p.parse_args(argv[1:])
+            for h in machine.run(a.campaign, a.machine, a.trials):
+                print(_line(h), flush=True)
+        elif argv[:1] == ["refit"]:
+            p = argparse.ArgumentParser(prog="pgnn-ff learn refit")
+            p.add_argument("campaign")
+            a = p.parse_args(argv[1:])
+            f = campaign.refit_model(a.campaign)
+            print(f"refit on {f['recordings']} recordings: M {f['M']:.6g} kg, F_v {f['F_v']:.6g} N s/m, K {f['K']:.6g} "
+                  f"N/m, F_c {f['F_c']:.6g} N (force residual {100 * f['residual']:.3g} %); "
+                  f"{Path(a.campaign) / 'model_refit.yaml'}")
+        elif argv[:1] == ["export"]:
+            p = argparse.ArgumentParser(prog="pgnn-ff learn export")
+            p.add_argument("campaign")
+            p.add_argument("--out", required=True)
+            p.add_argument("--trial", type=int, default=None, help="default: the latest u_ff of the campaign")
+            p.add_argument("--cc", default="cc")
+            a = p.parse_args(argv[1:])
+            man = campaign.export(a.campaign, Path(a.out), a.trial, a.cc)
+            print(f"{Path(a.out) / man['name']}: {man['law']} table of {len(campaign.load(a.campaign).reference)} "
+                  f"samples ({'compiled and checked' if man.get('compiled') else 'not compiled'})")
+        elif argv[:1] == ["feedforward"]:
+            p = argparse.ArgumentParser(prog="pgnn-ff learn feedforward")
+            p.add_argument("campaign")
+            p.add_argument("--reference", required=True, help="CSV with t, r (a motion the campaign never ran)")
+            p.add_argument("--out", required=True)
+            p.add_argument("--campaign-model", action="store_true", help="the campaign's model, not the refit")
+            a = p.parse_args(argv[1:])
+            print(campaign.feedforward_for(a.campaign, Path(a.reference), Path(a.out), not a.campaign_model))
+        else:
+            p = argparse.ArgumentParser(prog="pgnn-ff learn", description="One trial of a learning campaign "
+                                        "(README \"Learn on the machine\"); also: learn init, learn run")
+            p.add_argument("campaign")
+            p.add_argument("--recording", required=True, help="the trial's recording: t, r, u, y, u_ff")
+            p.add_argument("--out", default=None, help="also write the next u_ff here")
+            a = p.parse_args(argv)
+            h = campaign.step(a.campaign, Path(a.recording), a.out and Path(a.out))
+            print(_line(h) + f"; next: {campaign.load(a.campaign).u_ff_path(h['trial'] + 1)}")
+    except (ConfigError, ExportError, FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0

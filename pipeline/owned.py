@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from pathlib import Path
 from typing import Iterable
 
+from pipeline.atomic import replace_file
 from pipeline.cache import ROOT
 from pipeline.errors import ConfigError
 
@@ -108,21 +108,22 @@ def record(root: Path, targets: Iterable[str]) -> None:
     _save(root, listed)
 
 
-def allow(root: Path, rel: str, source: Path) -> None:
-    """Before ``source`` (a file, or a folder) is swapped in as ``root/rel``: list its files' hashes
-    beside the current ones, so a job stopped between the swap and :func:`record` leaves outputs
+def allow(root: Path, rel: str, source: Path | bytes) -> None:
+    """Before ``source`` (a folder, or a file's bytes) is swapped in as ``root/rel``: list its files'
+    hashes beside the current ones, so a job stopped between the swap and :func:`record` leaves outputs
     the next job still knows as the pipeline's (not as a user's edit)."""
-    root, source = Path(root), Path(source)
+    root = Path(root)
     listed = _listed(root)
-    files = [source] if source.is_file() else sorted(f for f in source.rglob("*") if f.is_file())
-    for f in files:
-        key = rel if source.is_file() else f"{rel}/{f.relative_to(source).as_posix()}"
+    if isinstance(source, bytes):
+        shas = {rel: hashlib.sha256(source).hexdigest()}
+    else:
+        shas = {f"{rel}/{f.relative_to(source).as_posix()}": _sha(f)
+                for f in sorted(Path(source).rglob("*")) if f.is_file()}
+    for key, sha in shas.items():
         old = listed.get(key) or []
-        listed[key] = sorted(set([old] if isinstance(old, str) else old) | {_sha(f)})
+        listed[key] = sorted(set([old] if isinstance(old, str) else old) | {sha})
     _save(root, listed)
 
 
 def _save(root: Path, listed: dict) -> None:
-    tmp = root / f".{MANIFEST}.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(dict(sorted(listed.items())), indent=0))
-    os.replace(tmp, root / MANIFEST)
+    replace_file(root / MANIFEST, json.dumps(dict(sorted(listed.items())), indent=0))

@@ -43,6 +43,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
 from pipeline import data, interrupts, naming, owned, schema, tracking
+from pipeline.atomic import replace_file
 from pipeline.cache import (  # noqa: F401
     HOST,
     BadKey,
@@ -393,7 +394,7 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None,
         if own_run:
             cfg_file = store / "configs" / f"{run.run_id}.yaml"
             cfg_file.parent.mkdir(parents=True, exist_ok=True)
-            cfg_file.write_text(OmegaConf.to_yaml(cfg, resolve=True))
+            replace_file(cfg_file, OmegaConf.to_yaml(cfg, resolve=True))
             run.log_artifact(cfg_file)  # the resolved config (DESIGN, Tracking)
         for name, mod in modules.items():
             key = keys[name]

@@ -31,6 +31,7 @@ import mlflow
 import pandas as pd
 
 from pipeline import compare, owned, tracking
+from pipeline.atomic import replace_file
 from pipeline.export.law import strict_json
 from pipeline.perturbation import (EXPLAIN, capped_fits, capped_lines, claim_verdicts, experiment_digests,
                                    is_timing, kept_experiments, partial_of, status_lines, summarise, summary_digest,
@@ -83,7 +84,7 @@ def run(ctx) -> dict:
         table, text, built = _build(cfg, figdir, skip_empty=update)
         if update:
             table, text = _merge(results, table, text, built, figdir)
-        _write(results / "summary.csv", lambda p: table.to_csv(p, index=False))
+        _write(results / "summary.csv", table.to_csv(index=False))
         text = _with_checks(text, results, table)
         text = _with_champions(text, [(e, _champion_or_warn(e)) for e in built])
         old = Path(tempfile.mkdtemp(prefix=".figures-old-", dir=results))
@@ -92,7 +93,7 @@ def run(ctx) -> dict:
         owned.allow(results, "figures", figdir)
         os.replace(figdir, results / "figures")  # the figures first, then the report that links them
         shutil.rmtree(old, ignore_errors=True)
-        _write(results / "REPORT.md", lambda p: p.write_text(text))
+        _write(results / "REPORT.md", text)
         if not update or SHIPPED[0] in built:
             _ship(results / "export", SHIPPED)
         owned.record(results, OUTPUTS)
@@ -439,11 +440,10 @@ def _capped_fit(experiment: str, fit: str, t) -> str:
             f"{t.max_value_change:.0%}")
 
 
-def _write(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    write(tmp)
-    owned.allow(path.parent, path.name, tmp)   # known as ours even if the job stops right after the swap
-    os.replace(tmp, path)
+def _write(path: Path, data: str) -> None:
+    """``path`` replaced by ``data`` (:func:`pipeline.atomic.replace_file`: no link followed, no guessable
+    name), its hash listed first: known as ours even if the job stops right after the swap."""
+    replace_file(path, data, before=lambda blob: owned.allow(path.parent, path.name, blob))
 
 
 def _shas(experiments) -> str:

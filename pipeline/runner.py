@@ -422,7 +422,7 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None,
                 if lock is not None and lock.is_locked:
                     lock.release()
             try:
-                _log_stage(run, name, record, final, hit, cfg)
+                _log_stage(run, name, record, final, hit, cfg, cacheable)
             finally:
                 if not cacheable:   # its temporary directory, logged: removed whatever happens
                     shutil.rmtree(final, ignore_errors=True)
@@ -476,13 +476,17 @@ def _seed_everything(seed: int, stage: str) -> None:
     torch.manual_seed(s)
 
 
-def _log_stage(run, name: str, record: dict, stage_dir: Path, hit: bool, cfg=None) -> None:
+def _log_stage(run, name: str, record: dict, stage_dir: Path, hit: bool, cfg=None, cacheable: bool = False) -> None:
+    """Log one stage's metrics, tags and artifacts to ``run``; a cached stage's entry is named in the tag
+    ``cache_entry.<stage>`` (``<stage>/<key>``): the report ships exported packages from that signed entry,
+    never from the artifact store (issue 51 item 2)."""
     metrics = [tuple(m) for m in record["metrics"]]
     metrics.append((f"time/{name}_s", record["seconds"], None))
     system = str(OmegaConf.select(cfg, "system.name", default="") or "") if cfg is not None else ""
     metrics += display_metrics(metrics, system)   # µm, µs twins: the UI's charts read (issue 23)
     run.log_metrics(metrics)
-    run.set_tags({**record["tags"], f"cache.{name}": "hit" if hit else "miss"})
+    run.set_tags({**record["tags"], f"cache.{name}": "hit" if hit else "miss",
+                  **({f"cache_entry.{name}": f"{name}/{stage_dir.name}"} if cacheable else {})})
     for fig in record["figures"]:
         run.log_artifact(stage_dir / "figures" / fig, "figures")
     for rel in record.get("artifacts", []):   # <stage>/<rel>, sub-folders kept

@@ -386,7 +386,7 @@ def test_shipped_packages_list_exactly_the_files_they_hold(store, cfg_of, tmp_pa
     refs = "evaluate.references=[{name:v0.15,kind:b1_evaluation,v_max:0.15},{name:v0.2,kind:b1_evaluation,v_max:0.2}]"
     runner.run_job(cfg_of(*SHORT_B1[:4], refs, "invert=physics",
                           "stages=[generate,baseline,train,invert,evaluate,export]"))
-    _ship(tmp_path / "export", ("b1_linear_motor", ("system.noise.structure", "equation"), "v0_15"))
+    _ship(tmp_path / "export", ("b1_linear_motor", ("system.noise.structure", "equation"), "v0_15"), store / "cache")
     pkg = tmp_path / "export" / "ff_physics"
     man = _strict((pkg / "manifest.json").read_text())
     assert man["files"] == sorted(p.name for p in pkg.iterdir() if p.name != "manifest.json")

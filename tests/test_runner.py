@@ -374,8 +374,8 @@ def test_cache_entry_from_elsewhere_is_never_unpickled(store, cfg_of, capsys):
     assert again.equals(good)                                  # recomputed, bit-identical
     # a cache copied from another machine (its own key) is not trusted either
     other = store / "other.key"
-    other.write_bytes(b"x" * 32)
     import os
+    other.write_bytes(os.urandom(32))
     os.environ["PIPELINE_CACHE_KEY_FILE"] = str(other)
     try:
         assert runner.run_job(cfg)["generate"]["dataset"].frame.equals(good)

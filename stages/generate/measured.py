@@ -45,6 +45,8 @@ FORMATS = ("table", "emps")
 CONTROLLER_RTOL = 0.05
 #: shortest record an evaluation reference may be (the published convention reads t(10) - t(9))
 MIN_REFERENCE = 20
+#: an evaluation record shorter than this is scored but flagged (a 25-row test file passed without a word)
+SHORT_REFERENCE = 500
 
 
 def _folder_and_file(cfg, file: str | None) -> tuple[Path, str | None]:
@@ -119,6 +121,10 @@ def load_file(cfg, file: str | None = None) -> data.Dataset:
     if fmt == "emps":
         return data.load_emps(target.parent, target.stem)
     ds = data.load(target)
+    if "segment" in ds.frame:   # issue 51: read as labels, it split EMPS-like data into 1-row "experiments"
+        warnings.warn(f"{target}: its column 'segment' is ignored (several experiments are several files: "
+                      "data.files=[run1.csv, run2.csv]); rename or drop it to silence this", stacklevel=2)
+        ds.frame = ds.frame.drop(columns="segment")
     dist = cfg.system.get("disturbance") if "system" in cfg else None
     if dist and dist in ds.frame and "d" not in ds.frame:   # the system's disturbance column is d
         ds.frame = ds.frame.rename(columns={dist: "d"})
@@ -265,6 +271,13 @@ def training_files(cfg) -> list:
         if file not in (None, ""):
             raise ConfigError(f"data.file={file!r} and data.files={list(files)} are both set; give one training "
                               "file as data.file or several as data.files")
+        seen = {}
+        for f in files:   # one record twice weighs it double and glues it to itself (issue 51)
+            seen.setdefault(_target(cfg, str(f)).resolve(), []).append(str(f))
+        twice = [v for v in seen.values() if len(v) > 1]
+        if twice:
+            raise ConfigError(f"data.files={list(files)} names the same file more than once ({twice[0]}); list "
+                              "each training record once")
         return [str(f) for f in files]
     return [file]
 
@@ -342,6 +355,10 @@ def reference(cfg, spec: dict, system) -> data.Dataset:
     try:
         ds = load_file(cfg, spec["file"])
         check_record(ds, system, ds.meta.get("source", str(spec["file"])), min_len=MIN_REFERENCE, reference=True)
+        if len(ds) < SHORT_REFERENCE:
+            warnings.warn(f"reference '{spec.get('name')}': {ds.meta.get('source', spec['file'])} holds {len(ds)} "
+                          f"samples, fewer than {SHORT_REFERENCE}: its errors are a glimpse, not a test of the "
+                          "feedforward (the EMPS test file holds 24 841); give the whole test recording", stacklevel=2)
     except FileNotFoundError as exc:
         raise ConfigError(f"reference '{spec.get('name')}': {str(exc).split(';')[0]}; check data.path and the "
                           "reference's file") from exc

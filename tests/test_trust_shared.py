@@ -409,3 +409,46 @@ def test_a_tracking_server_answering_503_is_one_line(monkeypatch):
     line = resources.describe(got.value)
     assert line.startswith(f"error: MLflow tracking server at http://127.0.0.1:{srv.server_port}: answered HTTP 503")
     assert "\n" not in line
+
+
+# --- pre-flight before the queue (fails before work, not after 18 minutes) -------------------------
+
+def test_the_preflight_names_the_missing_emps_files_where_and_how_to_run_without(cfg_of, tmp_path):
+    from pipeline import preflight
+    from pipeline.runner import ConfigError
+    nowhere = tmp_path / "no_shared" / "emps"
+    jobs = [(e, cfg_of(f"experiment={e}", f"data.path={nowhere}")) for e in ("emps_physics", "emps")]
+    jobs.insert(0, ("physics_arx", cfg_of("experiment=physics_arx")))
+    with pytest.raises(ConfigError) as got:
+        preflight.check(jobs)
+    line = str(got.value)
+    assert "\n" not in line and line.startswith("experiment(s) emps_physics, emps read data file(s) that are missing")
+    assert f"DATA_EMPS.mat, DATA_EMPS_PULSES.mat, looked for in {nowhere}" in line
+    assert "public EMPS benchmark" in line and 'make reproduce EXPERIMENTS="physics_arx"' in line
+    preflight.check(jobs[:1])                                       # nothing measured: nothing to check
+    (nowhere).mkdir(parents=True)
+    (nowhere / "DATA_EMPS.mat").write_bytes(b"not a MATLAB file")   # present but does not parse
+    with pytest.raises(ConfigError, match=r"DATA_EMPS.mat, DATA_EMPS_PULSES.mat, looked for"):
+        preflight.check(jobs)
+
+
+@pytest.mark.slow   # a Hydra start in a subprocess: 8 s alone, up to 35 s on a loaded machine
+def test_a_queue_without_the_emps_files_stops_before_any_job_or_run(tmp_path):
+    """`make reproduce` on a clone without ../shared ran 18 minutes of jobs, then stopped on "EMPS file …
+    not found". The queue's pre-flight stops first: one line, no MLflow store, no cache entry."""
+    import subprocess
+    import sys
+    import time
+
+    from pipeline.runner import ROOT
+    env = dict(os.environ, PIPELINE_CACHE=str(tmp_path / "cache"), PIPELINE_CACHE_KEY_FILE=str(tmp_path / "key"),
+               MLFLOW_TRACKING_URI=f"sqlite:///{tmp_path / 'mlflow.db'}", PYTHONPATH=str(ROOT))
+    t0 = time.perf_counter()
+    out = subprocess.run([sys.executable, "-m", "pipeline", "-m", "hydra/sweeper=queue",
+                          "hydra.sweeper.experiments=[physics_arx,emps_physics]", f"++data.path={tmp_path / 'none'}",
+                          "hydra/launcher=local", "hydra.launcher.n_jobs=1"], capture_output=True, text=True,
+                         env=env, cwd=tmp_path, timeout=120)
+    took = time.perf_counter() - t0
+    assert out.returncode != 0 and "pre-flight: experiment(s) emps_physics read data file(s)" in out.stderr
+    assert "Traceback" not in out.stderr and took < 60
+    assert not (tmp_path / "mlflow.db").exists() and not (tmp_path / "cache").exists()

@@ -70,19 +70,24 @@ def _sha256(path: Path) -> str:
     return _HASHES[key]
 
 
+def data_files(cfg) -> list:
+    """The files (``data.file`` names, None = ``data.path`` itself) a job reads: the training file(s) and
+    every evaluation reference's recording (:func:`load_file` reads each; the queue's pre-flight too)."""
+    files = list(training_files(cfg))
+    refs = OmegaConf.to_container(cfg.evaluate.references, resolve=True) \
+        if cfg.get("evaluate") is not None and cfg.evaluate.get("references") is not None else []
+    specs = list(refs.values()) if isinstance(refs, dict) else refs   # a list, or a mapping by name
+    return files + [s["file"] for s in specs if isinstance(s, dict) and s.get("kind") == "measured" and s.get("file")]
+
+
 def content_key(cfg) -> dict[str, str]:
     """SHA-256 of every file this job reads measured data from: the training file(s) and every
     evaluation reference's recording, wherever they are (beside data.path, in a sub-folder, or by
     an absolute path): part of the stage's cache key (runner.stage_key), so a recording replaced under
     the same name is reread, never served from the cache of the old one (issue 24). A missing file
     adds nothing here: :func:`check` names it before any work."""
-    files = list(training_files(cfg))
-    refs = OmegaConf.to_container(cfg.evaluate.references, resolve=True) \
-        if cfg.get("evaluate") is not None and cfg.evaluate.get("references") is not None else []
-    specs = list(refs.values()) if isinstance(refs, dict) else refs   # a list, or a mapping by name
-    files += [s["file"] for s in specs if isinstance(s, dict) and s.get("kind") == "measured" and s.get("file")]
     out = {}
-    for f in files:
+    for f in data_files(cfg):
         try:
             target = _target(cfg, f)
         except ConfigError:

@@ -13,14 +13,14 @@ import tempfile
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["replace_file", "UnsafeWrite", "read_nofollow"]
+__all__ = ["replace_file", "UnsafeWrite", "read_nofollow", "umask"]
 
 
 class UnsafeWrite(OSError):
     """The file renamed into place is not the one written (someone swapped it between the two)."""
 
 
-def _umask() -> int:
+def umask() -> int:
     """This process's umask (read from /proc on Linux; else set and restored at once)."""
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
@@ -46,7 +46,7 @@ def replace_file(path: Path, data: bytes | str, before: Callable[[bytes], None] 
         with os.fdopen(fd, "wb") as f:
             f.write(blob)
             f.flush()
-            os.fchmod(f.fileno(), 0o666 & ~_umask())
+            os.fchmod(f.fileno(), 0o666 & ~umask())
             mine = os.fstat(f.fileno())
         if before is not None:
             before(blob)

@@ -20,7 +20,7 @@ from typing import Any
 
 from filelock import FileLock
 
-from pipeline.atomic import read_nofollow, replace_file
+from pipeline.atomic import read_nofollow, replace_file, umask
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -66,6 +66,14 @@ def remove_stale_temporaries(store: Path) -> list[Path]:
                 shutil.rmtree(d, ignore_errors=True)
                 removed.append(d)
     return removed
+
+
+def private_dir(tmp: Path) -> None:
+    """A new temporary entry folder only this user can enter (mode 0700; :func:`_write_signed` opens it to
+    the usual mode once whole): in a cache a group shares, no one else writes into it or plants a link
+    there for the stage to write through while it fills it (issue 51)."""
+    tmp.parent.mkdir(parents=True, exist_ok=True)
+    tmp.mkdir(mode=0o700)
 
 
 def _locked(final: Path) -> FileLock:
@@ -219,6 +227,7 @@ def _write_signed(entry: Path, result, record: dict | None = None, final: Path |
         rec = json.dumps(record, indent=1).encode()
         (entry / "record.json").write_bytes(rec)
     (entry / "signature").write_text(_signature(*_blobs(entry, final or entry, payload, rec, _tree(entry))))
+    os.chmod(entry, 0o777 & ~umask())   # made private (0700) while it was filled: readable as usual once whole
 
 
 def _verified(entry: Path) -> tuple[bytes, bytes | None, dict[str, str]]:

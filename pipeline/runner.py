@@ -57,6 +57,7 @@ from pipeline.cache import (  # noqa: F401
     cache_dir,
     cache_key_file,
     pid_alive,
+    private_dir,
     remove_stale_temporaries,
 )
 from pipeline.compare import display_metrics
@@ -179,7 +180,7 @@ class StageContext:
             value = compute()
             tmp = final.with_name(_tmp_name(key))
             try:
-                tmp.mkdir(parents=True)
+                private_dir(tmp)
                 _write_signed(tmp, value, final=final)
                 os.rename(tmp, final)
             except BaseException:   # a full disk, Ctrl-C: nothing half-written stays
@@ -446,7 +447,7 @@ def _compute(cfg, name, mod, key, keys, results, system, store, cacheable, run_i
     # removed on any exception, Ctrl-C included; by the interrupt watchdog if this thread cannot react
     interrupts.on_abort(tmp, lambda: shutil.rmtree(tmp, ignore_errors=True))
     try:
-        tmp.mkdir(parents=True)
+        private_dir(tmp)   # no one else writes (or plants a link) in it while the stage fills it
         ctx = StageContext(cfg, name, {u: results[u] for u in mod.UPSTREAM}, tmp, system, key,
                            subkey=lambda exclude: stage_key(cfg, name, mod, keys, exclude), run_id=run_id)
         _seed_everything(int(cfg.seed), name)

@@ -75,6 +75,17 @@ def test_a_link_at_the_target_is_replaced_not_followed_and_the_mode_follows_the_
     assert sorted(p.name for p in folder.iterdir()) == ["summary.csv"]     # no temporary left
 
 
+def test_a_stage_fills_a_private_folder_and_opens_it_when_whole(store):
+    """In a cache a group shares, a stage's temporary entry (its name guessable from the key, host and pid)
+    is mode 0700 while it is filled: no one else plants a link in it for the stage to write through."""
+    from pipeline import cache
+    tmp = store / "cache" / "generate" / cache._tmp_name("0" * 20)
+    cache.private_dir(tmp)
+    assert stat.S_IMODE(os.stat(tmp).st_mode) == 0o700
+    cache._write_signed(tmp, {"x": 1}, {"metrics": []})
+    assert stat.S_IMODE(os.stat(tmp).st_mode) == 0o777 & ~atomic.umask()
+
+
 def test_a_file_swapped_in_during_the_rename_is_detected(tmp_path, monkeypatch):
     """Verified after the rename: what is at the target must be the file written."""
     folder = tmp_path / "shared"

@@ -88,6 +88,17 @@ def experiment_file() -> str:
     return str(HydraConfig.get().runtime.choices.get("experiment") or "") if HydraConfig.initialized() else ""
 
 
+def job_overrides() -> str:
+    """This job's command-line overrides (Hydra's ``overrides.task``, the experiment file and a sweep's
+    values included) as a JSON list, the run's tag ``overrides``: ``pgnn-ff export`` re-composes the run
+    from them and the current ``conf/`` instead of trusting its stored config (issue 51). "" outside a
+    Hydra app, or when longer than a tag holds."""
+    if not HydraConfig.initialized():
+        return ""
+    text = json.dumps([str(o) for o in HydraConfig.get().overrides.task])
+    return text if len(text) <= 5000 else ""
+
+
 def choice(cfg: DictConfig, group: str) -> str:
     node = cfg.get(group)
     if isinstance(node, DictConfig):
@@ -384,6 +395,7 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None,
                 "config_hash": keys[names[-1]][:20],  # the last stage's key: same hash, same config
                 "run_key": str(cfg.run_name), "mlflow.note.content": note,
                 "experiment_file": experiment_file(),   # conf/experiment/<file>.yaml: what the report selects by
+                "overrides": job_overrides(),
                 **{g: choice(cfg, g) for g in TAG_GROUPS if g in cfg}}
         params = OmegaConf.to_container(cfg, resolve=True)
         params.pop("description", None)   # the experiment's note, not a parameter of the run

@@ -252,6 +252,33 @@ def test_export_never_imports_a_stored_target_nor_uses_a_stored_cache_path(store
     assert got.system._target_ == cfg.system._target_
 
 
+def test_export_recomposes_a_run_from_its_overrides_and_this_codes_conf(store, cfg_of, tmp_path):
+    """A run made by a Hydra app carries its overrides (tag ``overrides``): `pgnn-ff export` composes the
+    run again from them and the current conf/ (same stage keys as the job had), drops those of paths,
+    hydra and export.cc, and refuses one that sets a `_target_`."""
+    import json
+
+    from pipeline import runner
+    from pipeline.export.cli import recomposed
+    from pipeline.runner import ConfigError
+    from omegaconf import OmegaConf
+    job = ["experiment=physics_linear_motor", "seed=3", "stages=[generate,baseline,train,invert,export]"]
+    cfg = cfg_of(*job)
+    stored = OmegaConf.create(OmegaConf.to_yaml(cfg, resolve=True))
+    planted = job + [f"paths.cache={tmp_path / 'their_cache'}", "export.cc=/tmp/evilcc", "+paths.results=/x"]
+    again = recomposed("r1", json.dumps(planted), stored)
+    assert again.paths.cache is None and again.export.cc == "cc" and again.seed == 3
+    names, _, modules = runner.validate(cfg)
+    assert runner.plan(again, *runner.validate(again)[::2]) == runner.plan(cfg, names, modules)
+    with pytest.raises(ConfigError, match=r"override 'system._target_=evil_plant.Plant': a stored module name"):
+        recomposed("r1", json.dumps(job + ["system._target_=evil_plant.Plant"]), stored)
+    with pytest.raises(ConfigError, match="do not compose with this code's conf/"):
+        recomposed("r1", json.dumps(["system=no_such_plant"]), stored)
+    with pytest.raises(ConfigError, match="not a JSON list of overrides"):
+        recomposed("r1", "rm -rf /", stored)
+    assert recomposed("r1", "", stored) is None          # a run made before the tag: stored_as_data
+
+
 # --- the ownership record is signed (finding 6) -----------------------------------------------------
 
 def test_an_edited_ownership_record_deletes_nothing(store):

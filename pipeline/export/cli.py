@@ -15,12 +15,15 @@ before any work.
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import sys
 import tempfile
 from pathlib import Path
 
 import mlflow
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from pipeline import owned, runner, schema, tracking
@@ -65,6 +68,48 @@ def plant_targets() -> set[str]:
         if isinstance(node, DictConfig) and isinstance(node.get("_target_"), str):
             out.add(node["_target_"])
     return out
+
+
+#: overrides of a stored run that are never re-applied: where this user's files go, Hydra's own settings,
+#: the compiler (``--cc`` chooses it)
+_NOT_REAPPLIED = ("paths", "hydra", "export.cc")
+
+
+def recomposed(run_id: str, overrides: str | None, stored: DictConfig) -> DictConfig | None:
+    """The run's config composed again from the current ``conf/`` and the run's own overrides (its tag
+    ``overrides``, issue 51 item 5): what a stored config names is never imported or used as a path. An
+    override of a ``_target_`` is refused; those of ``paths``, ``hydra`` and ``export.cc`` are dropped (yours
+    apply). None for a run made before the tag existed (:func:`stored_as_data` then)."""
+    if not overrides:
+        return None
+    try:
+        given = json.loads(overrides)
+    except ValueError:
+        given = None
+    if not (isinstance(given, list) and all(isinstance(o, str) for o in given)):
+        raise ConfigError(f"run {run_id}'s tag overrides is not a JSON list of overrides: the run was altered or "
+                          "not made by this pipeline")
+    kept = []
+    for o in given:
+        key = o.lstrip("+~").split("=", 1)[0].strip()
+        if "_target_" in key:
+            raise ConfigError(f"run {run_id} was made with the override {o!r}: a stored module name is never "
+                              "imported; export a run made with this code's configs")
+        if not any(key == k or key.startswith(f"{k}.") or key.startswith(f"{k}/") for k in _NOT_REAPPLIED):
+            kept.append(o)
+    schema.register()
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+            cfg = compose(config_name="config", overrides=kept)
+    except Exception as exc:  # noqa: BLE001 — Hydra raises several types for an override it cannot apply
+        raise ConfigError(f"run {run_id}'s overrides {kept} do not compose with this code's conf/ "
+                          f"({str(exc).splitlines()[0]}): export it with the code it was made with") from None
+    finally:
+        GlobalHydra.instance().clear()
+    if isinstance(stored.get("run_name"), str) and "${" not in stored.run_name:
+        cfg.run_name = stored.run_name          # a name (the schema checks it), as __main__ set it for the job
+    return cfg
 
 
 def stored_as_data(cfg: DictConfig, run_id: str) -> DictConfig:
@@ -120,7 +165,7 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
     if not isinstance(cfg, DictConfig):
         raise ConfigError(f"run {run_id}'s config artifact {run_id}.yaml is not a mapping: the run was altered or "
                           "not made by this pipeline")
-    cfg = stored_as_data(cfg, run_id)
+    cfg = recomposed(run_id, tags.get("overrides"), cfg) or stored_as_data(cfg, run_id)
     kind = str(OmegaConf.select(cfg, "invert.kind", default=""))
     if kind not in runner.exportable():
         raise ConfigError(f"run {run_id} has invert.kind={kind!r}, which has no feedforward law to ship; "

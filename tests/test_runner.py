@@ -255,10 +255,10 @@ def test_a_report_stopped_after_its_swaps_is_still_known_as_ours(store, cfg_of, 
 
     def stopped(*a, **k):
         raise KeyboardInterrupt
-    monkeypatch.setattr(owned, "record", stopped)
-    with pytest.raises(KeyboardInterrupt):
-        runner.run_job(two)
-    monkeypatch.undo()
+    with monkeypatch.context() as patched:   # only this patch undone (not the store's: its cache key signs the record)
+        patched.setattr(owned, "record", stopped)
+        with pytest.raises(KeyboardInterrupt):
+            runner.run_job(two)
     assert (results / "REPORT.md").read_text() != first                        # swapped in, not recorded
     assert owned.foreign(results, ("REPORT.md", "summary.csv", "figures")) == []
     runner.run_job(report)

@@ -19,9 +19,10 @@ EMPS_SOURCE = ("they are the public EMPS benchmark (A. Janot, M. Gautier, M. Bru
                "package's EMPS loader) into that folder, or point data.path at the folder holding them")
 
 
-def unreadable(cfg: DictConfig) -> dict[Path, str]:
+def unreadable(cfg: DictConfig, read: dict[Path, str | None] | None = None) -> dict[Path, str]:
     """The data files the job of ``cfg`` reads that are missing or do not parse: path -> why (empty for a
-    job that reads no recorded file)."""
+    job that reads no recorded file); ``read``: the files already read (path -> why, None if good), kept."""
+    read = {} if read is None else read
     if str(OmegaConf.select(cfg, "data.kind", default="")) != "measured":
         return {}
     from stages.generate import measured  # lazy: saves 0.4 s of start-up (the measured-data stage, its loaders)
@@ -32,21 +33,24 @@ def unreadable(cfg: DictConfig) -> dict[Path, str]:
         return {Path(str(cfg.data.path)): str(exc)}
     for f in files:
         target = measured._target(cfg, f)
-        try:
-            measured.load_file(cfg, f)
-        except Exception as exc:  # noqa: BLE001 — the parsers raise several types (scipy's MatReadError)
-            out[target] = str(exc).split(";")[0] or type(exc).__name__
+        if target not in read:
+            try:
+                measured.load_file(cfg, f)
+                read[target] = None
+            except Exception as exc:  # noqa: BLE001 — the parsers raise several types (scipy's MatReadError)
+                read[target] = str(exc).split(";")[0] or type(exc).__name__
+        if read[target] is not None:
+            out[target] = read[target]
     return out
 
 
 def check(jobs: list[tuple[str, DictConfig]]) -> None:
     """Raise :class:`ConfigError` (one line) if an experiment of ``jobs`` ((name, composed config) in
     queue order) reads a data file that is missing or does not parse; each file is read once."""
-    seen: dict[Path, str] = {}
+    seen: dict[Path, str | None] = {}
     bad: dict[str, list[Path]] = {}
     for name, cfg in jobs:
-        for path, why in unreadable(cfg).items():
-            seen.setdefault(path, why)
+        for path in unreadable(cfg, seen):
             bad.setdefault(name, []).append(path)
     if not bad:
         return

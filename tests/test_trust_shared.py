@@ -490,3 +490,28 @@ def test_a_queue_without_the_emps_files_stops_before_any_job_or_run(tmp_path):
     assert out.returncode != 0 and "pre-flight: experiment(s) emps_physics read data file(s)" in out.stderr
     assert "Traceback" not in out.stderr and took < 60
     assert not (tmp_path / "mlflow.db").exists() and not (tmp_path / "cache").exists()
+
+
+def test_a_controller_gain_off_by_four_percent_is_named(cfg_of, tmp_path):
+    """A controller gain ×1.04 passed without a word (within the 5 % the record may differ by): a variant
+    that fits twice as well is named in a warning."""
+    import warnings
+
+    import numpy as np
+    import pandas as pd
+    import test_general_machine as gm   # its PID axis simulator (tests/ is on the path)
+
+    from pipeline.runner import make_system
+    from stages.generate.measured import check
+    t, r = gm.reference(6.0, 0.1, 0.5)
+    y, u = gm.plant(r, seed=1)
+    pd.DataFrame({"t": t, "r": r, "u": u, "y": y}).to_csv(tmp_path / "train.csv", index=False)
+    exact = cfg_of(*gm.overrides(tmp_path), "stages=[generate,baseline]")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check(exact, make_system(exact))                  # the recorded loop: no warning
+    num = ",".join(str(1.04 * v) for v in gm.NUM)
+    off = cfg_of(*gm.overrides(tmp_path), f"system.controller.num=[{num}]", "stages=[generate,baseline]")
+    with pytest.warns(UserWarning, match=r"configured controller's output to 4\.0 % .*gain ×0\.96"):
+        check(off, make_system(off))
+    assert np.isfinite(u).all()

@@ -43,6 +43,8 @@ FORMATS = ("table", "emps")
 #: relative rms of (recorded force - controller law on the recorded position) above which the
 #: record is not this loop (EMPS: 0.2 % in the training file; a sign or unit error gives > 100 %)
 CONTROLLER_RTOL = 0.05
+#: above this (and below CONTROLLER_RTOL) a variant of the controller that fits twice as well is named
+CONTROLLER_NOTE = 0.01
 #: shortest record an evaluation reference may be (the published convention reads t(10) - t(9))
 MIN_REFERENCE = 20
 #: an evaluation record shorter than this is scored but flagged (a 25-row test file passed without a word)
@@ -182,8 +184,12 @@ def check_record(ds: data.Dataset, system, source: str, min_len: int = 0,
         warnings.warn(msg, stacklevel=2)
     else:
         msg = delay_warning(ctrl, ds["r"], ds["y"], ds["u"], d, rel)
+        hints = ctrl.diagnose(ds["r"], ds["y"], ds["u"], d, rel / 2) if not msg and rel > CONTROLLER_NOTE else []
         if msg:
             warnings.warn(f"{source}: {msg}", stacklevel=2)
+        elif hints:   # within CONTROLLER_RTOL, but a variant fits twice as well (a gain ×1.04 passed silently)
+            warnings.warn(f"{source}: the recorded force u is the configured controller's output to {100 * rel:.1f} % "
+                          f"(EMPS: 0.2 %), and a variant fits better: {'; '.join(hints)}", stacklevel=2)
     _check_disturbance(ds, ctrl, source)
 
 

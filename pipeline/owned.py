@@ -141,7 +141,8 @@ def refuse_foreign(root: Path, targets: Iterable[str], option: str) -> None:
         more = f" and {len(bad) - 5} more" if len(bad) > 5 else ""
         record = root / MANIFEST
         unsigned = (f" ({MANIFEST} there is not signed with your cache key {cache_key_file()}: written by another "
-                    "user or an older version, or edited; it vouches for nothing)"
+                    "user or an older version, or edited; it vouches for nothing: outputs of an older version are "
+                    "removed by hand or restored with git checkout)"
                     if (record.exists() or record.is_symlink()) and not _listed(root) else "")
         raise ConfigError(f"{option}={root} holds file(s) this pipeline did not write or that were edited since "
                           f"({', '.join(bad[:5])}{more}){unsigned}; they would be replaced. Move them elsewhere, or "

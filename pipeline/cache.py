@@ -154,12 +154,13 @@ def _read_key(path: Path) -> bytes:
            "PIPELINE_CACHE_KEY_FILE at a file of your own")
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))   # a fifo must not block
-    except IsADirectoryError:
-        raise BadKey(f"the cache signing key {path} is not a plain file: {fix}") from None
+    except FileNotFoundError:   # a link to nothing (exists() was False, the new key could not be linked)
+        raise BadKey(f"the cache signing key {path} is a link to a missing file: {fix}") from None
+    st = os.fstat(fd)
+    if not stat.S_ISREG(st.st_mode):
+        os.close(fd)
+        raise BadKey(f"the cache signing key {path} is not a plain file: {fix}")
     with os.fdopen(fd, "rb") as f:
-        st = os.fstat(f.fileno())
-        if not stat.S_ISREG(st.st_mode):
-            raise BadKey(f"the cache signing key {path} is not a plain file: {fix}")
         if hasattr(os, "geteuid") and st.st_uid != os.geteuid():
             raise BadKey(f"the cache signing key {path} belongs to uid {st.st_uid}, not to you (uid {os.geteuid()}): "
                          f"anyone who can write it can forge entries; copy it to a file of your own (cp {path} "

@@ -194,6 +194,8 @@ def test_the_report_ships_from_the_signed_entry_not_the_artifact_store(store):
     ("long", "holds more than 32 bytes"),
     ("fifo", "is not a plain file"),
     ("device", "is not a plain file"),
+    ("folder", "is not a plain file"),
+    ("dangling", "is a link to a missing file"),
 ])
 def test_a_key_file_that_anyone_else_could_set_is_refused_with_the_fix(case, why, tmp_path, monkeypatch):
     """Finding 4: PIPELINE_CACHE_KEY_FILE=/etc/passwd, or 32 zero bytes of mode 666, was accepted and a
@@ -206,6 +208,10 @@ def test_a_key_file_that_anyone_else_could_set_is_refused_with_the_fix(case, why
         os.mkfifo(key)
     elif case == "device":
         key = "/dev/zero"
+    elif case == "folder":
+        key.mkdir()
+    elif case == "dangling":
+        key.symlink_to(tmp_path / "nothing")
     else:
         key.write_bytes({"long": os.urandom(64)}.get(case, bytes(32)))
         key.chmod({"zeros666": 0o666, "group": 0o620}.get(case, 0o600))

@@ -31,7 +31,7 @@ import mlflow
 import pandas as pd
 
 from pipeline import compare, owned, tracking
-from pipeline.atomic import replace_file
+from pipeline.atomic import replace_file, umask
 from pipeline.cache import UntrustedCache, cache_dir, copy_signed
 from pipeline.export.law import strict_json
 from pipeline.perturbation import (EXPLAIN, capped_fits, capped_lines, claim_verdicts, experiment_digests,
@@ -92,6 +92,7 @@ def run(ctx) -> dict:
         if (results / "figures").exists():
             os.replace(results / "figures", old / "figures")
         owned.allow(results, "figures", figdir)
+        os.chmod(figdir, 0o777 & ~umask())      # private (mkdtemp) while filled; readable as usual once whole
         os.replace(figdir, results / "figures")  # the figures first, then the report that links them
         shutil.rmtree(old, ignore_errors=True)
         _write(results / "REPORT.md", text)

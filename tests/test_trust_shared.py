@@ -252,6 +252,8 @@ def test_export_never_imports_a_stored_target_nor_uses_a_stored_cache_path(store
     nested = OmegaConf.merge(cfg, {"system": {"controller": {"_target_": "pipeline.systems.linear_motor.LinearMotor"}}})
     with pytest.raises(ConfigError, match=r"sets system.controller._target_="):
         stored_as_data(nested, rid)
+    with pytest.raises(ConfigError, match=r"holds an interpolation"):
+        stored_as_data(OmegaConf.create(OmegaConf.to_yaml(cfg) + "leak: ${oc.env:HOME}\n"), rid)
     elsewhere = OmegaConf.merge(cfg, {"paths": {"cache": str(tmp_path / "their_cache"), "results": "/tmp/theirs"}})
     got = stored_as_data(elsewhere, rid)
     assert got.paths.cache is None and got.paths.results is None        # this user's: $PIPELINE_CACHE, <repo>/results
@@ -278,6 +280,8 @@ def test_export_recomposes_a_run_from_its_overrides_and_this_codes_conf(store, c
     assert runner.plan(again, *runner.validate(again)[::2]) == runner.plan(cfg, names, modules)
     with pytest.raises(ConfigError, match=r"override 'system._target_=evil_plant.Plant': a stored module name"):
         recomposed("r1", json.dumps(job + ["system._target_=evil_plant.Plant"]), stored)
+    with pytest.raises(ConfigError, match=r"override 'run_name=\$\{oc.env:HOME\}': a stored module name or interp"):
+        recomposed("r1", json.dumps(job + ["run_name=${oc.env:HOME}"]), stored)
     with pytest.raises(ConfigError, match="do not compose with this code's conf/"):
         recomposed("r1", json.dumps(["system=no_such_plant"]), stored)
     with pytest.raises(ConfigError, match="not a JSON list of overrides"):

@@ -92,9 +92,9 @@ def recomposed(run_id: str, overrides: str | None, stored: DictConfig) -> DictCo
     kept = []
     for o in given:
         key = o.lstrip("+~").split("=", 1)[0].strip()
-        if "_target_" in key:
-            raise ConfigError(f"run {run_id} was made with the override {o!r}: a stored module name is never "
-                              "imported; export a run made with this code's configs")
+        if "_target_" in key or "${" in o:    # a module name, or a resolver (${oc.env:...}) reading this machine
+            raise ConfigError(f"run {run_id} was made with the override {o!r}: a stored module name or "
+                              "interpolation is never used; export a run made with this code's configs")
         if not any(key == k or key.startswith(f"{k}.") or key.startswith(f"{k}/") for k in _NOT_REAPPLIED):
             kept.append(o)
     schema.register()
@@ -119,6 +119,9 @@ def stored_as_data(cfg: DictConfig, run_id: str) -> DictConfig:
     job); ``paths`` are this user's (the defaults: ``$PIPELINE_CACHE``, ``<repo>/results``), never the
     stored ones; ``export.cc`` is replaced by the caller."""
     allowed = plant_targets()
+    if "${" in OmegaConf.to_yaml(cfg, resolve=False):   # stored resolved: an interpolation was put there since
+        raise ConfigError(f"run {run_id}'s stored config holds an interpolation (${{...}}), which a resolved config "
+                          "never does: the run was altered; a stored interpolation is never resolved here")
     for key, value in _targets(cfg):
         if key != "system._target_" or value not in allowed:
             raise ConfigError(f"run {run_id}'s stored config sets {key}={value!r}, which is not a plant of this "

@@ -1,12 +1,15 @@
 """``pgnn-ff export RUN_ID [--out DIR]`` (or ``python -m pipeline export …``): export the
 feedforward of an existing MLflow run (issue 12).
 
-The run's resolved config (its ``<run id>.yaml`` artifact) is rerun with the stages up to
-``invert`` plus ``export``: the upstream stages load from the cache (or are recomputed, bit-identical
-for the config), the packages and MLflow models are logged to that run, and the packages are
-copied to ``DIR/<package>/`` (default ``export/``), each appearing whole or not at all.
+The run's config, composed again from this code's ``conf/`` and the run's own overrides (its tag
+``overrides``; a run made before it: its stored ``<run id>.yaml``, checked as data), is rerun with the
+stages up to ``invert`` plus ``export``: the upstream stages load from the cache (or are recomputed,
+bit-identical for the config), the packages and MLflow models are logged to that run, and the packages
+are copied from the signed cache entry to ``DIR/<package>/`` (default ``export/``), each appearing
+whole or not at all.
 
-Never trusted from the stored run: the C compiler.  It is ``--cc`` when given, else the default of
+Never trusted from the stored run (issue 51): a module name (``_target_``), a path (``paths``), an
+interpolation, and the C compiler.  It is ``--cc`` when given, else the default of
 ``conf/config.yaml`` (``cc``): a shared store must not be a way to run a command on a colleague's
 machine.  ``DIR`` must not be inside the source tree, and a package folder there is replaced only
 if this command wrote it (:mod:`pipeline.owned`): a file of the user's in it stops the export
@@ -77,7 +80,7 @@ _NOT_REAPPLIED = ("paths", "hydra", "export.cc")
 
 def recomposed(run_id: str, overrides: str | None, stored: DictConfig) -> DictConfig | None:
     """The run's config composed again from the current ``conf/`` and the run's own overrides (its tag
-    ``overrides``, issue 51 item 5): what a stored config names is never imported or used as a path. An
+    ``overrides``, issue 51 finding 5): what a stored config names is never imported or used as a path. An
     override of a ``_target_`` is refused; those of ``paths``, ``hydra`` and ``export.cc`` are dropped (yours
     apply). None for a run made before the tag existed (:func:`stored_as_data` then)."""
     if not overrides:
@@ -113,7 +116,7 @@ def recomposed(run_id: str, overrides: str | None, stored: DictConfig) -> DictCo
 
 
 def stored_as_data(cfg: DictConfig, run_id: str) -> DictConfig:
-    """A run's stored config (from a store others may write) made data (issue 51 item 5): its only
+    """A run's stored config (from a store others may write) made data (issue 51 finding 5): its only
     ``_target_`` may be ``system._target_`` and must be a plant class of the current code's
     ``conf/system/`` (checked before anything imports it; the schema then checks every key as for a new
     job); ``paths`` are this user's (the defaults: ``$PIPELINE_CACHE``, ``<repo>/results``), never the

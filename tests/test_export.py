@@ -342,8 +342,8 @@ def test_export_cli_trusts_nothing_stored_and_replaces_only_its_own_packages(sto
     runner.run_job(cfg)
     run_id = tracking.search_runs("physics_baseline").iloc[0]["run_id"]
     # a colleague's run in a shared store, its stored config naming a compiler of theirs
-    tracking.client().log_text(run_id, OmegaConf.to_yaml(OmegaConf.merge(cfg, {"export": {"cc": str(evil)}})),
-                               f"{run_id}.yaml")
+    tracking.client().log_text(run_id, OmegaConf.to_yaml(OmegaConf.merge(cfg, {"export": {"cc": str(evil)}}),
+                                                         resolve=True), f"{run_id}.yaml")   # resolved, as runs store it
     (entry,) = [d for d in (store / "cache" / "export").iterdir() if not d.name.startswith(".")]
     with open(next(entry.rglob("ff_physics.c")), "a") as f:
         f.write("\nint backdoor(void) { return 1; }\n")

@@ -480,10 +480,10 @@ def test_the_preflight_names_the_missing_emps_files_where_and_how_to_run_without
         preflight.check(jobs)
 
 
-@pytest.mark.slow   # a Hydra start in a subprocess: 8 s alone, up to 35 s on a loaded machine
 def test_a_queue_without_the_emps_files_stops_before_any_job_or_run(tmp_path):
     """`make reproduce` on a clone without ../shared ran 18 minutes of jobs, then stopped on "EMPS file …
-    not found". The queue's pre-flight stops first: one line, no MLflow store, no cache entry."""
+    not found". The queue's pre-flight stops first (a Hydra start in a subprocess: 5 s): one line, no MLflow
+    store, no cache entry."""
     import subprocess
     import sys
     import time

@@ -20,7 +20,7 @@ from pipeline.export.guard import envelope_of
 from pipeline.errors import NonPhysical
 from pipeline.invert.start import resolve, settle_count, started
 from pipeline.runner import ConfigError, implementation
-from stages._common import check_references, reference_specs
+from stages._common import baseline_lag, check_references, reference_specs
 
 UPSTREAM = ("generate", "baseline", "train")
 DEPENDS = ("invert", "evaluate.references", "evaluate.noise", "start")  # fhofc scores the bound terms on the measured Y
@@ -65,6 +65,7 @@ def run(ctx) -> dict:
 
 def _run(ctx) -> dict:
     impl = implementation("invert", str(ctx.cfg.invert.kind))
+    baseline_lag(ctx)
     refs = check_references(reference_specs(ctx.cfg.evaluate.references), ctx.system, ctx.cfg)
     st = start_of(ctx.cfg, ctx.system)
     ctrl = ctx.system.ctrl if ctx.system.measured else None

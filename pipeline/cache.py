@@ -1,7 +1,7 @@
 """The stage cache's low level: temporary names, stale-temporary cleanup, per-entry locks, and the
 signed entries (HMAC-SHA256 with this user's cache key; an unsigned or altered entry is never
-unpickled).  Imports nothing from the rest of the pipeline (:mod:`pipeline.runner` and
-:mod:`pipeline.tracking` both use it)."""
+unpickled).  Imports nothing from the rest of the pipeline but :mod:`pipeline.atomic` (:mod:`pipeline.runner`
+and :mod:`pipeline.tracking` both use it)."""
 from __future__ import annotations
 
 import hashlib
@@ -12,12 +12,15 @@ import pickle
 import re
 import shutil
 import socket
+import stat
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
 from filelock import FileLock
+
+from pipeline.atomic import read_nofollow, replace_file, umask
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -63,6 +66,14 @@ def remove_stale_temporaries(store: Path) -> list[Path]:
                 shutil.rmtree(d, ignore_errors=True)
                 removed.append(d)
     return removed
+
+
+def private_dir(tmp: Path) -> None:
+    """A new temporary entry folder only this user can enter (mode 0700; :func:`_write_signed` opens it to
+    the usual mode once whole): in a cache a group shares, no one else writes into it or plants a link
+    there for the stage to write through while it fills it (issue 51)."""
+    tmp.parent.mkdir(parents=True, exist_ok=True)
+    tmp.mkdir(mode=0o700)
 
 
 def _locked(final: Path) -> FileLock:
@@ -129,16 +140,48 @@ def _signing_key() -> bytes:
                 raise
             finally:
                 tmp.unlink(missing_ok=True)
-        if not path.is_file():
-            raise BadKey(f"the cache signing key {path} is not a plain file: remove it (a new key is made) or "
-                         "point PIPELINE_CACHE_KEY_FILE at a file of your own")
-        key = path.read_bytes()
-        if len(key) < KEY_MIN_BYTES:
-            raise ShortKey(f"the cache signing key {path} holds {len(key)} bytes, fewer than {KEY_MIN_BYTES}: "
-                           "it cannot be trusted. Delete it (a new one is made; entries signed with the old one "
-                           "are recomputed)")
+        key = _read_key(path)
         _KEYS[path] = key
     return _KEYS[path]
+
+
+def _read_key(path: Path) -> bytes:
+    """The key file's bytes, from one open descriptor, refused (one line naming the fix) unless it is a
+    regular file of this user, not writable by group or others, of exactly KEY_MIN_BYTES bytes that are
+    not one byte repeated (issue 51 item 3: /etc/passwd, a device, or 32 zero bytes of mode 666 were
+    accepted, and a forgery signed with them ran)."""
+    fix = ("delete it (a new one is made; entries signed with the old one are recomputed) or point "
+           "PIPELINE_CACHE_KEY_FILE at a file of your own")
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))   # a fifo must not block
+    except FileNotFoundError:   # a link to nothing (exists() was False, the new key could not be linked)
+        raise BadKey(f"the cache signing key {path} is a link to a missing file: {fix}") from None
+    st = os.fstat(fd)
+    if not stat.S_ISREG(st.st_mode):
+        os.close(fd)
+        raise BadKey(f"the cache signing key {path} is not a plain file: {fix}")
+    with os.fdopen(fd, "rb") as f:
+        if hasattr(os, "geteuid") and st.st_uid != os.geteuid():
+            raise BadKey(f"the cache signing key {path} belongs to uid {st.st_uid}, not to you (uid {os.geteuid()}): "
+                         f"anyone who can write it can forge entries; copy it to a file of your own (cp {path} "
+                         f"~/my.key && chmod 600 ~/my.key) and point PIPELINE_CACHE_KEY_FILE at it")
+        if st.st_mode & 0o022:
+            who = "others" if st.st_mode & 0o002 else "its group"
+            raise BadKey(f"the cache signing key {path} can be written by {who}"
+                         f" (mode {stat.S_IMODE(st.st_mode):o}): whoever changes it can forge entries; "
+                         f"run chmod 600 {path}")
+        key = f.read(KEY_MIN_BYTES + 1)
+    if len(key) < KEY_MIN_BYTES:
+        raise ShortKey(f"the cache signing key {path} holds {len(key)} bytes, fewer than {KEY_MIN_BYTES}: "
+                       "it cannot be trusted. Delete it (a new one is made; entries signed with the old one "
+                       "are recomputed)")
+    if len(key) > KEY_MIN_BYTES:
+        raise BadKey(f"the cache signing key {path} holds more than {KEY_MIN_BYTES} bytes: it is not a key this "
+                     f"pipeline made (a key is {KEY_MIN_BYTES} random bytes); {fix}")
+    if len(set(key)) == 1:
+        raise BadKey(f"the cache signing key {path} is one byte repeated ({key[:1]!r} x {KEY_MIN_BYTES}), not a "
+                     f"secret; {fix}")
+    return key
 
 
 def _signature(*blobs: bytes) -> str:
@@ -151,26 +194,27 @@ def _signature(*blobs: bytes) -> str:
 _SIGNED = ("result.pkl", "record.json", "signature")
 
 
-def _tree(entry: Path) -> bytes:
+def _tree(entry: Path) -> dict[str, str]:
     """Every other file of the entry (exported C, laws, datasets, figures: what a later stage, the
-    tracking store or ``pgnn-ff export`` trusts), as sorted ``<relative path> <sha256>`` lines.  A
-    link, or anything that is neither file nor folder, cannot be trusted (it may point anywhere)."""
-    lines = []
+    tracking store or ``pgnn-ff export`` trusts): relative path -> SHA-256, in sorted order.  A link,
+    or anything that is neither file nor folder, cannot be trusted (it may point anywhere)."""
+    out = {}
     for p in sorted(entry.rglob("*")):
         rel = p.relative_to(entry).as_posix()
         if p.is_symlink() or not (p.is_file() or p.is_dir()):
             raise UntrustedCache(f"{entry} holds {rel}, which is not a plain file or folder")
         if p.is_file() and rel not in _SIGNED:
-            lines.append(f"{rel} {hashlib.sha256(p.read_bytes()).hexdigest()}")
-    return "\n".join(lines).encode()
+            out[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
+    return out
 
 
-def _blobs(entry: Path, final: Path, payload: bytes, rec: bytes | None) -> list[bytes]:
+def _blobs(entry: Path, final: Path, payload: bytes, rec: bytes | None, tree: dict[str, str]) -> list[bytes]:
     """What the signature covers: where the entry belongs (``<stage>/<key>``: a signed entry copied
-    under another config's key fails), its pickle, its record and every other file it holds."""
-    tree = _tree(entry)
+    under another config's key fails), its pickle, its record and every other file it holds (``tree``,
+    as sorted ``<relative path> <sha256>`` lines)."""
+    lines = "\n".join(f"{rel} {sha}" for rel, sha in tree.items()).encode()
     return [f"{final.parent.name}/{final.name}".encode(), payload] + ([rec] if rec is not None else []) + \
-        ([tree] if tree else [])
+        ([lines] if lines else [])
 
 
 def _write_signed(entry: Path, result, record: dict | None = None, final: Path | None = None) -> None:
@@ -183,25 +227,58 @@ def _write_signed(entry: Path, result, record: dict | None = None, final: Path |
     if record is not None:
         rec = json.dumps(record, indent=1).encode()
         (entry / "record.json").write_bytes(rec)
-    (entry / "signature").write_text(_signature(*_blobs(entry, final or entry, payload, rec)))
+    (entry / "signature").write_text(_signature(*_blobs(entry, final or entry, payload, rec, _tree(entry))))
+    os.chmod(entry, 0o777 & ~umask())   # made private (0700) while it was filled: readable as usual once whole
+
+
+def _verified(entry: Path) -> tuple[bytes, bytes | None, dict[str, str]]:
+    """The entry's pickle, record and file hashes, once its signature checked out: over its place, the
+    pickle, the record and every other file of the entry (a file added, removed or altered, or the entry
+    moved under another key, fails).  A signature file that is not text is a signature that fails."""
+    payload = (entry / "result.pkl").read_bytes()
+    rec = (entry / "record.json").read_bytes() if (entry / "record.json").exists() else None
+    tree = _tree(entry)
+    sig = entry / "signature"
+    got = sig.read_bytes().strip() if sig.exists() else b""
+    if not hmac.compare_digest(got, _signature(*_blobs(entry, entry, payload, rec, tree)).encode()):
+        raise UntrustedCache(f"{entry} is not signed with this machine's cache key ({cache_key_file()}), "
+                             "or a file in it was altered, added or removed, or it was moved from another key")
+    return payload, rec, tree
 
 
 def _read_signed(entry: Path) -> tuple[Any, dict | None]:
-    """The entry's result (and record), unpickled only after its signature checked out: over its
-    place, the pickle, the record and every other file of the entry (a file added, removed or
-    altered, or the entry moved under another key, fails)."""
-    payload = (entry / "result.pkl").read_bytes()
-    rec = (entry / "record.json").read_bytes() if (entry / "record.json").exists() else None
-    sig = entry / "signature"
-    if not sig.exists() or not hmac.compare_digest(sig.read_text().strip(),
-                                                   _signature(*_blobs(entry, entry, payload, rec))):
-        raise UntrustedCache(f"{entry} is not signed with this machine's cache key ({cache_key_file()}), "
-                             "or a file in it was altered, added or removed, or it was moved from another key")
+    """The entry's result (and record), unpickled only after its signature checked out (:func:`_verified`)."""
+    payload, rec, _ = _verified(entry)
     try:
         result = pickle.loads(payload)
     except (AttributeError, ImportError) as exc:   # written by an older layout of the code (a class moved)
         raise StaleCache(f"{entry} holds a class this code no longer has where it was ({exc})") from None
     return result, (json.loads(rec) if rec is not None else None)
+
+
+def copy_signed(entry: Path, folder: str, dest: Path) -> list[str]:
+    """Copy ``entry/folder`` to ``dest`` (a new folder), only what the entry's signature covers: each file
+    is read once from a descriptor opened without following a link, and its bytes are written only if
+    their SHA-256 is the signed one (issue 51 item 2: no check-then-copy, so a file swapped in after the
+    check is never shipped).  Returns the files copied (relative to ``folder``); raises
+    :class:`UntrustedCache` for an unsigned or altered entry, or a file changed while it was copied."""
+    _, _, tree = _verified(entry)
+    prefix = f"{folder.strip('/')}/"
+    copied = []
+    for rel, sha in tree.items():
+        if not rel.startswith(prefix):
+            continue
+        try:
+            blob = read_nofollow(entry / rel)
+        except OSError as exc:
+            raise UntrustedCache(f"{entry / rel} cannot be read as a plain file ({exc})") from None
+        if hashlib.sha256(blob).hexdigest() != sha:
+            raise UntrustedCache(f"{entry / rel} changed after its entry's signature was checked")
+        target = dest / rel[len(prefix):]
+        target.parent.mkdir(parents=True, exist_ok=True)
+        replace_file(target, blob)
+        copied.append(rel[len(prefix):])
+    return copied
 
 
 def _load_trusted(entry: Path) -> tuple[Any, dict | None] | None:
@@ -218,4 +295,23 @@ def _load_trusted(entry: Path) -> tuple[Any, dict | None] | None:
         aside = entry.with_name(f".untrusted-{entry.name}-{time.time_ns()}")
         os.rename(entry, aside)
         print(f"warning: {why}; not loaded (moved to {aside.name}), recomputing", file=sys.stderr, flush=True)
+        prune_untrusted(entry.parent)
         return None
+
+
+#: entries set aside as untrusted kept per stage folder for inspection (the newest); older ones are deleted
+KEEP_UNTRUSTED = 3
+_UNTRUSTED = re.compile(r"^\.untrusted-.+-(?P<ns>\d+)$")
+
+
+def prune_untrusted(stage: Path) -> list[Path]:
+    """Delete all but the :data:`KEEP_UNTRUSTED` newest ``.untrusted-*`` folders of a stage folder (by the
+    time in their name): they grew without bound (19 after 7 runs, issue 51). Returns those deleted."""
+    aside = sorted((p for p in stage.iterdir() if _UNTRUSTED.match(p.name)),
+                   key=lambda p: int(_UNTRUSTED.match(p.name)["ns"]), reverse=True)
+    for p in aside[KEEP_UNTRUSTED:]:
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+    return aside[KEEP_UNTRUSTED:]

@@ -10,6 +10,7 @@ the reason. :func:`figure` draws the table; :func:`markdown` prints it. The swee
 from __future__ import annotations
 
 import fnmatch
+import io
 import re
 import warnings
 from pathlib import Path
@@ -17,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.atomic import replace_file
 from pipeline.plots import pyplot
 
 #: candidate factors: (column, label), in the order they group the table
@@ -214,10 +216,10 @@ def figure(table: pd.DataFrame, path: Path, title: str = "") -> Path | None:
         warnings.simplefilter("ignore", UserWarning)
         fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=100, bbox_inches="tight")
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
     plt.close(fig)
-    tmp.replace(path)
+    replace_file(path, buf.getvalue())
     return path
 
 

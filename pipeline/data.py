@@ -8,13 +8,15 @@ metadata (system, Ts, seed, config hash, ...).  Simulated and measured data shar
 from __future__ import annotations
 
 import json
-import os
+import io
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 import pandas as pd
+
+from pipeline.atomic import replace_file
 
 REQUIRED = ("t", "r", "u", "y")
 OPTIONAL = ("u_ff", "u_fb", "f_opt", "y_clean", "v", "segment", "d")
@@ -126,23 +128,14 @@ def sample_time(t, Ts_sidecar, source: str, rtol: float = TS_RTOL) -> float:
     return med if Ts_sidecar is None else Ts_sidecar   # the sidecar's exact value when it agrees
 
 
-def _atomic_write(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
 def save(ds: Dataset, path: str | Path) -> Path:
     """Write ``<path>.parquet`` and its JSON sidecar ``<path>.json`` atomically."""
     path = Path(path).with_suffix(".parquet")
     path.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_write(path, lambda p: ds.frame.to_parquet(p, index=False))
-    _atomic_write(path.with_suffix(".json"),
-                  lambda p: p.write_text(json.dumps(ds.meta, indent=1, sort_keys=True, default=str)))
+    buf = io.BytesIO()
+    ds.frame.to_parquet(buf, index=False)
+    replace_file(path, buf.getvalue())
+    replace_file(path.with_suffix(".json"), json.dumps(ds.meta, indent=1, sort_keys=True, default=str))
     return path
 
 

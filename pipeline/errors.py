@@ -14,6 +14,11 @@ class ConfigError(ValueError):
     """A bad config key or value, raised before any work is done."""
 
 
+class NonPhysical(ValueError):
+    """An identified model with no physical inverse (1/M not positive): the invert stage names it in one
+    line instead of a traceback (issue 51)."""
+
+
 class ExportError(ValueError):
     """A feedforward the exporter cannot ship (unsupported law or model shape, no compiler, a
     package that does not reproduce the study); ``pipeline.export.law`` re-exports it."""

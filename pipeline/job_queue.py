@@ -8,11 +8,12 @@ with no estimate go first, in the order given.
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
+
+from pipeline.atomic import replace_file
 
 COLUMNS = ["experiment", "job", "wall_seconds", "git_sha"]
 #: the row of the whole run (written by pipeline/reproduce.py), not a job
@@ -90,6 +91,4 @@ def write_timings(path: Path, ordered: list[Job], seconds: list[float | None],
 
 def write_csv(path: Path, table: pd.DataFrame) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    table.to_csv(tmp, index=False)
-    os.replace(tmp, path)
+    replace_file(path, table.to_csv(index=False))

@@ -27,11 +27,12 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+from pipeline.atomic import replace_file
 
 KEY = ["experiment", "claim", "variant", "metric"]
 #: a value below this fraction of the largest |value| of its metric for its model (the variant's first
@@ -398,9 +399,7 @@ def status_lines(stale: list[str], partial: list[str], unchecked: list[str] = ()
 
 
 def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    replace_file(path, text)
 
 
 def main(argv=None) -> int:

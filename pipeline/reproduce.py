@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import os
 import re
-import shutil
 import subprocess
 import sys
 import time
@@ -27,6 +26,7 @@ from pathlib import Path
 import pandas as pd
 
 from pipeline import job_queue
+from pipeline.atomic import replace_file
 
 _STAGE_LINE = re.compile(r"^\[(?P<run>.+)\] (?:generate|baseline|train|invert|evaluate|report): ")  # names may hold [ ]
 
@@ -67,7 +67,7 @@ def run(experiments: list[str], results: Path, python: str = sys.executable,
     # a check's rerun (its own results folder): ordered by the reference run's job times
     if not path.exists() and (ROOT / "results" / "timings.csv").exists():
         results.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(ROOT / "results" / "timings.csv", path)
+        replace_file(path, (ROOT / "results" / "timings.csv").read_bytes())   # never through a planted link
     cores = cores_available()
     jobs = jobs or cores
     threads = int(os.environ.get("OMP_NUM_THREADS", "1") or 1)      # BLAS threads per job

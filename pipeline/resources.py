@@ -146,6 +146,12 @@ def describe(exc: BaseException, cfg=None) -> str | None:
             return (f"error: MLflow tracking server at {uri}: unreachable ({why}); start it or fix "
                     "MLFLOW_TRACKING_URI (unset: the local store under mlruns/)")
         msg = str(e)
+        status = re.search(r"too many (\d{3}) error responses|error code (\d{3}) != 200", msg)
+        if status and (status.group(1) or status.group(2)).startswith("5"):   # 503 (busy), 502, 500 (issue 51)
+            code = status.group(1) or status.group(2)
+            return (f"error: MLflow tracking server at {uri}: answered HTTP {code} (a server error: overloaded, "
+                    "restarting or broken); retry later, check the server's log, or point MLFLOW_TRACKING_URI "
+                    "at another store")
         for key, (reason, first) in SQLITE.items():
             if key in msg:
                 db = uri[len("sqlite:///"):] if uri.startswith("sqlite:///") else uri

@@ -44,6 +44,7 @@ from tqdm.auto import tqdm
 
 import pipeline
 from pipeline import data, interrupts, naming, owned, schema, tracking
+from pipeline.atomic import replace_file
 from pipeline.cache import (  # noqa: F401
     HOST,
     BadKey,
@@ -57,6 +58,7 @@ from pipeline.cache import (  # noqa: F401
     cache_dir,
     cache_key_file,
     pid_alive,
+    private_dir,
     remove_stale_temporaries,
 )
 from pipeline.compare import display_metrics
@@ -85,6 +87,17 @@ def make_system(cfg: DictConfig):
 def experiment_file() -> str:
     """The experiment file this job composed (Hydra's ``experiment`` choice), "" outside a Hydra app."""
     return str(HydraConfig.get().runtime.choices.get("experiment") or "") if HydraConfig.initialized() else ""
+
+
+def job_overrides() -> str:
+    """This job's command-line overrides (Hydra's ``overrides.task``, the experiment file and a sweep's
+    values included) as a JSON list, the run's tag ``overrides``: ``pgnn-ff export`` re-composes the run
+    from them and the current ``conf/`` instead of trusting its stored config (issue 51). "" outside a
+    Hydra app, or when longer than a tag holds."""
+    if not HydraConfig.initialized():
+        return ""
+    text = json.dumps([str(o) for o in HydraConfig.get().overrides.task])
+    return text if len(text) <= 5000 else ""
 
 
 def choice(cfg: DictConfig, group: str) -> str:
@@ -179,7 +192,7 @@ class StageContext:
             value = compute()
             tmp = final.with_name(_tmp_name(key))
             try:
-                tmp.mkdir(parents=True)
+                private_dir(tmp)
                 _write_signed(tmp, value, final=final)
                 os.rename(tmp, final)
             except BaseException:   # a full disk, Ctrl-C: nothing half-written stays
@@ -384,6 +397,7 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None,
                 "config_hash": keys[names[-1]][:20],  # the last stage's key: same hash, same config
                 "run_key": str(cfg.run_name), "mlflow.note.content": note,
                 "experiment_file": experiment_file(),   # conf/experiment/<file>.yaml: what the report selects by
+                "overrides": job_overrides(),
                 **{g: choice(cfg, g) for g in TAG_GROUPS if g in cfg}}
         params = OmegaConf.to_container(cfg, resolve=True)
         params.pop("description", None)   # the experiment's note, not a parameter of the run
@@ -395,7 +409,7 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None,
         if own_run:
             cfg_file = store / "configs" / f"{run.run_id}.yaml"
             cfg_file.parent.mkdir(parents=True, exist_ok=True)
-            cfg_file.write_text(OmegaConf.to_yaml(cfg, resolve=True))
+            replace_file(cfg_file, OmegaConf.to_yaml(cfg, resolve=True))
             run.log_artifact(cfg_file)  # the resolved config (DESIGN, Tracking)
         for name, mod in modules.items():
             key = keys[name]
@@ -426,7 +440,7 @@ def run_job(cfg: DictConfig, run: "tracking.JobRun | None" = None,
                 if lock is not None and lock.is_locked:
                     lock.release()
             try:
-                _log_stage(run, name, record, final, hit, cfg)
+                _log_stage(run, name, record, final, hit, cfg, cacheable)
             finally:
                 if not cacheable:   # its temporary directory, logged: removed whatever happens
                     shutil.rmtree(final, ignore_errors=True)
@@ -450,7 +464,7 @@ def _compute(cfg, name, mod, key, keys, results, system, store, cacheable, run_i
     # removed on any exception, Ctrl-C included; by the interrupt watchdog if this thread cannot react
     interrupts.on_abort(tmp, lambda: shutil.rmtree(tmp, ignore_errors=True))
     try:
-        tmp.mkdir(parents=True)
+        private_dir(tmp)   # no one else writes (or plants a link) in it while the stage fills it
         ctx = StageContext(cfg, name, {u: results[u] for u in mod.UPSTREAM}, tmp, system, key,
                            subkey=lambda exclude: stage_key(cfg, name, mod, keys, exclude), run_id=run_id)
         _seed_everything(int(cfg.seed), name)
@@ -480,13 +494,17 @@ def _seed_everything(seed: int, stage: str) -> None:
     torch.manual_seed(s)
 
 
-def _log_stage(run, name: str, record: dict, stage_dir: Path, hit: bool, cfg=None) -> None:
+def _log_stage(run, name: str, record: dict, stage_dir: Path, hit: bool, cfg=None, cacheable: bool = False) -> None:
+    """Log one stage's metrics, tags and artifacts to ``run``; a cached stage's entry is named in the tag
+    ``cache_entry.<stage>`` (``<stage>/<key>``): the report ships exported packages from that signed entry,
+    never from the artifact store (issue 51 item 2)."""
     metrics = [tuple(m) for m in record["metrics"]]
     metrics.append((f"time/{name}_s", record["seconds"], None))
     system = str(OmegaConf.select(cfg, "system.name", default="") or "") if cfg is not None else ""
     metrics += display_metrics(metrics, system)   # µm, µs twins: the UI's charts read (issue 23)
     run.log_metrics(metrics)
-    run.set_tags({**record["tags"], f"cache.{name}": "hit" if hit else "miss"})
+    run.set_tags({**record["tags"], f"cache.{name}": "hit" if hit else "miss",
+                  **({f"cache_entry.{name}": f"{name}/{stage_dir.name}"} if cacheable else {})})
     for fig in record["figures"]:
         run.log_artifact(stage_dir / "figures" / fig, "figures")
     for rel in record.get("artifacts", []):   # <stage>/<rel>, sub-folders kept

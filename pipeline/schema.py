@@ -41,7 +41,6 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import json
-import os
 import math
 import typing
 from dataclasses import MISSING, field
@@ -52,6 +51,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf, open_dict
 
 from pipeline import source_digest
+from pipeline.atomic import replace_file
 from pipeline.errors import ORDER, SAFE_NAME, ConfigError
 from pipeline.params import is_number, references_rule, schema, spec
 
@@ -347,9 +347,7 @@ def _cached_defaults(conf: Path) -> dict[str, dict]:
     nodes = _all_defaults(conf)
     try:
         where.parent.mkdir(parents=True, exist_ok=True)
-        tmp = where.with_name(f".{where.name}.{os.getpid()}")
-        tmp.write_text(json.dumps(nodes))
-        os.replace(tmp, where)
+        replace_file(where, json.dumps(nodes))
     except OSError:
         pass
     return nodes

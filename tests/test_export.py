@@ -342,8 +342,8 @@ def test_export_cli_trusts_nothing_stored_and_replaces_only_its_own_packages(sto
     runner.run_job(cfg)
     run_id = tracking.search_runs("physics_baseline").iloc[0]["run_id"]
     # a colleague's run in a shared store, its stored config naming a compiler of theirs
-    tracking.client().log_text(run_id, OmegaConf.to_yaml(OmegaConf.merge(cfg, {"export": {"cc": str(evil)}})),
-                               f"{run_id}.yaml")
+    tracking.client().log_text(run_id, OmegaConf.to_yaml(OmegaConf.merge(cfg, {"export": {"cc": str(evil)}}),
+                                                         resolve=True), f"{run_id}.yaml")   # resolved, as runs store it
     (entry,) = [d for d in (store / "cache" / "export").iterdir() if not d.name.startswith(".")]
     with open(next(entry.rglob("ff_physics.c")), "a") as f:
         f.write("\nint backdoor(void) { return 1; }\n")
@@ -386,7 +386,7 @@ def test_shipped_packages_list_exactly_the_files_they_hold(store, cfg_of, tmp_pa
     refs = "evaluate.references=[{name:v0.15,kind:b1_evaluation,v_max:0.15},{name:v0.2,kind:b1_evaluation,v_max:0.2}]"
     runner.run_job(cfg_of(*SHORT_B1[:4], refs, "invert=physics",
                           "stages=[generate,baseline,train,invert,evaluate,export]"))
-    _ship(tmp_path / "export", ("b1_linear_motor", ("system.noise.structure", "equation"), "v0_15"))
+    _ship(tmp_path / "export", ("b1_linear_motor", ("system.noise.structure", "equation"), "v0_15"), store / "cache")
     pkg = tmp_path / "export" / "ff_physics"
     man = _strict((pkg / "manifest.json").read_text())
     assert man["files"] == sorted(p.name for p in pkg.iterdir() if p.name != "manifest.json")

@@ -255,10 +255,10 @@ def test_a_report_stopped_after_its_swaps_is_still_known_as_ours(store, cfg_of, 
 
     def stopped(*a, **k):
         raise KeyboardInterrupt
-    monkeypatch.setattr(owned, "record", stopped)
-    with pytest.raises(KeyboardInterrupt):
-        runner.run_job(two)
-    monkeypatch.undo()
+    with monkeypatch.context() as patched:   # only this patch undone (not the store's: its cache key signs the record)
+        patched.setattr(owned, "record", stopped)
+        with pytest.raises(KeyboardInterrupt):
+            runner.run_job(two)
     assert (results / "REPORT.md").read_text() != first                        # swapped in, not recorded
     assert owned.foreign(results, ("REPORT.md", "summary.csv", "figures")) == []
     runner.run_job(report)
@@ -374,8 +374,8 @@ def test_cache_entry_from_elsewhere_is_never_unpickled(store, cfg_of, capsys):
     assert again.equals(good)                                  # recomputed, bit-identical
     # a cache copied from another machine (its own key) is not trusted either
     other = store / "other.key"
-    other.write_bytes(b"x" * 32)
     import os
+    other.write_bytes(os.urandom(32))
     os.environ["PIPELINE_CACHE_KEY_FILE"] = str(other)
     try:
         assert runner.run_job(cfg)["generate"]["dataset"].frame.equals(good)

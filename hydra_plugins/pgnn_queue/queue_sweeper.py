@@ -73,7 +73,7 @@ class QueueSweeper(Sweeper):
                              "(conf/experiment/<name>.yaml)")
         assert self.hydra_context is not None and self.launcher is not None and self.config is not None
         parser = OverridesParser.create(config_loader=self.hydra_context.config_loader)
-        jobs = []
+        jobs, composed = [], []
         for name in self.experiments:
             cfg = self._experiment_config(name, arguments)
             params = OmegaConf.to_container(cfg.hydra.sweeper.params, resolve=False) \
@@ -82,6 +82,17 @@ class QueueSweeper(Sweeper):
             spec = [f"{k}={v}" for k, v in params.items()] + [f"experiment={name}"] + list(arguments)
             (batch,) = BasicSweeper.split_arguments(parser.parse_overrides(spec), None)
             jobs += [job_queue.Job(name, tuple(ov)) for ov in batch]
+            composed.append((name, cfg, params))
+        if not self.dry_run:   # every data file every job reads, before any job or MLflow run (issue 51)
+            from hydra.errors import ConfigCompositionException   # Hydra prints its message, one line
+
+            from pipeline import preflight
+            from pipeline.errors import ConfigError
+            try:
+                preflight.check([(name, cfg) for name, cfg, _ in composed])
+            except ConfigError as exc:
+                raise ConfigCompositionException(f"pre-flight: {exc}") from None
+        for name, cfg, params in composed:
             if params and not self.dry_run:              # a sweep: its MLflow parent run, as before
                 self.hydra_context.callbacks.on_multirun_start(config=cfg)
         previous = job_queue.read_timings(Path(self.timings)) if self.timings else None

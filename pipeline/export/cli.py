@@ -1,12 +1,15 @@
 """``pgnn-ff export RUN_ID [--out DIR]`` (or ``python -m pipeline export …``): export the
 feedforward of an existing MLflow run (issue 12).
 
-The run's resolved config (its ``<run id>.yaml`` artifact) is rerun with the stages up to
-``invert`` plus ``export``: the upstream stages load from the cache (or are recomputed, bit-identical
-for the config), the packages and MLflow models are logged to that run, and the packages are
-copied to ``DIR/<package>/`` (default ``export/``), each appearing whole or not at all.
+The run's config, composed again from this code's ``conf/`` and the run's own overrides (its tag
+``overrides``; a run made before it: its stored ``<run id>.yaml``, checked as data), is rerun with the
+stages up to ``invert`` plus ``export``: the upstream stages load from the cache (or are recomputed,
+bit-identical for the config), the packages and MLflow models are logged to that run, and the packages
+are copied from the signed cache entry to ``DIR/<package>/`` (default ``export/``), each appearing
+whole or not at all.
 
-Never trusted from the stored run: the C compiler.  It is ``--cc`` when given, else the default of
+Never trusted from the stored run (issue 51): a module name (``_target_``), a path (``paths``), an
+interpolation, and the C compiler.  It is ``--cc`` when given, else the default of
 ``conf/config.yaml`` (``cc``): a shared store must not be a way to run a command on a colleague's
 machine.  ``DIR`` must not be inside the source tree, and a package folder there is replaced only
 if this command wrote it (:mod:`pipeline.owned`): a file of the user's in it stops the export
@@ -15,19 +18,22 @@ before any work.
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import sys
 import tempfile
 from pathlib import Path
 
 import mlflow
-from omegaconf import DictConfig, OmegaConf
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from pipeline import owned, runner, schema, tracking
-from pipeline.cache import UntrustedCache, _read_signed, cache_dir
+from pipeline.cache import UntrustedCache, cache_dir, copy_signed
 from pipeline.export.law import ExportError
 from pipeline.export.package import replace_dir
-from pipeline.runner import ORDER, ConfigError
+from pipeline.runner import ORDER, ROOT, ConfigError
 
 __all__ = ["main", "export_run"]
 
@@ -40,6 +46,96 @@ def _writable(out: Path) -> None:
         tempfile.TemporaryFile(dir=out).close()
     except OSError as exc:
         raise ConfigError(f"cannot write to --out {out} ({exc.strerror}); give a folder you can write to") from None
+
+
+def _targets(node, at: str = ""):
+    """Every ``_target_`` of a config tree: (dotted key, value)."""
+    if isinstance(node, DictConfig):
+        for k in node.keys():
+            key = f"{at}.{k}" if at else str(k)
+            if k == "_target_":
+                yield key, node._get_node(k)._value()
+            else:
+                yield from _targets(node._get_node(k), key)
+    elif isinstance(node, ListConfig):
+        for i, v in enumerate(node._iter_ex(resolve=False)):
+            yield from _targets(v, f"{at}[{i}]")
+
+
+def plant_targets() -> set[str]:
+    """The plants' classes the current code's config tree names (``conf/system/*.yaml`` ``_target_``),
+    read as text: nothing is imported."""
+    out = set()
+    for f in sorted((ROOT / "conf" / "system").glob("*.yaml")):
+        node = OmegaConf.load(f)
+        if isinstance(node, DictConfig) and isinstance(node.get("_target_"), str):
+            out.add(node["_target_"])
+    return out
+
+
+#: overrides of a stored run that are never re-applied: where this user's files go, Hydra's own settings,
+#: the compiler (``--cc`` chooses it)
+_NOT_REAPPLIED = ("paths", "hydra", "export.cc")
+
+
+def recomposed(run_id: str, overrides: str | None, stored: DictConfig) -> DictConfig | None:
+    """The run's config composed again from the current ``conf/`` and the run's own overrides (its tag
+    ``overrides``, issue 51 finding 5): what a stored config names is never imported or used as a path. An
+    override of a ``_target_`` is refused; those of ``paths``, ``hydra`` and ``export.cc`` are dropped (yours
+    apply). None for a run made before the tag existed (:func:`stored_as_data` then)."""
+    if not overrides:
+        return None
+    try:
+        given = json.loads(overrides)
+    except ValueError:
+        given = None
+    if not (isinstance(given, list) and all(isinstance(o, str) for o in given)):
+        raise ConfigError(f"run {run_id}'s tag overrides is not a JSON list of overrides: the run was altered or "
+                          "not made by this pipeline")
+    kept = []
+    for o in given:
+        key = o.lstrip("+~").split("=", 1)[0].strip()
+        if "_target_" in key or "${" in o:    # a module name, or a resolver (${oc.env:...}) reading this machine
+            raise ConfigError(f"run {run_id} was made with the override {o!r}: a stored module name or "
+                              "interpolation is never used; export a run made with this code's configs")
+        if not any(key == k or key.startswith(f"{k}.") or key.startswith(f"{k}/") for k in _NOT_REAPPLIED):
+            kept.append(o)
+    schema.register()
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+            cfg = compose(config_name="config", overrides=kept)
+    except Exception as exc:  # noqa: BLE001 — Hydra raises several types for an override it cannot apply
+        raise ConfigError(f"run {run_id}'s overrides {kept} do not compose with this code's conf/ "
+                          f"({str(exc).splitlines()[0]}): export it with the code it was made with") from None
+    finally:
+        GlobalHydra.instance().clear()
+    if isinstance(stored.get("run_name"), str) and "${" not in stored.run_name:
+        cfg.run_name = stored.run_name          # a name (the schema checks it), as __main__ set it for the job
+    return cfg
+
+
+def stored_as_data(cfg: DictConfig, run_id: str) -> DictConfig:
+    """A run's stored config (from a store others may write) made data (issue 51 finding 5): its only
+    ``_target_`` may be ``system._target_`` and must be a plant class of the current code's
+    ``conf/system/`` (checked before anything imports it; the schema then checks every key as for a new
+    job); ``paths`` are this user's (the defaults: ``$PIPELINE_CACHE``, ``<repo>/results``), never the
+    stored ones; ``export.cc`` is replaced by the caller."""
+    allowed = plant_targets()
+    if "${" in OmegaConf.to_yaml(cfg, resolve=False):   # stored resolved: an interpolation was put there since
+        raise ConfigError(f"run {run_id}'s stored config holds an interpolation (${{...}}), which a resolved config "
+                          "never does: the run was altered; a stored interpolation is never resolved here")
+    for key, value in _targets(cfg):
+        if key != "system._target_" or value not in allowed:
+            raise ConfigError(f"run {run_id}'s stored config sets {key}={value!r}, which is not a plant of this "
+                              f"code's conf/system/ ({', '.join(sorted(allowed))}); a stored module name is never "
+                              "imported: export a run made with this code's configs")
+    stored = OmegaConf.select(cfg, "paths", default=None)
+    cfg.paths = OmegaConf.create(schema.defaults(schema.Paths))
+    if isinstance(stored, DictConfig) and any(stored.get(k) not in (None, cfg.paths[k]) for k in cfg.paths):
+        print(f"note: run {run_id} was made with paths {OmegaConf.to_container(stored)}; exporting with this "
+              f"user's cache ({cache_dir(cfg)}), never a stored path", file=sys.stderr)
+    return cfg
 
 
 def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool = True,
@@ -75,6 +171,7 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
     if not isinstance(cfg, DictConfig):
         raise ConfigError(f"run {run_id}'s config artifact {run_id}.yaml is not a mapping: the run was altered or "
                           "not made by this pipeline")
+    cfg = recomposed(run_id, tags.get("overrides"), cfg) or stored_as_data(cfg, run_id)
     kind = str(OmegaConf.select(cfg, "invert.kind", default=""))
     if kind not in runner.exportable():
         raise ConfigError(f"run {run_id} has invert.kind={kind!r}, which has no feedforward law to ship; "
@@ -96,20 +193,20 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
     results = runner.run_job(cfg, run=tracking.JobRun.resume(run_id))
     packages = results["export"]["packages"]
     owned.refuse_foreign(out, list(packages), "--out")
-    # the packages are copied from the signed cache entry the job just loaded or wrote, verified
-    # again here, never from the tracking store's artifact folder (anyone with write access to a
-    # shared store could plant a file there)
+    # the packages are copied from the signed cache entry the job just loaded or wrote, never from the
+    # tracking store's artifact folder (anyone with write access to a shared store could plant a file
+    # there); each file's bytes are hashed as they are read and written only if signed (no check-then-copy)
     names, _, modules = runner.validate(cfg)
     entry = cache_dir(cfg) / "export" / runner.plan(cfg, names, modules)["export"][:20]
-    try:
-        _read_signed(entry)
-    except (UntrustedCache, OSError) as exc:
-        raise ConfigError(f"the export's cache entry changed while it was copied: {exc}; rerun") from None
     for name in packages:
         tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{name}-", dir=out))
         try:
             got = tmp / name
-            shutil.copytree(entry / "artifacts" / name, got)
+            try:
+                if not copy_signed(entry, f"artifacts/{name}", got):
+                    raise UntrustedCache(f"{entry} holds no package {name}")
+            except (UntrustedCache, OSError) as exc:
+                raise ConfigError(f"the export's cache entry changed while it was copied: {exc}; rerun") from None
             final = out / name
             owned.allow(out, name, got)     # known as ours even if stopped right after the swap
             replace_dir(got, final)

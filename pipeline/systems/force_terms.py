@@ -72,7 +72,8 @@ class Params:
     # [m/s] v_s of the stribeck term F_s sign(q̇) exp(-(q̇/v_s)²)
     stribeck_velocity: float = spec(0.01, gt=0, le=SPEED_MAX, unit="m/s")
     # [m] position period P of the cogging force (the pole pitch); needed by the cogging term
-    cogging_period: Optional[float] = spec(None, gt=0, le=LENGTH_MAX, unit="m", example=0.03)
+    # (>= 0.1 mm: the finest pole pitches are millimetres; 1e-9 fitted noise as cogging, issue 51)
+    cogging_period: Optional[float] = spec(None, ge=1e-4, le=LENGTH_MAX, unit="m", example=0.03)
     # H: cos and sin of 2π h q/P for h = 1..H
     cogging_harmonics: int = spec(1, ge=1, le=20)
     # N: the position_poly term's highest power (q/L)^2 .. (q/L)^N

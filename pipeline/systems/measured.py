@@ -25,6 +25,7 @@ from typing import Literal, Optional
 import numpy as np
 from scipy import signal
 
+from pipeline.errors import NonPhysical
 from pipeline.identify.least_squares import decimated_rows, solve_scaled
 from pipeline.params import DAMP_MAX, FORCE_MAX, FREQ_MAX, MASS_MAX, TS_MAX, schema, spec
 from pipeline.systems import coulomb_width
@@ -169,7 +170,7 @@ class RigidBodyPhysics(LinearMotorPhysics):
         """θ' = [M, p_1, …] of the inverse form."""
         t = self._check_theta(theta)
         if not t[0] > 0.0:
-            raise ValueError(f"θ[0] = 1/M = {t[0]} is not positive: no physical mass, the model cannot "
+            raise NonPhysical(f"θ[0] = 1/M = {t[0]} is not positive: no physical mass, the model cannot "
                              "be inverted; check the identification (sign of u and y)")
         return np.concatenate([[1.0], t[1:]]) / t[0]
 

@@ -43,8 +43,12 @@ FORMATS = ("table", "emps")
 #: relative rms of (recorded force - controller law on the recorded position) above which the
 #: record is not this loop (EMPS: 0.2 % in the training file; a sign or unit error gives > 100 %)
 CONTROLLER_RTOL = 0.05
+#: above this (and below CONTROLLER_RTOL) a variant of the controller that fits twice as well is named
+CONTROLLER_NOTE = 0.01
 #: shortest record an evaluation reference may be (the published convention reads t(10) - t(9))
 MIN_REFERENCE = 20
+#: an evaluation record shorter than this is scored but flagged (a 25-row test file passed without a word)
+SHORT_REFERENCE = 500
 
 
 def _folder_and_file(cfg, file: str | None) -> tuple[Path, str | None]:
@@ -68,19 +72,24 @@ def _sha256(path: Path) -> str:
     return _HASHES[key]
 
 
+def data_files(cfg) -> list:
+    """The files (``data.file`` names, None = ``data.path`` itself) a job reads: the training file(s) and
+    every evaluation reference's recording (:func:`load_file` reads each; the queue's pre-flight too)."""
+    files = list(training_files(cfg))
+    refs = OmegaConf.to_container(cfg.evaluate.references, resolve=True) \
+        if cfg.get("evaluate") is not None and cfg.evaluate.get("references") is not None else []
+    specs = list(refs.values()) if isinstance(refs, dict) else refs   # a list, or a mapping by name
+    return files + [s["file"] for s in specs if isinstance(s, dict) and s.get("kind") == "measured" and s.get("file")]
+
+
 def content_key(cfg) -> dict[str, str]:
     """SHA-256 of every file this job reads measured data from: the training file(s) and every
     evaluation reference's recording, wherever they are (beside data.path, in a sub-folder, or by
     an absolute path): part of the stage's cache key (runner.stage_key), so a recording replaced under
     the same name is reread, never served from the cache of the old one (issue 24). A missing file
     adds nothing here: :func:`check` names it before any work."""
-    files = list(training_files(cfg))
-    refs = OmegaConf.to_container(cfg.evaluate.references, resolve=True) \
-        if cfg.get("evaluate") is not None and cfg.evaluate.get("references") is not None else []
-    specs = list(refs.values()) if isinstance(refs, dict) else refs   # a list, or a mapping by name
-    files += [s["file"] for s in specs if isinstance(s, dict) and s.get("kind") == "measured" and s.get("file")]
     out = {}
-    for f in files:
+    for f in data_files(cfg):
         try:
             target = _target(cfg, f)
         except ConfigError:
@@ -119,6 +128,10 @@ def load_file(cfg, file: str | None = None) -> data.Dataset:
     if fmt == "emps":
         return data.load_emps(target.parent, target.stem)
     ds = data.load(target)
+    if "segment" in ds.frame:   # issue 51: read as labels, it split EMPS-like data into 1-row "experiments"
+        warnings.warn(f"{target}: its column 'segment' is ignored (several experiments are several files: "
+                      "data.files=[run1.csv, run2.csv]); rename or drop it to silence this", stacklevel=2)
+        ds.frame = ds.frame.drop(columns="segment")
     dist = cfg.system.get("disturbance") if "system" in cfg else None
     if dist and dist in ds.frame and "d" not in ds.frame:   # the system's disturbance column is d
         ds.frame = ds.frame.rename(columns={dist: "d"})
@@ -171,8 +184,12 @@ def check_record(ds: data.Dataset, system, source: str, min_len: int = 0,
         warnings.warn(msg, stacklevel=2)
     else:
         msg = delay_warning(ctrl, ds["r"], ds["y"], ds["u"], d, rel)
+        hints = ctrl.diagnose(ds["r"], ds["y"], ds["u"], d, rel / 2) if not msg and rel > CONTROLLER_NOTE else []
         if msg:
             warnings.warn(f"{source}: {msg}", stacklevel=2)
+        elif hints:   # within CONTROLLER_RTOL, but a variant fits twice as well (a gain ×1.04 passed silently)
+            warnings.warn(f"{source}: the recorded force u is the configured controller's output to {100 * rel:.1f} % "
+                          f"(EMPS: 0.2 %), and a variant fits better: {'; '.join(hints)}", stacklevel=2)
     _check_disturbance(ds, ctrl, source)
 
 
@@ -265,6 +282,13 @@ def training_files(cfg) -> list:
         if file not in (None, ""):
             raise ConfigError(f"data.file={file!r} and data.files={list(files)} are both set; give one training "
                               "file as data.file or several as data.files")
+        seen = {}
+        for f in files:   # one record twice weighs it double and glues it to itself (issue 51)
+            seen.setdefault(_target(cfg, str(f)).resolve(), []).append(str(f))
+        twice = [v for v in seen.values() if len(v) > 1]
+        if twice:
+            raise ConfigError(f"data.files={list(files)} names the same file more than once ({twice[0]}); list "
+                              "each training record once")
         return [str(f) for f in files]
     return [file]
 
@@ -342,6 +366,10 @@ def reference(cfg, spec: dict, system) -> data.Dataset:
     try:
         ds = load_file(cfg, spec["file"])
         check_record(ds, system, ds.meta.get("source", str(spec["file"])), min_len=MIN_REFERENCE, reference=True)
+        if len(ds) < SHORT_REFERENCE:
+            warnings.warn(f"reference '{spec.get('name')}': {ds.meta.get('source', spec['file'])} holds {len(ds)} "
+                          f"samples, fewer than {SHORT_REFERENCE}: its errors are a glimpse, not a test of the "
+                          "feedforward (the EMPS test file holds 24 841); give the whole test recording", stacklevel=2)
     except FileNotFoundError as exc:
         raise ConfigError(f"reference '{spec.get('name')}': {str(exc).split(';')[0]}; check data.path and the "
                           "reference's file") from exc

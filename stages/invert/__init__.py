@@ -17,6 +17,7 @@ import warnings
 import numpy as np
 
 from pipeline.export.guard import envelope_of
+from pipeline.errors import NonPhysical
 from pipeline.invert.start import resolve, settle_count, started
 from pipeline.runner import ConfigError, implementation
 from stages._common import baseline_lag, check_references, reference_specs
@@ -56,6 +57,13 @@ def start_of(cfg, system):
 
 
 def run(ctx) -> dict:
+    try:
+        return _run(ctx)
+    except NonPhysical as exc:   # e.g. a record whose physics fit gives 1/M <= 0 (issue 51: was a traceback)
+        raise ConfigError(f"invert.kind={ctx.cfg.invert.kind} on '{ctx.system.name}': {exc}") from None
+
+
+def _run(ctx) -> dict:
     impl = implementation("invert", str(ctx.cfg.invert.kind))
     baseline_lag(ctx)
     refs = check_references(reference_specs(ctx.cfg.evaluate.references), ctx.system, ctx.cfg)

@@ -31,6 +31,8 @@ import mlflow
 import pandas as pd
 
 from pipeline import compare, owned, tracking
+from pipeline.atomic import replace_file, umask
+from pipeline.cache import UntrustedCache, cache_dir, copy_signed
 from pipeline.export.law import strict_json
 from pipeline.perturbation import (EXPLAIN, capped_fits, capped_lines, claim_verdicts, experiment_digests,
                                    is_timing, kept_experiments, partial_of, status_lines, summarise, summary_digest,
@@ -83,18 +85,19 @@ def run(ctx) -> dict:
         table, text, built = _build(cfg, figdir, skip_empty=update)
         if update:
             table, text = _merge(results, table, text, built, figdir)
-        _write(results / "summary.csv", lambda p: table.to_csv(p, index=False))
+        _write(results / "summary.csv", table.to_csv(index=False))
         text = _with_checks(text, results, table)
         text = _with_champions(text, [(e, _champion_or_warn(e)) for e in built])
         old = Path(tempfile.mkdtemp(prefix=".figures-old-", dir=results))
         if (results / "figures").exists():
             os.replace(results / "figures", old / "figures")
         owned.allow(results, "figures", figdir)
+        os.chmod(figdir, 0o777 & ~umask())      # private (mkdtemp) while filled; readable as usual once whole
         os.replace(figdir, results / "figures")  # the figures first, then the report that links them
         shutil.rmtree(old, ignore_errors=True)
-        _write(results / "REPORT.md", lambda p: p.write_text(text))
+        _write(results / "REPORT.md", text)
         if not update or SHIPPED[0] in built:
-            _ship(results / "export", SHIPPED)
+            _ship(results / "export", SHIPPED, cache_dir(cfg))
         owned.record(results, OUTPUTS)
     finally:
         shutil.rmtree(figdir, ignore_errors=True)
@@ -238,9 +241,12 @@ def _exports(experiment: str, runs: pd.DataFrame):
     return rows, "\n".join(lines) + "\n"
 
 
-def _ship(dest: Path, which: tuple[str, tuple[str, str], str]) -> None:
+def _ship(dest: Path, which: tuple[str, tuple[str, str], str], store: Path) -> None:
     """Copy the export packages of the runs of experiment ``which[0]`` whose param ``which[1][0]`` is
-    ``which[1][1]`` into ``dest/<package>/`` (swapped in whole), with the CSVs of reference ``which[2]``."""
+    ``which[1][1]`` into ``dest/<package>/`` (swapped in whole), with the CSVs of reference ``which[2]``.
+    They come from each run's signed export entry in the stage cache ``store`` (its tag
+    ``cache_entry.export``), every file hashed as it is copied, never from the artifact store (issue 51
+    item 2: a line appended there was shipped); a run without a trusted entry is named and not shipped."""
     runs, _ = latest_runs(which[0])
     col = "metrics.export/max_rel_diff"
     if runs.empty or col not in runs:
@@ -252,9 +258,17 @@ def _ship(dest: Path, which: tuple[str, tuple[str, str], str]) -> None:
         runs, _ = split_side(which[0], runs)   # the headline runs' packages (one per package name)
         param = runs.get(f"params.{which[1][0]}", pd.Series("", index=runs.index)).astype(str)
         for _, r in runs[runs[col].notna() & (param == which[1][1])].iterrows():
-            for a in tracking.client().list_artifacts(r["run_id"], "export"):
-                if a.is_dir:   # downloaded as got/<package>
-                    mlflow.artifacts.download_artifacts(run_id=r["run_id"], artifact_path=a.path, dst_path=str(got))
+            where = r.get("tags.cache_entry.export")
+            try:
+                if not isinstance(where, str) or not re.fullmatch(r"export/[0-9a-f]{20}", where):
+                    raise UntrustedCache(f"run {r['run_id']} names no export cache entry (made before the tag "
+                                         "cache_entry.export existed; rerun it)")
+                copy_signed(store / where, "artifacts", got)     # got/<package>/...
+            except (UntrustedCache, OSError) as exc:
+                print(f"warning: {which[0]}: {exc}; its packages are not shipped to {dest}", flush=True)
+        for f in got.iterdir():     # a package is a folder: a loose artifact file is not one
+            if f.is_file():
+                f.unlink()
         if not any(got.iterdir()):
             print(f"warning: no export packages in the {which[0]} runs: results/export not updated", flush=True)
             return
@@ -452,11 +466,10 @@ def _capped_fit(experiment: str, fit: str, t) -> str:
             f"{t.max_value_change:.0%}")
 
 
-def _write(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    write(tmp)
-    owned.allow(path.parent, path.name, tmp)   # known as ours even if the job stops right after the swap
-    os.replace(tmp, path)
+def _write(path: Path, data: str) -> None:
+    """``path`` replaced by ``data`` (:func:`pipeline.atomic.replace_file`: no link followed, no guessable
+    name), its hash listed first: known as ours even if the job stops right after the swap."""
+    replace_file(path, data, before=lambda blob: owned.allow(path.parent, path.name, blob))
 
 
 def _shas(experiments) -> str:

@@ -11,6 +11,7 @@ from typing import Any, Literal
 
 from omegaconf import OmegaConf
 
+from pipeline.errors import ConfigError
 from pipeline.params import is_number, schema, spec
 from pipeline.runner import implementation
 from stages._common import baseline_lag
@@ -63,6 +64,17 @@ def run(ctx) -> dict:
     ctx.tag("tanh", IMPLEMENTATION)          # numpy's or torch's on this machine (the last bits of every NN fit)
     baseline_lag(ctx)
     return implementation("train", str(ctx.cfg.identify.kind)).fit(ctx)
+
+
+def check_rows(model, n_samples: int, val_fraction: float) -> None:
+    """Refuse (before the first LM step) a model with more parameters than the fit has equations: LM's
+    Jacobian (equations x parameters) cannot determine them, and 7 998 rows for 600 005 parameters
+    raised in train (issue 51). The equations are at most the training share of the samples."""
+    rows = int((1.0 - val_fraction) * n_samples)
+    if model.n_params > rows:
+        raise ConfigError(f"the model has {model.n_params} parameters but the training data give at most {rows} "
+                          f"equations ({n_samples} samples, identify.val_fraction={val_fraction:g}): the fit cannot "
+                          "determine them; give a smaller network (model.hidden, e.g. [16]) or a longer recording")
 
 
 def l2_lam(cfg):

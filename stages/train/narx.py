@@ -29,7 +29,7 @@ from pipeline.models.pgnn import PGNN
 from pipeline.models.physics_maps import physics_features_for
 from pipeline.params import COUNT_MAX, ITER_MAX, schema, spec
 from pipeline.plots import pyplot
-from stages.train import l2_lam, lm_progress, log_restarts, restart_memo, restart_options
+from stages.train import check_rows, l2_lam, lm_progress, log_restarts, restart_memo, restart_options
 
 
 @schema
@@ -118,6 +118,7 @@ def fit(ctx) -> dict:
         ys.append(y)
         us.append(u)
     ident = cfg.identify
+    check_rows(model, sum(len(y) for y in ys), float(ident.val_fraction))
     lam = l2_lam(cfg)
     fit_ = identify_pgnn(model, ys, us, lam=lam, seed=int(cfg.seed), val_fraction=float(ident.val_fraction),
                          patience=int(ident.patience), **restart_options(ident, system.measured),

@@ -35,7 +35,7 @@ from pipeline.models.physics_maps import LinearFeatures
 from pipeline.params import COUNT_MAX, ITER_MAX, schema, spec
 from pipeline.plots import pyplot
 from pipeline.systems.arx_bias import ARXPhysics
-from stages.train import l2_lam, lm_progress, log_restarts, restart_memo, restart_options
+from stages.train import check_rows, l2_lam, lm_progress, log_restarts, restart_memo, restart_options
 from stages.train.narx import build_model as build_narx_model
 
 
@@ -151,6 +151,7 @@ def fit(ctx) -> dict:
     ctrl = DiscreteController.from_tf(system.controller())
     model = build_model(cfg, system)
     ident = cfg.identify
+    check_rows(model, len(y), float(ident.val_fraction))
     lam = l2_lam(cfg)
     theta_star = system.linear_theta() if ident.theta_star == "oracle" else str(ident.theta_star)
     fit_ = identify_sim_error(model, ctrl, r, u_ex, y, u, lam=lam, theta_star=theta_star, seed=int(cfg.seed),
@@ -240,6 +241,7 @@ def _fit_measured(ctx) -> dict:
     segs = list(ds.segments())                      # one per recording (data.files)
     u = ds["u"]
     model = build_narx_model(cfg, system)           # w = ū input map, rigid-body physics
+    check_rows(model, len(ds), float(cfg.identify.val_fraction))
     theta_star = np.asarray(ctx.inputs["baseline"]["theta"], dtype=np.float64)
     model.set_physics_estimate(theta_star)
     if model.use_nn:                                # NN input normalisation and output scale

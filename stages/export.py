@@ -7,8 +7,9 @@ the harness ``main_<name>.c``, every evaluation reference ``r_<ref>.csv`` with t
 ``invert.kind`` of the job: physics (8), direct (13)-(14), analytic (27), newton ([B1] Alg. 1),
 rational_filter ([K]: rational TF or shared-AR PGNN), and fhofc / il_fhofc as a table (one
 package per reference: the signal was optimised offline for it).  On a measured system
-(``Recording``) physics only: the inverse rigid-body force minus the controller's force on the
-reference (``laws.from_measured_physics``).
+(``Recording``): physics (the inverse rigid-body force, ``laws.from_measured_physics``) and the PGNN's
+analytic and Newton inversions (its forward rigid body with force terms, kind 3 of the numba kernels;
+issue 49), each minus the controller's force on the reference (C_r - C_y) r.
 
 Every law is wrapped in its guard (``pipeline.export.guard``; ``export.limits``): input sanitation, the
 training envelope of the identification data's y, the fallback, force saturation and slew limit,
@@ -103,10 +104,14 @@ DEPENDS = ("invert", "start", "export.compile", "export.cc", "export.rtol", "exp
            "export.limits", "evaluate.references")
 
 
-VERSION = 6      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
+#: the laws the exporter ships for a measured system (their stages/invert/<kind>.py set EXPORTS_MEASURED)
+MEASURED_LAWS = ("physics", "analytic", "newton")
+
+VERSION = 7      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
                  # is checked over the whole window r(t-2) .. r(t+P), not only at its newest sample; 5: the start at
                  # rest, default limits from the data, the guard's return ramp and latch (issue 48); 6: the start's
-                 # header text, the float harness's flag mask
+                 # header text, the float harness's flag mask; 7: the PGNN of a measured axis (issue 49), the force
+                 # term and controller term as shared C fragments, feedforward_<ref>.csv in the package
 
 
 def validate(cfg, system) -> None:
@@ -116,9 +121,10 @@ def validate(cfg, system) -> None:
         raise ConfigError(f"export: invert.kind={kind} has no feedforward law to ship; export covers "
                           f"invert.kind in {exportable()} (drop 'export' from stages)")
     if system is not None and system.measured and not getattr(impl, "EXPORTS_MEASURED", False):
-        raise ConfigError(f"export: on a measured system the exporter ships invert.kind=physics (the inverse "
-                          f"rigid-body force minus the controller's force on the reference); invert.kind={kind} "
-                          "is not exported for a measured system: use invert=physics or drop 'export' from stages")
+        raise ConfigError(f"export: on a measured system the exporter ships invert.kind in {list(MEASURED_LAWS)} "
+                          f"(each minus the controller's force on the reference); invert.kind={kind} is not exported "
+                          "for a measured system: use invert=analytic (model.structure=invertible) or invert=newton "
+                          "for the PGNN, invert=physics for the physics law, or drop 'export' from stages")
     if hasattr(impl, "export_check"):
         impl.export_check(cfg, system)
     clash = reference_file_clash(s["name"] for s in reference_specs(OmegaConf.select(cfg, "evaluate.references")))
@@ -274,7 +280,8 @@ def pgnn_laws(ctx, kind: str, **kw) -> dict:
     if model is None:
         raise ConfigError(f"export: invert.kind={kind} needs a trained PGNN; the train stage has none")
     averaged = bool(train.get("model_input")) and bool(getattr(ctx.system.physics, "averaged_input", False))
-    return {f"ff_{kind}": (laws.from_pgnn(model, kind, float(ctx.system.Ts), averaged=averaged, **kw),
+    ctrl = ctx.system.ctrl if ctx.system.measured else None      # minus (C_r - C_y) r, as stages/invert
+    return {f"ff_{kind}": (laws.from_pgnn(model, kind, float(ctx.system.Ts), averaged=averaged, ctrl=ctrl, **kw),
                            every_reference(ctx))}
 
 

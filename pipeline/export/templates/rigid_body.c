@@ -20,21 +20,7 @@
 #define XR0 (1 + NDEN)
 
 ${arrays}
-static inline double force_term(int code, double p, double q, double v)
-{   /* T(q, q̇) of one expanded column (pipeline.systems.force_terms.term, codes of ForceTerms) */
-    const double sg = v > 0 ? 1.0 : (v < 0 ? -1.0 : 0.0);
-    double x;
-    switch (code) {
-    case 0: return v;                            /* viscous */
-    case 1: return sg;                           /* Coulomb, sign */
-    case 2: return tanh(v / p);                  /* Coulomb, smooth */
-    case 3: x = v / p; return sg * exp(-(x * x)); /* Stribeck */
-    case 4: return 1.0;                          /* offset */
-    case 5: return cos(p * q);                   /* cogging cos */
-    default: return sin(p * q);                  /* cogging sin */
-    }
-}
-${df2t}
+${force_term}${df2t}
 static inline double law_w(${name}_state *s, const double *rp)
 {   /* w(t) = M δ²r(t+1) + Σ p_j T_j(r(t), δr(t)), r(-1) = r0 (RigidBodyPhysics.inverse_features) */
     const double rm = s->x[XR];
@@ -58,13 +44,6 @@ ${reset}}
 static double law_step(${name}_state *s, const double *r_preview)
 {
     double u;
-${averaged_step}#if HAS_CTRL   /* minus the controller's force on y = r: gtau (C_r - C_y) r */
-#if START_REST_CTRL
-    u = u - GTAU * (df2t(s->x + XZ, r_preview[0] - s->x[XR0]) + K0 * s->x[XR0]);
-#else
-    u = u - GTAU * df2t(s->x + XZ, r_preview[0]);
-#endif
-#endif
-    s->status = isfinite(u) ? 0 : ${NAME}_SINGULAR;
+${averaged_step}${reference_force}    s->status = isfinite(u) ? 0 : ${NAME}_SINGULAR;
     return u;
 }

@@ -200,10 +200,11 @@ def data_limits(segments, Ts: float, ctrl=None, rest: bool = True) -> tuple[floa
     return u_abs or math.inf, du_abs or math.inf
 
 
-def guard_of(ctx) -> tuple[dict, str]:
+def guard_of(ctx, start_at: str | None = None) -> tuple[dict, str]:
     """(the guard of every law of the job, where its limits come from): export.limits, else the identification
     data's force range and slew (``data_limits``, ``Limits.data_margin``), the data's envelope and the physics
-    fallback's coefficients (pipeline.export.guard.Guard)."""
+    fallback's coefficients (pipeline.export.guard.Guard). ``start_at``: the invert stage's ``start.at`` (default:
+    its output's; the invert stage passes its own to flag its u_ff CSV)."""
     lim = ctx.cfg.export.limits          # every key set by pipeline.schema (null: no limit)
     bound = lambda k, none: none if lim.get(k) is None else float(lim.get(k))   # noqa: E731
     ds = ctx.inputs["generate"]["dataset"]
@@ -212,8 +213,9 @@ def guard_of(ctx) -> tuple[dict, str]:
     ctrl = ctx.system.ctrl if ctx.system.measured else None
     pairs = ((seg["u"].to_numpy(dtype=float), None if ctrl is None else seg["r"].to_numpy(dtype=float))
              for seg in ds.segments())
-    start = ctx.inputs["invert"].get("start") or {"at": "zero"}
-    u_abs, du_abs = data_limits(pairs, float(ctx.system.Ts), ctrl, start["at"] == "rest")
+    if start_at is None:
+        start_at = (ctx.inputs["invert"].get("start") or {"at": "zero"})["at"]
+    u_abs, du_abs = data_limits(pairs, float(ctx.system.Ts), ctrl, start_at == "rest")
     if lim.get("data_margin") is not None:     # a null limit from the identification data (Limits.data_margin)
         f = 1.0 + float(lim.data_margin)
         bound = lambda k, none: (f * (-u_abs if k == "u_min" else u_abs if k == "u_max" else du_abs)  # noqa: E731

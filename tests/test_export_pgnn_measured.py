@@ -157,3 +157,67 @@ def test_the_c_of_a_measured_pgnn_is_the_python_law_under_its_guard(tmp_path):
                         source={"run_id": "test"}, rtol=RTOL, timing_repeats=0)
     assert man["compiled"] and man["references"]["ref"]["c_flags_agree"] and man["c_max_rel_diff"] <= RTOL, man
     assert man["references"]["ref"]["guard_max_rel_change"] > 0.01      # the guard acted (u is not the law's)
+
+
+# ---- end to end: the pipeline on a short recording of the held-out vertical axis (tests/heldout_axis.py) -------
+def _short_recordings(folder):
+    """One training recording (moves up to ~0.2 m/s) and a test reference with a faster move (leaves the training
+    velocity), simulated on the held-out axis's true plant; returns (training y, test r)."""
+    from tests import heldout_axis as axis
+    train = axis.reference(0.04, [("dwell", 0.2), ("move", 0.08, 0.45), ("dwell", 0.2), ("move", 0.05, 0.5),
+                                  ("dwell", 0.2), ("sine", 0.015, 0.6, 1.5), ("dwell", 0.3)])
+    test = axis.reference(0.06, [("dwell", 0.2), ("move", 0.1, 0.3), ("dwell", 0.2), ("move", 0.06, 0.4),
+                                 ("dwell", 0.3)])
+    recs = {}
+    for name, r, seed in (("train.csv", train, 1), ("test.csv", test, 2)):
+        rec = axis.simulate(r, seed=seed)
+        assert rec["saturated"] == 0
+        axis.write_recording(folder / name, rec)
+        recs[name] = rec
+    return recs["train.csv"]["y"], test
+
+
+@pytest.mark.slow
+@needs_cc
+def test_pipeline_ships_the_measured_pgnn_writes_its_csv_and_names_the_envelope(tmp_path, store, cfg_of):
+    import json
+
+    from pipeline import runner
+    from tests import heldout_score as hs
+    hs.use_axis("a")
+    y_train, r_test = _short_recordings(tmp_path)
+    over = [o for o in hs.system_overrides() if not o.startswith("system.name")]
+    cfg = cfg_of("experiment=emps", *over, "system.name=gen_axis", "data.format=table", f"data.path={tmp_path}",
+                 "data.file=train.csv", "evaluate.references=[{name:test,kind:measured,file:test.csv}]",
+                 "model.hidden=[4]", "identify.n_restarts=1", "identify.max_iter=15",
+                 "stages=[generate,baseline,train,invert,evaluate,export]")
+    res = runner.run_job(cfg)
+    # item 6: the factor named and logged, computed here from the files (backward differences, as the guard)
+    v = np.max(np.abs(np.diff(r_test))) / np.max(np.abs(np.diff(y_train)))
+    a = np.max(np.abs(np.diff(r_test, 2))) / np.max(np.abs(np.diff(y_train, 2)))
+    assert v > 1.2
+    from pipeline import tracking
+    run = tracking.search_runs("gen_axis").iloc[0]
+    assert run["metrics.invert/envelope_velocity_factor"] == pytest.approx(v, rel=1e-12)
+    assert run["metrics.invert/envelope_acceleration_factor"] == pytest.approx(a, rel=1e-12)
+    tag = run["tags.envelope_warning"]
+    assert f"reference 'test' reaches {v:.3g}× the training velocity" in tag and "Record a training run" in tag
+    # item 5: the CSV of the invert stage holds the study's u_ff (the one evaluate replays) and the guard's flags
+    csv = next(store.glob("cache/invert/*/artifacts/feedforward/test.csv"))
+    rows = [line.split(",") for line in csv.read_text().splitlines()]
+    assert rows[0] == ["t", "r", "u_ff", "flags"]
+    t, r, u = (np.array([float(x[i]) for x in rows[1:]]) for i in range(3))
+    flags = [x[3] for x in rows[1:]]
+    np.testing.assert_array_equal(r, r_test)
+    np.testing.assert_array_equal(t, np.arange(r.size) * hs.axis.TS)
+    np.testing.assert_array_equal(u, res["invert"]["u_ff"]["test"])
+    assert {f for f in flags} <= {"", "OUT_OF_RANGE"} and "OUT_OF_RANGE" in flags     # the fast move, flagged
+    # item 4: the package of the PGNN's analytic inversion, its C checked against the study's u_ff to 1e-9
+    pkg = next(store.glob("cache/export/*/artifacts/ff_analytic"))
+    man = json.loads((pkg / "manifest.json").read_text())
+    ref = man["references"]["test"]
+    assert man["family"] == "pgnn" and man["compiled"] and man["start"]["at"] == "rest"
+    assert ref["c_vs_study_max_rel_diff"] <= RTOL and ref["python_max_rel_diff"] <= RTOL
+    shipped = [line.split(",") for line in (pkg / ref["feedforward"]).read_text().splitlines()[1:]]
+    assert [x[3] for x in shipped] == flags                  # the package's flags are the invert stage's
+    np.testing.assert_array_equal([float(x[2]) for x in shipped], u)   # the default guard left u_ff alone

@@ -159,6 +159,106 @@ def test_the_c_of_a_measured_pgnn_is_the_python_law_under_its_guard(tmp_path):
     assert man["references"]["ref"]["guard_max_rel_change"] > 0.01      # the guard acted (u is not the law's)
 
 
+# ---- items 5 and 6 on the invert stage's own functions (a minimal stage context) --------------------------------
+class _Ctx:
+    """What the invert stage's envelope and CSV code read of a job: config, system, the identification data."""
+    name = "invert"
+
+    def __init__(self, tmp_path, sys_, y_train, u_train, r_train, limits):
+        from dataclasses import asdict
+
+        import pandas as pd
+        from omegaconf import OmegaConf
+
+        from pipeline.data import Dataset
+        from stages.export import Limits
+        self.cfg = OmegaConf.create({"invert": {"kind": "physics"}, "export": {"limits": {**asdict(Limits()),
+                                                                                           **limits}}})
+        self.system = sys_
+        frame = pd.DataFrame({"t": np.arange(y_train.size) * Ts, "r": r_train, "u": u_train, "y": y_train})
+        self.inputs = {"generate": {"dataset": Dataset(frame, {"Ts": Ts})},
+                       "baseline": {"theta": sys_.physics.theta_from_physical({"M": M, "F_v": F_V, "F_c": F_C,
+                                                                                 "OF": OF})}}
+        self.metrics, self.tags, self.artifacts, self.dir = [], {}, [], tmp_path
+
+    def metric(self, key, value, step=None):
+        self.metrics.append((f"{self.name}/{key}", float(value), step))
+
+    def tag(self, key, value):
+        self.tags[key] = str(value)
+
+    def artifact(self, filename):
+        self.artifacts.append(filename)
+        p = self.dir / "artifacts" / filename
+        p.parent.mkdir(parents=True, exist_ok=True)
+        return p
+
+
+def _training(n: int = 4000):
+    """A slow training move (y = r: the tracking is not what these tests read) and its applied force."""
+    t = np.arange(n) * Ts
+    y = 0.05 + 0.02 * (1 - np.cos(2 * np.pi * t / (n * Ts))) / 2
+    return y, 30.0 + 5.0 * np.sin(2 * np.pi * t / (n * Ts)), y
+
+
+def test_envelope_advice_names_the_factor_and_the_remedy(tmp_path):
+    from stages.invert import envelope_warning
+    sys_ = _system()
+    y, u, r_tr = _training()
+    ctx = _Ctx(tmp_path, sys_, y, u, r_tr, {})
+    inside = y[::2].copy()                      # the same positions, twice as fast: 2x the velocity, 4x the acc.
+    v = np.max(np.abs(np.diff(inside))) / np.max(np.abs(np.diff(y)))
+    a = np.max(np.abs(np.diff(inside, 2))) / np.max(np.abs(np.diff(y, 2)))
+    assert v == pytest.approx(2.0, rel=1e-3) and a == pytest.approx(4.0, rel=1e-2)
+    assert envelope_warning(ctx, {"same": y.copy()}) is None
+    m = {k: x for k, x, _ in ctx.metrics}
+    assert m["invert/envelope_velocity_factor"] == pytest.approx(1.0, rel=1e-12)
+    ctx.metrics.clear()
+    msg = envelope_warning(ctx, {"same": y.copy(), "test": inside})
+    m = {k: x for k, x, _ in ctx.metrics}
+    assert m["invert/envelope_velocity_factor"] == pytest.approx(v, rel=1e-12)
+    assert m["invert/envelope_acceleration_factor"] == pytest.approx(a, rel=1e-12)
+    assert m["invert/test/envelope_velocity_factor"] == pytest.approx(v, rel=1e-12)
+    assert m["invert/same/envelope_velocity_factor"] == pytest.approx(1.0, rel=1e-12)
+    assert f"reference 'test' reaches {v:.3g}× the training velocity" in msg
+    assert f"{a:.3g}× the training acceleration" in msg and "'same'" not in msg
+    assert "Record a training run that covers it" in msg
+
+
+def test_the_feedforward_csv_holds_the_study_and_the_flags_the_package_raises(tmp_path):
+    """The invert stage's CSV: t, r, the study's u_ff, and the flags of the guard the package ships (its Python
+    law, the MLflow model's code), here with a force limit and an envelope that act."""
+    from pipeline.export.guard import FLAG, Guard
+    from pipeline.export.law import from_measured_physics
+    from pipeline.invert.start import Start
+    from stages.export import guard_of, set_start
+    from stages.invert import write_feedforward
+    sys_ = _system()
+    y, u_tr, r_tr = _training()
+    ctx = _Ctx(tmp_path, sys_, y, u_tr, r_tr, {"u_max": 40.0, "u_min": -40.0})
+    r = _reference()
+    theta = ctx.inputs["baseline"]["theta"]
+    law = from_measured_physics(sys_.physics, theta, sys_.ctrl)
+    law.guard = guard_of(ctx, "rest")[0]
+    set_start(law, {"at": "rest", "static": "include"}, [float(r[0])])
+    u_study = feedforward(law, r)           # the study's u_ff (test_export_measured holds them equal)
+    u_g, f_g = guarded(law, r)
+    assert (f_g & FLAG["SATURATED"]).any() and (f_g & FLAG["OUT_OF_RANGE"]).any()
+    assert Guard(**law.guard).u_max == 40.0
+    u_rest = float(feedforward(law, np.full(3, r[0]))[0])
+    write_feedforward(ctx, {"test": r}, {"test": u_study}, Start("rest", "include"), {"test": u_rest})
+    rows = [line.split(",") for line in (tmp_path / "artifacts" / "feedforward" / "test.csv").read_text()
+            .splitlines()]
+    assert ctx.artifacts == ["feedforward/test.csv"] and rows[0] == ["t", "r", "u_ff", "flags"]
+    t, rr, u = (np.array([float(x[i]) for x in rows[1:]]) for i in range(3))
+    np.testing.assert_array_equal(t, np.arange(r.size) * Ts)
+    np.testing.assert_array_equal(rr, r)
+    np.testing.assert_array_equal(u, u_study)
+    got = np.array([sum(FLAG[w] for w in x[3].split("|") if w) for x in rows[1:]])
+    np.testing.assert_array_equal(got, f_g)
+    assert ("invert/test/guard_flagged_samples", float(np.count_nonzero(f_g)), None) in ctx.metrics
+
+
 # ---- end to end: the pipeline on a short recording of the held-out vertical axis (tests/heldout_axis.py) -------
 def _short_recordings(folder):
     """One training recording (moves up to ~0.2 m/s) and a test reference with a faster move (leaves the training

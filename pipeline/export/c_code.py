@@ -243,6 +243,8 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
     g = law.g
     flags = [f for f in FLAGS if f[0] in CORE_FLAGS[law.family] + GUARD_FLAGS]
     doc = _LAW_DOC["physics_measured" if law.family == "rigid_body" else law.law]
+    if law.family == "pgnn" and "has_ctrl" in law.ints:     # a measured axis's PGNN (issue 49)
+        doc += "; on a measured axis, minus the known controller's force on y = r, gtau (C_r - C_y) r"
     lim = lambda x: "none" if np.isinf(x) else f"{x:g}"   # noqa: E731
     env = ", ".join(f"{n} in [{lo:.6g}, {hi:.6g}]" for n, lo, hi in zip(REGRESSORS, g.env_lo, g.env_hi))
     common = dict(name=name, NAME=NAME, file=file, doc=doc, source=source, Ts=_num(law.Ts), ts_ns=ts_ns(law.Ts),

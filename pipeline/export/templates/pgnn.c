@@ -4,8 +4,8 @@
 #include <math.h>
 #include "${file}.h"
 
-#define KIND ${kind}            /* physics map: 0 linear, 1 rigid body forward, 2 rigid body inverse, 3 measured rigid
-                                   body with force terms (forward, direct input), -1 none */
+#define KIND ${kind}            /* physics map: 0 linear, 1 rigid body forward, 2 rigid body inverse, -1 none,
+                                   3 a measured rigid body with force terms (forward layout, direct input) */
 #define H ${H}                  /* hidden tanh neurons */
 #define NPHI ${n_phi}           /* regressor length n_a + n_b */
 #define UIDX ${u_index}         /* u(t-n_k-1) in the forward regressor */

@@ -162,6 +162,9 @@ class Law:
             flops = evals * (nn + 4) + 2 * phys + (3 if self.averaged else 0)
             flops += 4 * m["n_den"] + 2 if m.get("has_ctrl") else 0          # the controller term, as rigid_body
             calls = evals * m["H"] * int(bool(m["use_nn"]))
+            if m["kind"] == 3:     # the force terms' tanh/exp/cos/sin (codes in the blob's cfg: Ts, n, codes, consts)
+                cfg = self.arrays["blob"][self.arrays["blob"].size - m["n_cfg"]:]
+                calls += 2 * sum(int(c) in (2, 3, 5, 6) for c in cfg[2:2 + int(cfg[1])])
             return {"flops": int(flops), "elementary_calls": int(calls)}
         if self.family == "k_filter":
             i = self.ints

@@ -8,7 +8,7 @@ the harness ``main_<name>.c``, every evaluation reference ``r_<ref>.csv`` with t
 rational_filter ([K]: rational TF or shared-AR PGNN), and fhofc / il_fhofc as a table (one
 package per reference: the signal was optimised offline for it).  On a measured system
 (``Recording``): physics (the inverse rigid-body force, ``laws.from_measured_physics``) and the PGNN's
-analytic and Newton inversions (its forward rigid body with force terms, kind 3 of the numba kernels;
+direct, analytic and Newton inversions (its rigid body with force terms, kinds 4 and 3 of the numba kernels;
 issue 49), each minus the controller's force on the reference (C_r - C_y) r.
 
 Every law is wrapped in its guard (``pipeline.export.guard``; ``export.limits``): input sanitation, the
@@ -105,7 +105,7 @@ DEPENDS = ("invert", "start", "export.compile", "export.cc", "export.rtol", "exp
 
 
 #: the laws the exporter ships for a measured system (their stages/invert/<kind>.py set EXPORTS_MEASURED)
-MEASURED_LAWS = ("physics", "analytic", "newton")
+MEASURED_LAWS = ("physics", "direct", "analytic", "newton")
 
 VERSION = 7      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
                  # is checked over the whole window r(t-2) .. r(t+P), not only at its newest sample; 5: the start at
@@ -123,8 +123,7 @@ def validate(cfg, system) -> None:
     if system is not None and system.measured and not getattr(impl, "EXPORTS_MEASURED", False):
         raise ConfigError(f"export: on a measured system the exporter ships invert.kind in {list(MEASURED_LAWS)} "
                           f"(each minus the controller's force on the reference); invert.kind={kind} is not exported "
-                          "for a measured system: use invert=analytic (model.structure=invertible) or invert=newton "
-                          "for the PGNN, invert=physics for the physics law, or drop 'export' from stages")
+                          "for a measured system: use one of those, or drop 'export' from stages")
     if hasattr(impl, "export_check"):
         impl.export_check(cfg, system)
     clash = reference_file_clash(s["name"] for s in reference_specs(OmegaConf.select(cfg, "evaluate.references")))

@@ -4,7 +4,7 @@ CSV artifact, and the envelope advice.
 Fast tests on a small axis generated here (a rigid body with smooth Coulomb friction and an offset, the PGNN's
 physics part on its averaged, exact-ZOH input, kind 3 of the numba kernels, one tanh layer worth a few N; a
 2-DOF PID with a lead and its own denominator on each path, one sample of delay, not in the code): the exported
-analytic and Newton laws, started at rest at r0 with the static force included or excluded, equal the study's
+direct, analytic and Newton laws, started at rest at r0 with the static force included or excluded, equal the study's
 u_ff built from the invert stage's own parts (``pipeline.invert.start.started`` on the numba inversion, its
 ``applied`` average, minus ``LTIController.reference_force(r, r0)``) to 1e-9 of max|u| from the first sample,
 in Python and in the C the package compiles (``-std=c99 -O2 -Wall -Wextra -Werror``). The slow test runs the
@@ -21,6 +21,7 @@ import torch
 from pipeline.export.law import Law, feedforward, from_pgnn, guarded
 from pipeline.export.package import write_package
 from pipeline.invert.analytic import analytic_feedforward
+from pipeline.invert.direct import direct_feedforward
 from pipeline.invert.newton import newton_feedforward
 from pipeline.invert.start import settle_count, started
 from pipeline.models.pgnn import PGNN
@@ -60,17 +61,17 @@ def _system() -> Recording:
 def _model(sys_, structure: str = "invertible", seed: int = 3) -> PGNN:
     pm = sys_.physics
     phys = physics_features_for(pm, structure, 2, 1, input_is_model_input=True)
-    assert phys.fast_kind == 3
+    assert phys.fast_kind == (4 if structure == "inverse" else 3)
     m = PGNN(2, 1, structure=structure, physics=phys, hidden=(6,), out_init_scale=1.0, seed=seed,
              input_transform="delta")
     theta = pm.theta_from_physical({"M": M, "F_v": F_V, "F_c": F_C, "OF": OF})
-    m.set_physics_estimate(theta)
+    m.set_physics_estimate(pm.inverse_theta(theta) if structure == "inverse" else theta)
     rng = np.random.default_rng(0)
     y = rng.uniform(0.0, 0.15, (400, 1))
     m.fit_normalisation(torch.as_tensor(np.concatenate([y, y + 1e-4 * rng.standard_normal((400, 1)),
                                                         40.0 * rng.standard_normal((400, 1))], axis=1)))
     with torch.no_grad():
-        m.out_scale.fill_(Ts ** 2 / M * 2.0)      # the NN worth ~2 N of force
+        m.out_scale.fill_(2.0 if structure == "inverse" else Ts ** 2 / M * 2.0)   # the NN worth ~2 N of force
     return m
 
 
@@ -82,8 +83,8 @@ def _reference(r0: float = 0.06, n: int = 3000) -> np.ndarray:
 
 def _study(m, sys_, kind: str, r: np.ndarray, static: str) -> np.ndarray:
     """The invert stage's u_ff on a measured axis from its parts (stages/invert/__init__.run, _pgnn.applied)."""
-    inv = (lambda rr: analytic_feedforward(m, rr)) if kind == "analytic" else \
-        (lambda rr: newton_feedforward(m, rr, k=5).u_ff)
+    inv = {"analytic": lambda rr: analytic_feedforward(m, rr), "direct": lambda rr: direct_feedforward(m, rr),
+           "newton": lambda rr: newton_feedforward(m, rr, k=5).u_ff}[kind]
 
     def law(rr):      # the averaged input: w one sample ahead on the held reference
         w = inv(np.append(rr, rr[-1]))
@@ -111,11 +112,24 @@ def test_the_generated_controller_has_its_own_denominators_and_integrates():
     assert np.any(db)                          # C_r != C_y: the law carries the controller term
 
 
-@pytest.mark.parametrize("kind", ["analytic", "newton"])
+def test_the_inverse_rigid_body_kernel_equals_the_torch_reference():
+    """Kind 4 (the measured rigid body's inverse layout, issue 49) on the numba path and the torch reference: the
+    direct inverse to 1e-12 of max|u| (the features summed in another order: last bits)."""
+    from pipeline.models.fast_pgnn import fast_pgnn
+    sys_ = _system()
+    m = _model(sys_, "inverse")
+    assert fast_pgnn(m).meta[0] == 4
+    r = _reference()
+    a, b = direct_feedforward(m, r), direct_feedforward(m, r, fast=False)
+    assert np.max(np.abs(b)) > 10.0
+    assert np.max(np.abs(a - b)) <= 1e-12 * np.max(np.abs(b))
+
+
+@pytest.mark.parametrize("kind", ["analytic", "newton", "direct"])
 @pytest.mark.parametrize("static", ["exclude", "include"])
 def test_pgnn_law_of_a_measured_axis_equals_the_study_from_the_first_sample(kind, static, tmp_path):
     sys_ = _system()
-    m = _model(sys_)
+    m = _model(sys_, "inverse" if kind == "direct" else "invertible")
     r = _reference()
     u = _study(m, sys_, kind, r, static)
     scale = float(np.max(np.abs(u)))
@@ -125,7 +139,7 @@ def test_pgnn_law_of_a_measured_axis_equals_the_study_from_the_first_sample(kind
     else:
         assert abs(u[0] - OF) < 0.2 * abs(OF)    # the offset (gravity) plus the NN's few N at rest
     law = _law(m, sys_, kind, [r[0]], static)
-    assert law.ints["has_ctrl"] == 1 and law.ints["kind"] == 3
+    assert law.ints["has_ctrl"] == 1 and law.ints["kind"] == (4 if kind == "direct" else 3)
     py = feedforward(law, r)
     assert np.max(np.abs(py - u)) <= RTOL * scale, np.max(np.abs(py - u)) / scale
     law.save(tmp_path / "law")

@@ -294,7 +294,7 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
         arrays = _array("BLOB", law.arrays["blob"])
         src = _template("pgnn.c").substitute(
             common, **snippets, arrays=arrays, LAW=law.law.upper(), **_pgnn_controller(law, NAME, df2t),
-            force_term=_text("force_term.c") if i["kind"] == 3 else "",
+            force_term=_text("force_term.c") if i["kind"] in (3, 4) else "",
             **{f"o_{k.lower()}": v for k, v in offsets.items()},
             nrh=max(0, i["n_a"] - i["n_k"] - 1), averaged=int(law.averaged),
             k=i.get("k", 0), u_min=_num(law.floats.get("u_min", -np.inf)),

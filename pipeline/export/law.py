@@ -158,11 +158,12 @@ class Law:
             m = self.ints
             nn = 2 * m["H"] * m["n_phi"] + 5 * m["H"] + 1 if m["use_nn"] else 0   # W φ + b, w2 h, (1 - h²)
             evals = {"newton": self.ints.get("k", 0) + 1}.get(self.law, 1)
-            phys = {0: 2 * m["n_phi"], 1: 14, 2: 12, 3: 9 + 5 * (m["n_cfg"] - 2) // 2}.get(m["kind"], 0)
+            phys = {0: 2 * m["n_phi"], 1: 14, 2: 12, 3: 9 + 5 * (m["n_cfg"] - 2) // 2,
+                    4: 7 + 2 * (m["n_cfg"] - 2) // 2}.get(m["kind"], 0)
             flops = evals * (nn + 4) + 2 * phys + (3 if self.averaged else 0)
             flops += 4 * m["n_den"] + 2 if m.get("has_ctrl") else 0          # the controller term, as rigid_body
             calls = evals * m["H"] * int(bool(m["use_nn"]))
-            if m["kind"] == 3:     # the force terms' tanh/exp/cos/sin (codes in the blob's cfg: Ts, n, codes, consts)
+            if m["kind"] in (3, 4):     # the force terms' tanh/exp/cos/sin (the blob's cfg: Ts, n, codes, consts)
                 cfg = self.arrays["blob"][self.arrays["blob"].size - m["n_cfg"]:]
                 calls += 2 * sum(int(c) in (2, 3, 5, 6) for c in cfg[2:2 + int(cfg[1])])
             return {"flops": int(flops), "elementary_calls": int(calls)}
@@ -221,14 +222,14 @@ def from_pgnn(model, law: str, Ts: float, *, averaged: bool = False, k: int = 5,
     if law not in ("direct", "analytic", "newton", "physics"):
         raise ExportError(f"a PGNN is exported by law direct | analytic | newton | physics, not {law!r}")
     fm = fast_pgnn(model, theta_start=theta_start)
-    if fm is not None and fm.meta[0] > 3:   # the C kernel knows the kinds 0-3 (templates/pgnn.c)
+    if fm is not None and fm.meta[0] > 4:   # the C kernel knows the kinds 0-4 (templates/pgnn.c)
         fm = None
     if fm is None:
         phys = type(model.physics).__name__ if model.use_physics else "none"
         raise ExportError(
             f"the exporter supports a PGNN with no NN or one tanh hidden layer and a built-in physics "
             f"map (LinearFeatures, RigidBodyForward, RigidBodyInverse, a measured rigid body with force terms on its "
-            f"direct input in a forward layout); this model has hidden="
+            f"direct input); this model has hidden="
             f"{list(model.hidden)}, activation={model.activation}, physics={phys}: use model.hidden=[H] "
             "with model.activation=tanh, or keep the Python feedforward")
     need = {"direct": ("inverse",), "analytic": ("invertible", "forward"),

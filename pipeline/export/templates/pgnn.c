@@ -5,7 +5,7 @@
 #include "${file}.h"
 
 #define KIND ${kind}            /* physics map: 0 linear, 1 rigid body forward, 2 rigid body inverse, -1 none,
-                                   3 a measured rigid body with force terms (forward layout, direct input) */
+                                   3/4 a measured rigid body with force terms on its direct input, forward/inverse */
 #define H ${H}                  /* hidden tanh neurons */
 #define NPHI ${n_phi}           /* regressor length n_a + n_b */
 #define UIDX ${u_index}         /* u(t-n_k-1) in the forward regressor */
@@ -70,6 +70,15 @@ ${force_term}static inline double physics(const double *th, const double *phi)
     int j;
     for (j = 0; j < nt; ++j) s += -Ts * Ts * force_term((int)CFG[2 + j], CFG[2 + nt + j], y1, v) * th[1 + j];
     return 2.0 * y1 - y2 + s;
+#elif KIND == 4   /* its inverse layout: θ'₀ δ²y(t+1) + Σ_j θ'_j T_j(y(t), δy(t)) */
+    const double Ts = CFG[0];
+    const int nt = (int)CFG[1];
+    const double acc = (phi[0] - 2.0 * phi[1] + phi[2]) / (Ts * Ts);
+    const double v = (phi[1] - phi[2]) / Ts;
+    double s = th[0] * acc;
+    int j;
+    for (j = 0; j < nt; ++j) s += th[1 + j] * force_term((int)CFG[2 + j], CFG[2 + nt + j], phi[1], v);
+    return s;
 #else
     (void)th; (void)phi;
     return 0.0;

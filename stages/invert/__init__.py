@@ -225,7 +225,9 @@ def feedforward_flags(ctx, refs: dict, u_ff: dict, st, u_start: dict) -> dict:
     P, Ts = guard_preview(ctx), float(ctx.system.Ts)
     out = {}
     for name, r in refs.items():
-        r0 = float(r[0]) if st.rest or str(ctx.cfg.invert.kind) in ("direct", "analytic", "newton") else 0.0
+        # the law's r0 (pipeline.export.law.start_position): the physics law and the [K] filters of the papers' start
+        # from r = 0, every other law from r(0)
+        r0 = 0.0 if not st.rest and str(ctx.cfg.invert.kind) in ("physics", "rational_filter") else float(r[0])
         u0 = min(max(u_start.get(name, 0.0), g.u_min), g.u_max)     # inside the limits, as the C's init clamps it
         u = u_ff[name]
         out[name] = run_guard(g, Ts, P, r, r0, lambda _r, u=u: (u, np.zeros(u.size, dtype=np.int64)), u_start=u0)[1]

@@ -10,6 +10,7 @@ the reason. :func:`figure` draws the table; :func:`markdown` prints it. The swee
 from __future__ import annotations
 
 import fnmatch
+import re
 import warnings
 from pathlib import Path
 
@@ -24,6 +25,8 @@ FACTORS = (("tags.invert", "inversion"), ("tags.model", "structure"), ("tags.reg
            ("params.regularizer.lam", "λ"), ("params.model.hidden", "hidden"), ("params.invert.gamma", "γ"),
            ("params.model.nn_inputs", "NN inputs"), ("params.invert.trial_noise", "trial noise"),
            ("params.identify.theta_star", "θ*"), ("tags.identify", "identification"), ("params.seed", "seed"))
+#: the factor whose levels a figure shows side by side, coloured, with a legend
+REGULARISER = "tags.regularizer"
 #: why a factor leaves runs identical, where the stages know it: (factor column, where column, where
 #: value, reason); checked against the numbers, never assumed
 REASONS = (
@@ -107,9 +110,11 @@ def comparison(runs: pd.DataFrame, patterns: list[str]) -> tuple[pd.DataFrame, l
         table.insert(0, "run", _text(runs[name_col]))
     for c in metrics:
         table[c[len("metrics."):]] = runs[c].astype(float)
+    # the regulariser sorts last: a regularised run beside its unregularised twin (issue 52)
+    keys = sorted(factors, key=lambda f: f[0] == REGULARISER)
     order = sorted(range(len(runs)), key=lambda i: tuple(
         (_std_key(runs.at[i, c]), "") if c.startswith("params.") and _std_key(runs.at[i, c]) != float("inf")
-        else (0.0, str(runs.at[i, c])) for c, _ in factors))
+        else (0.0, str(runs.at[i, c])) for c, _ in keys))
     table = table.iloc[order].reset_index(drop=True)
     return table, identical(runs, factors, metrics)
 
@@ -169,31 +174,40 @@ def markdown(table: pd.DataFrame, findings: list[str]) -> str:
 
 
 def figure(table: pd.DataFrame, path: Path, title: str = "") -> Path | None:
-    """One panel per metric: a horizontal bar per run (labelled by its name, the varying part first),
-    on a log scale where the values span more than a decade."""
+    """One panel per metric: a horizontal bar per run (labelled by its name, the varying part first), its
+    value written at the bar's end, on a log scale where the values span more than a decade. Bars are
+    coloured by the regulariser where it varies (its twins sit side by side, :func:`comparison`), else by
+    the first factor, with a legend (issue 52)."""
     plt = pyplot()
     metrics = [c for c in table.columns if pd.api.types.is_float_dtype(table[c])]
     if not metrics or table.empty:
         return None
     labels = table["run"].str.split(" | ", regex=False).str[0] if "run" in table else table.index.astype(str)
     n = len(table)
-    fig, axes = plt.subplots(1, len(metrics), figsize=(2.2 + 2.6 * len(metrics), 1.0 + 0.24 * n),
+    fig, axes = plt.subplots(1, len(metrics), figsize=(2.6 + 3.0 * len(metrics), 1.4 + 0.26 * n),
                              sharey=True, squeeze=False)
     y = np.arange(n)
     first = [c for c in table.columns if c not in metrics and c != "run"]
-    colour_by = table[first[0]] if first else pd.Series([""] * n)
+    by = "regulariser" if "regulariser" in first else (first[0] if first else None)
+    colour_by = table[by] if by else pd.Series([""] * n)
     palette = {v: f"C{i % 10}" for i, v in enumerate(dict.fromkeys(colour_by))}
     for ax, m in zip(axes[0], metrics):
         vals = table[m].to_numpy(dtype=float)
-        ax.barh(y, np.where(np.isnan(vals), 0, vals), color=[palette[v] for v in colour_by])
+        bars = ax.barh(y, np.where(np.isnan(vals), 0, vals), color=[palette[v] for v in colour_by])
+        ax.bar_label(bars, labels=["" if np.isnan(v) else f"{v:.3g}" for v in vals], fontsize=6, padding=2)
         pos = vals[np.isfinite(vals) & (vals > 0)]
         if pos.size and pos.max() / pos.min() > 10:
             ax.set_xscale("log")
+        ax.margins(x=0.25)   # room for the values
         ax.set_title(m.replace("_um", " [µm]").replace("_us", " [µs]"), fontsize=8)
         ax.tick_params(labelsize=7)
         ax.grid(axis="x", alpha=0.3)
     axes[0, 0].set_yticks(y, labels, fontsize=7)
     axes[0, 0].invert_yaxis()
+    if by and len(palette) > 1:
+        handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in palette.values()]
+        fig.legend(handles, [str(v) for v in palette], title=by, fontsize=7, title_fontsize=7,
+                   loc="upper right", ncol=min(len(palette), 4), frameon=False)
     if title:
         fig.suptitle(title, fontsize=9)
     with warnings.catch_warnings():   # long run names: matplotlib says it could not shrink further
@@ -205,3 +219,31 @@ def figure(table: pd.DataFrame, path: Path, title: str = "") -> Path | None:
     plt.close(fig)
     tmp.replace(path)
     return path
+
+
+def loss_overlay(curves: dict[str, list[float]], path: Path, title: str = "") -> Path:
+    """One sweep's training losses on one log-scale axes (issue 52): per run the curve of its best restart,
+    against the accepted step, labelled by its name's varying part, the legend in the sort order of
+    :func:`natural_key`."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(8.0, 4.8))
+    for name in sorted(curves, key=natural_key):
+        v = np.asarray(curves[name], dtype=float)
+        ax.plot(np.arange(v.size), v, lw=1.2, label=name.split(" | ")[0])
+    ax.set_yscale("log")
+    ax.set_xlabel("accepted step")
+    ax.set_ylabel("training loss (best restart)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=6, ncol=2 if len(curves) > 12 else 1, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    if title:
+        ax.set_title(title, fontsize=9)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def natural_key(text: str) -> tuple:
+    """Sort key that reads numbers as numbers: n1 < n8 < n16 < n32, σ1e-7 < σ1e-6 (issue 52)."""
+    parts = re.split(r"(\d+(?:\.\d+)?(?:e[+-]?\d+)?)", str(text))
+    return tuple((0, float(p), "") if i % 2 else (1, 0.0, p) for i, p in enumerate(parts))

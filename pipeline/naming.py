@@ -28,6 +28,8 @@ PREFIX = {"system.noise.std": "σ", "regularizer.lam": "λ", "invert.gamma": "γ
 #: inv = direct-inverse PGNN (13), invt = invertible PGNN (26)), short so that the name column shows it
 PGNN_INVERSIONS = ("direct", "newton", "analytic")
 PGNN_SHORT = {"forward": "fwd", "inverse": "inv", "invertible": "invt"}
+#: integer values zero-padded to this many digits in a name, so that text order is numeric order
+PADDED = {"model.hidden": 2}
 #: overrides that are not a variation of what a run computes
 SKIP = ("experiment", "hydra", "stages", "paths", "report", "export", "run_name", "experiment_name", "description")
 
@@ -46,6 +48,8 @@ def short_value(key: str, value: Any, model_name: str = "") -> str:
     """One key's value as it reads in a display name."""
     if isinstance(value, (list, tuple)):
         value = "-".join(_num(x) for x in value) if value else "0"
+    if key in PADDED:   # n00 < n01 < … < n16 < n48 also where the UI sorts names as text (issue 52)
+        return PREFIX.get(key, "") + re.sub(r"\d+", lambda m: m.group(0).zfill(PADDED[key]), str(value))
     s = str(value)
     if key in SHORT and s in SHORT[key]:
         return SHORT[key][s]

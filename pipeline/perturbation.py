@@ -316,7 +316,9 @@ _WHAT = {"perturb": ("Perturbation check (a second machine, emulated)",
                     "every LM step's normal equations perturbed at relative rounding level"),
          "tighten": ("Tightening check (are the tolerances adequate?)",
                      "every LM and SK tolerance divided by the factor and the restarts' iteration caps "
-                     "multiplied by CAPS")}
+                     "multiplied by CAPS"),
+         "isa": ("Code-path check (another instruction set)",
+                 "every job under another PIPELINE_ISA than the default AVX2 pin (the setting is named below)")}
 
 
 def markdown(summary: pd.DataFrame, rtol: float, check: str, setting: str,

@@ -42,6 +42,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
+import pipeline
 from pipeline import data, interrupts, naming, owned, schema, tracking
 from pipeline.cache import (  # noqa: F401
     HOST,
@@ -223,7 +224,8 @@ def stage_key(cfg: DictConfig, name: str, mod, upstream_keys: dict[str, str],
     for dotted in exclude:   # a part's key (StageContext.memo) leaves out keys it does not depend on
         config = _without(config, dotted)
     payload = {"stage": name, "version": version, "config": config,
-               "upstream": {u: upstream_keys[u] for u in mod.UPSTREAM}}
+               "upstream": {u: upstream_keys[u] for u in mod.UPSTREAM},
+               "isa": pipeline.ISA}   # the code paths decide the bits (issue 52): another ISA, another entry
     contents = getattr(impl, "content_key", None)    # what it reads besides the config (a measured
     if contents is not None:                         # file's bytes: another file under one name reruns)
         payload["contents"] = contents(cfg)

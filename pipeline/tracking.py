@@ -31,6 +31,7 @@ from hydra.core.utils import JobStatus
 from mlflow.entities import DatasetInput, InputTag, Metric, Param, RunTag
 from mlflow.tracking import MlflowClient
 
+import pipeline
 from pipeline import compare, interrupts
 from pipeline.cache import HOST, cache_dir, pid_alive, remove_stale_temporaries
 from pipeline.errors import ConfigError
@@ -161,7 +162,7 @@ class JobRun:
         self.client = client()
         exp_id = experiment_id(experiment, description)
         mark_dead_runs_killed(exp_id)
-        all_tags = {"git_sha": git_sha(), "host": _host(), "pid": str(os.getpid()),
+        all_tags = {"git_sha": git_sha(), "host": _host(), "pid": str(os.getpid()), "isa": pipeline.isa_setting(),
                     **slurm_tags(), **{k: str(v) for k, v in tags.items()}}
         parent = os.environ.get(PARENT_ENV)
         all_tags["sweep"] = "child" if parent else "single"
@@ -341,11 +342,12 @@ def logged_models(experiment: str) -> dict[str, list]:
             return out
 
 
-def register_champion(experiment: str, run_id: str, model, metric: str, tags: Mapping[str, Any],
+def register_champion(experiment: str, run_id: str, model, rule: str, tags: Mapping[str, Any],
                       description: str = "") -> tuple[str, str]:
     """Register ``model`` (a logged model of run ``run_id``) as a version of ``<experiment>-feedforward``
-    with alias ``champion`` and ``tags`` (the run's metrics, its names) as version tags; a champion that
-    is already this model is kept (no new version). Returns (registered name, version)."""
+    with alias ``champion``, ``rule`` (how it was chosen) as the version's description and ``tags`` (the
+    run's metrics, its names) as version tags; a champion that is already this model is kept (no new
+    version; its description is brought up to date). Returns (registered name, version)."""
     c = client()
     name = f"{experiment}-feedforward"
     try:
@@ -361,10 +363,11 @@ def register_champion(experiment: str, run_id: str, model, metric: str, tags: Ma
         current = None
     if current is not None and current.run_id == run_id and current.source == f"models:/{model.model_id}":
         version = current.version
+        c.update_model_version(name, version, description=rule)
     else:
         version = c.create_model_version(name, source=f"models:/{model.model_id}", run_id=run_id,
                                          model_id=model.model_id,
-                                         description=f"Best of `{experiment}` by `{metric}` (lowest).").version
+                                         description=rule).version
         c.set_registered_model_alias(name, CHAMPION, version)
     for k, v in tags.items():
         c.set_model_version_tag(name, version, k, str(v))
@@ -403,6 +406,9 @@ def log_comparison(run_id: str, patterns: list[str], title: str = ""):
         (folder / "comparison.md").write_text(compare.markdown(table, findings))
         compare.figure(table, folder / "comparison.png", title)
         c = client()
+        curves = best_loss_curves(kids)
+        if curves:
+            compare.loss_overlay(curves, folder / "loss_overlay.png", title)
         for f in sorted(folder.iterdir()):
             c.log_artifact(run_id, str(f), "compare")   # MLflow writes each through a temporary file
     finally:
@@ -411,6 +417,21 @@ def log_comparison(run_id: str, patterns: list[str], title: str = ""):
         note = c.get_run(run_id).data.tags.get(NOTE, "")
         c.set_tag(run_id, NOTE, note + "\n\nFindings:\n\n" + "\n".join(f"- {x}" for x in findings))
     return table, findings
+
+
+def best_loss_curves(runs) -> dict[str, list[float]]:
+    """{run display name: the loss curve of its best restart} (the restart with the lowest final loss of its
+    ``train/loss/restart<i>`` histories) for the runs of MLflow's ``search_runs`` frame that trained."""
+    c = client()
+    out = {}
+    for _, r in runs.iterrows():
+        keys = [k[len("metrics."):] for k in r.index if k.startswith("metrics.train/loss/restart")
+                and pd.notna(r[k])]
+        hist = [[m.value for m in sorted(c.get_metric_history(r["run_id"], k), key=lambda m: m.step)] for k in keys]
+        hist = [h for h in hist if h]
+        if hist:
+            out[str(r.get("tags.mlflow.runName", r["run_id"]))] = min(hist, key=lambda h: h[-1])
+    return out
 
 
 try:  # the Hydra callback lives here so that tracking stays in one module

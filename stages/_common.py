@@ -8,6 +8,14 @@ from pipeline import references
 from pipeline.errors import ConfigError
 
 
+def baseline_lag(ctx) -> None:
+    """A measured system with ``actuator.lag_tau: auto`` models the lag the baseline identified (its output
+    may come from the cache, where fit_physics did not run in this process)."""
+    lag = ctx.inputs.get("baseline", {}).get("lag")
+    if lag is not None and getattr(ctx.system, "lag_tau", None) == "auto":
+        ctx.system.use_lag(lag["tau"])
+
+
 def reference_specs(node) -> list[dict]:
     """A list of reference specs from the config (each a dict with ``name`` and ``kind``)."""
     if node is None:

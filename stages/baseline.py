@@ -38,6 +38,8 @@ UNUSABLE_RESIDUAL = 0.5
 
 def run(ctx) -> dict:
     ds = ctx.inputs["generate"]["dataset"]
+    if getattr(ctx.system, "lag_tau", None) == "auto":
+        ctx.system.use_lag(None)       # identified afresh from these data (fit_physics)
     system = ctx.system
     physics = system.physics
     try:
@@ -84,4 +86,18 @@ def run(ctx) -> dict:
         for k, v in published.items():
             if k in physical and v != 0:
                 ctx.metric(f"rel_error_published/{k}", (physical[k] - v) / abs(v))
-    return {"theta": theta, "physical": physical}
+    out = {"theta": theta, "physical": physical}
+    if system.measured and system.physics.lag is not None:    # the actuator lag (system.actuator.lag_tau)
+        lag = dict(getattr(system, "lag_fit", None) or {"tau": system.physics.lag.tau})
+        ctx.metric("lag_tau", lag["tau"])
+        if "tau_std" in lag:
+            ctx.metric("lag_tau_std", lag["tau_std"])
+            ctx.metric("lag_residual_share", lag["rss"] / lag["rss_no_lag"])   # of the residual without a lag
+            if lag["at_bound"]:
+                msg = (f"the actuator lag of '{system.name}' is not identifiable from these data (τ = "
+                       f"{lag['tau']:.3g} s at the end of the searched range): set system.actuator.lag_tau "
+                       "to the drive's datasheet value, or null")
+                ctx.tag("lag_warning", msg)
+                warnings.warn(msg, stacklevel=1)
+        out["lag"] = lag
+    return out

@@ -47,7 +47,7 @@ from pipeline.export.package import check_prefix, find_compiler, reference_file_
 from pipeline.invert.start import settle_count
 from pipeline.params import COUNT_MAX, FORCE_MAX, FREQ_MAX, schema, spec
 from pipeline.runner import exportable, implementation
-from stages._common import reference_specs
+from stages._common import baseline_lag, reference_specs
 
 
 @schema
@@ -295,6 +295,7 @@ def table_laws(ctx, kind: str) -> dict:
 
 def run(ctx) -> dict:
     e = ctx.cfg.export
+    baseline_lag(ctx)
     cc = str(e.cc) if e.compile else None
     if cc and find_compiler(cc) is None:
         print(f"[{ctx.cfg.run_name}] export: no C compiler '{cc}' on this machine: writing the C source "

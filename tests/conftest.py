@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pipeline  # noqa: F401  (first: it pins the code paths before numpy, torch and numba load; issue 52)
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra

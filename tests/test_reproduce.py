@@ -140,7 +140,9 @@ def test_queue_gives_each_swept_experiment_its_parent_and_the_same_runs(store):
     assert set(runs.loc[runs["tags.sweep"] == "single", "tags.experiment_file"]) == {"physics_arx"}
     # the parent's comparison of its children (issue 23), logged when the queue ended its sweep
     arts = {a.path for a in c.list_artifacts(parents["run_id"].iloc[0], "compare")}
-    assert arts == {"compare/comparison.csv", "compare/comparison.md", "compare/comparison.png"}
+    assert {"compare/comparison.csv", "compare/comparison.md", "compare/comparison.png"} <= arts
+    assert arts <= {"compare/comparison.csv", "compare/comparison.md", "compare/comparison.png",
+                    "compare/loss_overlay.png"}
     # the MLflow names lead with what the sweep varies (issue 23): trial noise, then θ*
     assert set(kids["tags.mlflow.runName"]) == {f"{a}·θ*{b} | rot_trans_nmp s0"
                                                 for a in ("trialnoise", "noiseless") for b in ("arx", "oracle")}

@@ -50,6 +50,12 @@ def test_varying_keys_from_the_sweep_and_the_command_line():
                                         "hydra.launcher.n_jobs=2"]) == ["system.noise.structure", "system.noise.std"]
     assert naming.varying_keys({"model.hidden": "choice([48],[32])"}) == ["model.hidden"]
     assert naming.short_value("model.hidden", [48]) == "n48" and naming.short_value("invert.gamma", 5e-5) == "γ5e-5"
+    # issue 52: names sort numerically as text (the MLflow UI's order): n00 (linear) < n01 < n08 < n16 < n48
+    hidden = [[48], [32], [8], [1], [], [16, 4]]
+    names = [naming.short_value("model.hidden", h) for h in hidden]
+    assert sorted(names) == ["n00", "n01", "n08", "n16-04", "n32", "n48"]
+    got = sorted(["n16", "n1", "n8", "σ1e-6", "σ1e-7"], key=compare.natural_key)
+    assert got == ["n1", "n8", "n16", "σ1e-7", "σ1e-6"]
     assert naming.short_value("invert.trial_noise", True) == "trialnoise"
     assert naming.short_value("invert.trial_noise", False) == "noiseless"
     assert naming.short_value("identify.theta_star", "oracle") == "θ*oracle"
@@ -82,6 +88,10 @@ def test_comparison_groups_by_the_factors_and_states_identical_results(tmp_path)
     assert list(table.columns) == ["run", "inversion", "structure", "regulariser", "noise",
                                    "evaluate/v0.15/mae_um", "train/theta_phy/m"]
     assert table["evaluate/v0.15/mae_um"].iloc[0] == pytest.approx(3.3)   # µm; sorted: direct, equation, none first
+    # issue 52: the regulariser sorts last, so each run sits beside its twin with the other regulariser
+    for a in range(0, len(table), 2):
+        pair = table.iloc[a:a + 2]
+        assert pair["inversion"].nunique() == pair["noise"].nunique() == 1 and pair["regulariser"].nunique() == 2
     # the physics feedforward's MAE does not move with the regulariser (its mass does: the unused PGNN)
     (finding,) = findings
     assert finding.startswith("Identical across regulariser (none, physics_l2) where inversion = physics")
@@ -147,9 +157,9 @@ def test_champion_is_registered_once_and_moves_to_a_better_run(store):
     from pipeline import tracking
     from stages.report import champion
 
-    def job(mae: float, invert: str) -> str:
-        run = tracking.JobRun("b1_linear_motor", f"{invert}·eq | linear_motor s0",
-                              {"invert": invert, "regularizer": "physics_l2", "run_key": f"lm-{invert}-{mae:g}"},
+    def job(mae: float, invert: str, reg: str = "physics_l2") -> str:
+        run = tracking.JobRun("b1_linear_motor", f"{invert}·eq·{reg} | linear_motor s0",
+                              {"invert": invert, "regularizer": reg, "run_key": f"lm-{invert}-{mae:g}"},
                               {"compare_metrics": ["evaluate/v0.15/mae"]}, description="Compare ...")
         run.log_metrics([("evaluate/v0.15/mae", mae, None), ("evaluate/v0.15/mae_um", 1e6 * mae, None)])
         with warnings.catch_warnings(), mlflow.start_run(run_id=run.run_id):
@@ -172,9 +182,19 @@ def test_champion_is_registered_once_and_moves_to_a_better_run(store):
     better = job(5e-7, "analytic")
     assert champion("b1_linear_motor") == (name, "2")
     assert c.get_model_version_by_alias(name, tracking.CHAMPION).run_id == better
+    # issue 52: an unregularised run (a side study of the report) with the lowest MAE is the champion, the
+    # version says by which rule and what the run is; the metric is a tag once (µm), not twice
+    noreg = job(4e-7, "analytic", "none")
+    assert champion("b1_linear_motor") == (name, "3")
+    v = c.get_model_version_by_alias(name, tracking.CHAMPION)
+    assert v.run_id == noreg and v.tags["regularizer"] == "none" and v.tags["inversion"] == "analytic"
+    assert "evaluate/v0.15/mae" not in v.tags and v.tags["evaluate/v0.15/mae_um"] == "0.4"
+    assert v.description.startswith("Lowest `evaluate/v0.15/mae` (4e-07) among all 4 runs")
+    assert "regularizer none" in v.description
     # logged models are named after their run
     names = {m.name for ms in tracking.logged_models("b1_linear_motor").values() for m in ms}
-    assert names == {"ff_newton-lm-newton-1e-06", "ff_direct-lm-direct-3e-06", "ff_analytic-lm-analytic-5e-07"}
+    assert names == {"ff_newton-lm-newton-1e-06", "ff_direct-lm-direct-3e-06", "ff_analytic-lm-analytic-5e-07",
+                     "ff_analytic-lm-analytic-4e-07"}
 
 
 def test_report_keys_runs_by_run_key_and_reads_stores_made_before_it():
@@ -201,3 +221,28 @@ def test_experiments_carry_kind_and_note_and_links_open_the_model_training_view(
     (line,) = tracking.experiment_links("http://h:1")
     assert line.split()[-1] == (f"http://h:1/#/experiments/{exp.experiment_id}/runs?workflowType=machine_learning"
                                 "&orderByKey=attributes.run_name&orderByAsc=true")
+
+
+def test_sweep_parent_gets_one_loss_overlay_of_each_childs_best_restart(store, tmp_path):
+    """Issue 52: the loss curves of a sweep compared on one figure, each child by its best restart."""
+    import matplotlib.image
+
+    from pipeline import tracking
+    c = tracking.client()
+    exp = c.create_experiment("sweep")
+    parent = c.create_run(exp, tags={"sweep": "parent"}).info.run_id
+    for name, scale in (("n16·L2 | s0", 1.0), ("n08·L2 | s0", 10.0)):
+        kid = c.create_run(exp, run_name=name, tags={"mlflow.parentRunId": parent, "sweep": "child"}).info.run_id
+        for step in range(5):   # restart 1 ends lower than restart 0: the best restart
+            c.log_metric(kid, "train/loss/restart0", scale * 2.0 ** -step, step=step)
+            c.log_metric(kid, "train/loss/restart1", scale * 3.0 ** -step, step=step)
+        c.log_metric(kid, "evaluate/v/mae", scale)
+        c.set_terminated(kid)
+    curves = tracking.best_loss_curves(tracking.children(parent))
+    assert curves["n08·L2 | s0"] == pytest.approx([10 * 3.0 ** -k for k in range(5)])
+    assert curves["n16·L2 | s0"][-1] == pytest.approx(3.0 ** -4)
+    tracking.log_comparison(parent, ["evaluate/*/mae"], "sweep")
+    arts = {a.path for a in c.list_artifacts(parent, "compare")}
+    assert "compare/loss_overlay.png" in arts
+    png = c.download_artifacts(parent, "compare/loss_overlay.png", str(tmp_path))
+    assert matplotlib.image.imread(png).shape[1] > 400

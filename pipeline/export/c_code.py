@@ -28,7 +28,7 @@ from string import Template
 import numpy as np
 
 from pipeline.export.guard import CORE_FLAGS, FALLBACKS, FLAGS, GUARD_FLAGS, REGRESSORS
-from pipeline.export.law import ExportError, Law
+from pipeline.export.law import ExportError, Law, lag_of
 
 __all__ = ["c_name", "write_c", "CFLAGS"]
 
@@ -127,6 +127,23 @@ def _snippets() -> dict:
 
 
 def _nx(law: Law) -> int:
+    return _nx_law(law) + (2 if "lag_tau" in law.floats else 0)    # + the actuator lag's [p(t-1), u(t-1)]
+
+
+def _lag_defines(law: Law) -> str:
+    """The actuator lag's inverse as constants (templates/averaged_step.c; empty without a lag)."""
+    lag = lag_of(law)
+    if lag is None:
+        return ""
+    (p0, p1), (_, b1), (a0, a1) = lag.inverse_coefficients()
+    return (f"/* actuator lag tau = {_num(lag.tau)} s: p = LAG_P0 w(t) + LAG_P1 w(t+1), "
+            "LAG_A0 u(t) = p(t) + LAG_B1 p(t-1) - LAG_A1 u(t-1) */\n"
+            + "".join(f"#define {k} ({_num(v)})\n" for k, v in
+                      (("LAG_P0", p0), ("LAG_P1", p1), ("LAG_B1", b1), ("LAG_A0", a0), ("LAG_A1", a1)))
+            + f"#define XLAG ({_nx(law) - 2})\n")
+
+
+def _nx_law(law: Law) -> int:
     i = law.ints
     if law.family == "pgnn":
         nrh = max(0, i["n_a"] - i["n_k"] - 1)
@@ -291,7 +308,7 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
     i = law.ints
     if law.family == "pgnn":
         offsets = _blob_offsets(law)
-        arrays = _array("BLOB", law.arrays["blob"])
+        arrays = _array("BLOB", law.arrays["blob"]) + _lag_defines(law)
         src = _template("pgnn.c").substitute(
             common, **snippets, arrays=arrays, LAW=law.law.upper(), **_pgnn_controller(law, NAME, df2t),
             force_term=_text("force_term.c") if i["kind"] in (3, 4) else "",
@@ -316,7 +333,7 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
         arrays = (_array("THETA_INV", a["theta_inv"], "θ' = [M, p_1, ...] of the inverse form")
                   + _array("CONSTS", a["consts"], "shape constant of each force term")
                   + f"static const int CODES[{max(a['codes'].size, 1)}] = {{{codes}}};"
-                  + "  /* kernel code of each term */\n")
+                  + "  /* kernel code of each term */\n" + _lag_defines(law))
         if i["has_ctrl"]:
             arrays += (_array("NUM", a["num"], "B_r - B_y / A's first coefficient")
                        + _array("DEN", a["den"], "A in q^-1 / its first coefficient"))

@@ -182,6 +182,7 @@ class Law:
             w = 7 + 2 * codes.size + sum(per[int(c)] for c in codes)
             calls = int(sum(int(c) in (2, 3, 5, 6) for c in codes))
             flops = (2 if self.averaged else 1) * w + (3 if self.averaged else 0)
+            flops += 6 if "lag_tau" in self.floats else 0       # the actuator lag's inverse
             calls *= 2 if self.averaged else 1
             if self.ints["has_ctrl"]:
                 flops += 4 * self.ints["n_den"] + 2
@@ -215,7 +216,8 @@ def strict_json(obj) -> str:
 def from_pgnn(model, law: str, Ts: float, *, averaged: bool = False, k: int = 5,
               u_bounds=(-math.inf, math.inf), theta_start=None, ctrl=None) -> Law:
     """The [B1] inversion ``law`` (direct | analytic | newton | physics) of a PGNN, from the
-    flat arrays of :func:`~pipeline.models.pgnn.fast_pgnn` (the numba kernels' own data). ``ctrl``: the
+    flat arrays of :func:`~pipeline.models.pgnn.fast_pgnn` (the numba kernels' own data); an averaged
+    input of a physics with an actuator lag is inverted with the lag (pipeline.systems.actuator_lag). ``ctrl``: the
     known controller of a measured axis, whose force on y = r, (C_r - C_y) r, the law subtracts
     (:func:`controller_fields`; the invert stage's u_ff on a measured system, issue 49)."""
     from pipeline.models.fast_pgnn import fast_pgnn  # lazy: saves 2.2 s of start-up (torch, numba kernels)
@@ -247,6 +249,8 @@ def from_pgnn(model, law: str, Ts: float, *, averaged: bool = False, k: int = 5,
             raise ExportError(f"Newton needs a non-negative integer k, got {k}")
         ints["k"] = int(k)
         floats = {"u_min": float(u_bounds[0]), "u_max": float(u_bounds[1])}
+    if averaged and model.use_physics:
+        floats.update(_lag_floats(getattr(model.physics, "pm", model.physics)))
     arrays, strings = {"blob": fm.blob}, {"structure": fm.structure,
                                           "model": "physics" if law == "physics" else f"pgnn-{fm.structure}"}
     if ctrl is not None:      # a measured axis: minus gtau (C_r - C_y) r (none of these keys on the simulators)
@@ -306,10 +310,35 @@ def from_measured_physics(physics, theta, ctrl) -> Law:
                ints={"n_terms": int(codes.size), **c_ints, "cogging_harmonics": int(t.cogging_harmonics)},
                floats={**c_floats, "stribeck_velocity": float(t.stribeck_velocity),
                        "coulomb_width": 0.0 if t.coulomb_width is None else float(t.coulomb_width),
-                       "cogging_period": 0.0 if t.cogging_period is None else float(t.cogging_period)},
+                       "cogging_period": 0.0 if t.cogging_period is None else float(t.cogging_period),
+                       **_lag_floats(physics)},
                arrays={"theta": theta, "theta_inv": physics.inverse_theta(theta), "codes": codes,
                        "consts": consts, **c_arrays},
                strings={"model": "physics-measured", "terms": ",".join(t.names), "controller": ctrl.structure})
+
+
+def _lag_floats(physics) -> dict:
+    """{"lag_tau": τ} of a physics with an actuator lag (its inverse replaces the averaged input's), else {}."""
+    lag = getattr(physics, "lag", None) or getattr(physics, "input_lag", None)   # input_lag: a PGNN's map on w
+    return {} if lag is None else {"lag_tau": float(lag.tau)}
+
+
+def lag_of(law: Law):
+    """The law's actuator lag (:class:`pipeline.systems.actuator_lag.ActuatorLag`) or None."""
+    if "lag_tau" not in law.floats:
+        return None
+    if not law.averaged:
+        raise ExportError("an actuator lag's inverse replaces the averaged input's: a corrupted law")
+    from pipeline.systems.actuator_lag import ActuatorLag  # lazy: saves 0.3 s of start-up (scipy.signal)
+    return ActuatorLag(law.floats["lag_tau"], law.Ts)
+
+
+def _applied(law: Law, w: np.ndarray) -> np.ndarray:
+    """u(0 .. N-1) of the law's w(0 .. N): (w(t) + w(t+1))/2, or the actuator lag's inverse (actuator_lag)."""
+    lag = lag_of(law)
+    if lag is None:
+        return 0.5 * (w[:-1] + w[1:])
+    return lag.applied_input(w[:-1], w[-1])
 
 
 def from_k_filter(model, law: str = "rational_filter") -> Law:
@@ -475,14 +504,14 @@ def _core(law: Law, r: np.ndarray, r0: float | None = None, **pgnn) -> tuple[np.
             physics = _rigid_body(law)   # feedforward's w, its overflow kept (applied_input refuses it)
             w = physics.inverse_force(law.arrays["theta"], r)
             with np.errstate(over="ignore", invalid="ignore"):
-                u = (0.5 * (w[:-1] + w[1:]) if law.averaged else w[:-1]) - _controller_force(law, r, r0)
+                u = (_applied(law, w) if law.averaged else w[:-1]) - _controller_force(law, r, r0)
         return u, np.where(np.isfinite(u), 0, FLAG["SINGULAR"])
     w, f = _pgnn_run(law, np.append(r, r[-1]) if law.averaged else r, **pgnn)
     f = f | np.where(np.isfinite(w), 0, FLAG["SINGULAR"])    # an overflow: kept, the guard falls back
     if law.averaged:
         flags = f[1:].copy()          # step t runs w(t+1); the first also w(0)
         flags[0] |= f[0]
-        w, f = 0.5 * (w[:-1] + w[1:]), flags
+        w, f = _applied(law, w), flags
     if "gtau" not in law.floats:      # no controller term (a simulator's law)
         return w, f
     with np.errstate(over="ignore", invalid="ignore"):
@@ -536,7 +565,7 @@ def _rigid_body(law: Law):
                        coulomb_width=f["coulomb_width"] or None, stribeck_velocity=f["stribeck_velocity"],
                        cogging_period=f["cogging_period"] or None,
                        cogging_harmonics=law.ints["cogging_harmonics"])
-    physics = RigidBodyPhysics(law.Ts, averaged_input=law.averaged, terms=terms)
+    physics = RigidBodyPhysics(law.Ts, averaged_input=law.averaged, terms=terms, lag=lag_of(law))
     a = law.arrays
     if not (np.array_equal(terms.kernel()[0], a["codes"]) and np.array_equal(terms.kernel()[1], a["consts"])):
         raise ExportError("the law's force terms do not match its kernel codes: a corrupted law")

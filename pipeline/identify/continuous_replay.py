@@ -6,12 +6,14 @@ continuous-time model,
 
     M q̈ = u(t) - Σ_j p_j T_j(q, q̇),       u(t) = u(k) on [k Ts, (k+1) Ts)  (zero-order hold),
 
-so how far the one-step integrator is from it can be *measured*: :func:`replay_rk4` runs the same
-closed loop (controller at the samples, as in the kernel) with ``n_sub`` classical Runge-Kutta
-sub-steps per sample.  As n_sub doubles the scores settle (a sign() Coulomb term limits the order
-near velocity reversals); the settled value minus the one-step replay's is the integrator's own
-error.  Started from the recorded state like the kernel: the first ``n_init`` samples are the
-record's, the state at n_init - 1 the one the one-step replay implies (exact for a mass).
+(with an actuator lag τ, ``pipeline.systems.actuator_lag``, the force is F with τ Ḟ + F = u(t), a third
+state integrated alongside), so how far the one-step integrator is from it can be *measured*:
+:func:`replay_rk4` runs the same closed loop (controller at the samples, as in the kernel) with
+``n_sub`` classical Runge-Kutta sub-steps per sample. As n_sub doubles the scores settle (a sign()
+Coulomb term limits the order near velocity reversals); the settled value minus the one-step replay's is
+the integrator's own error. Started from the recorded state like the kernel: the first ``n_init``
+samples are the record's, the state at n_init - 1 the one the one-step replay implies (exact for a
+mass).
 """
 from __future__ import annotations
 
@@ -32,7 +34,7 @@ def _accel(q, v, u, th, codes, tp):
 
 
 @numba.njit(cache=True)
-def _rk4_loop(r, d, yrec, urec, n0, th, codes, tp, Ts, n_sub, br, by, ca, gtau, vsat, D):
+def _rk4_loop(r, d, yrec, urec, n0, th, codes, tp, Ts, n_sub, br, by, ca, gtau, vsat, D, lag):
     N = r.size
     y = np.empty(N)
     tau = np.empty(N)
@@ -44,6 +46,11 @@ def _rk4_loop(r, d, yrec, urec, n0, th, codes, tp, Ts, n_sub, br, by, ca, gtau, 
     q = yrec[n0 - 1]
     v2 = (yrec[n0 - 2] - yrec[n0 - 3]) / Ts
     v = (yrec[n0 - 1] - yrec[n0 - 2]) / Ts + 0.5 * Ts * _accel(yrec[n0 - 2], v2, urec[n0 - 2], th, codes, tp)
+    F = 0.0               # the lagged force at n0 - 1: the exact sampled lag of the recorded u from rest
+    if lag > 0.0:
+        a = np.exp(-Ts / lag)
+        for j in range(n0 - 1):
+            F = a * F + (1.0 - a) * urec[j]
     for k in range(N):
         if k < n0:   # the record, as in the one-step kernel (pipeline.identify.measured_loop._loop)
             y[k] = yrec[k]
@@ -62,7 +69,19 @@ def _rk4_loop(r, d, yrec, urec, n0, th, codes, tp, Ts, n_sub, br, by, ca, gtau, 
             cc[k] = min(max(vv[k], -vsat), vsat)
             uk = gtau * (cc[k - D] + d[k])
             tau[k] = uk
-        if k >= n0 - 1:   # integrate [k, k+1] with u(k) held
+        if k >= n0 - 1 and lag > 0.0:   # [k, k+1] with u(k) held: q, q̇ and the lagged force F
+            for _ in range(n_sub):
+                k1q, k1v, k1f = v, _accel(q, v, F, th, codes, tp), (uk - F) / lag
+                q2, v2, f2 = q + 0.5 * h * k1q, v + 0.5 * h * k1v, F + 0.5 * h * k1f
+                k2q, k2v, k2f = v2, _accel(q2, v2, f2, th, codes, tp), (uk - f2) / lag
+                q3, v3, f3 = q + 0.5 * h * k2q, v + 0.5 * h * k2v, F + 0.5 * h * k2f
+                k3q, k3v, k3f = v3, _accel(q3, v3, f3, th, codes, tp), (uk - f3) / lag
+                q4, v4, f4 = q + h * k3q, v + h * k3v, F + h * k3f
+                k4q, k4v, k4f = v4, _accel(q4, v4, f4, th, codes, tp), (uk - f4) / lag
+                q += h / 6.0 * (k1q + 2 * k2q + 2 * k3q + k4q)
+                v += h / 6.0 * (k1v + 2 * k2v + 2 * k3v + k4v)
+                F += h / 6.0 * (k1f + 2 * k2f + 2 * k3f + k4f)
+        elif k >= n0 - 1:   # integrate [k, k+1] with u(k) held
             for _ in range(n_sub):
                 k1q, k1v = v, _accel(q, v, uk, th, codes, tp)
                 k2q, k2v = v + 0.5 * h * k1v, _accel(q + 0.5 * h * k1q, v + 0.5 * h * k1v, uk, th, codes, tp)
@@ -84,10 +103,11 @@ def replay_rk4(physics, theta, ctrl, sig, n_sub: int):
     if int(n_sub) < 1:
         raise ValueError(f"n_sub={n_sub} must be >= 1")
     codes, tp = physics.kernel_terms()
+    lag = getattr(physics, "lag", None)
     f = lambda x: np.ascontiguousarray(x, dtype=np.float64)  # noqa: E731
     return _rk4_loop(f(sig.r), f(sig.d), f(sig.y_rec), f(sig.u_rec), n0, f(theta), codes, tp, float(physics.Ts),
                      int(n_sub), f(ctrl.b_r), f(ctrl.b_y), f(ctrl.a), float(ctrl.gtau), float(ctrl.v_sat),
-                     int(ctrl.delay))
+                     int(ctrl.delay), 0.0 if lag is None else float(lag.tau))
 
 
 #: sub-step counts of the integrator check

@@ -7,8 +7,10 @@ RigidBodyPhysics`, direct input on w) and at most one tanh hidden layer ([B1] (1
            + s_out (W2 tanh(W1 x(k) + b1) + b2),       x(k) = P φ(k) + c,
     φ(k) = [y(k-1) … y(k-n_a), w(k-1) … w(k-n_b)],   w = ū = (u(k) + u(k-1))/2 or u,
 
-closed around the known controller (:class:`pipeline.systems.controller.LTIController`, any
-discrete LTI C_r, C_y with a common denominator A; the EMPS cascade is one instance)::
+(with an actuator lag, ``pipeline.systems.actuator_lag``, w is its exact sampling with the mass,
+w = B(q⁻¹)/(1 - a q⁻¹) u, in place of ū), closed around the known controller
+(:class:`pipeline.systems.controller.LTIController`, any discrete LTI C_r, C_y with a common denominator A;
+the EMPS cascade is one instance)::
 
     A v(k) = B_r r(k) - B_y ŷ(k),     c(k) = sat(v(k) + u_ff(k) / gtau)
     u(k) = gtau (c(k - D) + d(k))                   applied force [N]
@@ -61,6 +63,8 @@ class LoopModel:
     out_scale: float = 1.0
     term_codes: np.ndarray = None     # the physics' force terms (ForceTerms.kernel()); None: viscous, Coulomb
     term_p: np.ndarray = None         # (sign) and, for a 4-entry θ, the offset (the EMPS model)
+    lag_b: np.ndarray = None          # an actuator lag: w = lag_b/lag_a u replaces ū (pipeline.systems.actuator_lag);
+    lag_a: np.ndarray = None          # None: no lag
 
     def __post_init__(self):
         if self.n_a < 2 or self.n_b < 1:
@@ -72,6 +76,12 @@ class LoopModel:
             self.term_codes, self.term_p = ForceTerms(names).kernel()
         self.term_codes = np.ascontiguousarray(self.term_codes, dtype=np.int64)
         self.term_p = np.ascontiguousarray(self.term_p, dtype=np.float64)
+        if self.lag_b is None:
+            self.lag_b, self.lag_a = np.zeros(0), np.ones(1)
+        self.lag_b = np.ascontiguousarray(self.lag_b, dtype=np.float64)
+        self.lag_a = np.ascontiguousarray(self.lag_a, dtype=np.float64)
+        if self.lag_b.size and not (self.averaged and self.lag_a.size >= 1 and self.lag_a[0] == 1.0):
+            raise ValueError("an actuator lag replaces the averaged input: give averaged=True and lag_a[0] = 1")
         if self.theta_phy.shape != (1 + self.term_codes.size,):
             raise ValueError(f"theta_phy must be [1/M, p_1/M, …] with one entry per force term "
                              f"({1 + self.term_codes.size}), got shape {self.theta_phy.shape}")
@@ -98,14 +108,14 @@ class LoopModel:
         pm = getattr(model.physics, "pm", model.physics)
         codes, tp = pm.kernel_terms() if hasattr(pm, "kernel_terms") else (None, None)
         return cls(float(pm.Ts), model.n_a, model.n_b, bool(averaged), model.theta_phy.detach().numpy().copy(),
-                   **nn_export(model), term_codes=codes, term_p=tp)
+                   **nn_export(model), term_codes=codes, term_p=tp, **_lag(pm, averaged))
 
     @classmethod
     def physics_only(cls, physics, theta) -> "LoopModel":
         """The physics model alone (``RigidBodyPhysics``; w = ū if it averages its input)."""
         codes, tp = physics.kernel_terms() if hasattr(physics, "kernel_terms") else (None, None)
         return cls(physics.Ts, 2, 1, bool(physics.averaged_input), np.asarray(theta, dtype=np.float64),
-                   term_codes=codes, term_p=tp)
+                   term_codes=codes, term_p=tp, **_lag(physics, physics.averaged_input))
 
     @property
     def n1(self) -> int:
@@ -127,6 +137,28 @@ class LoopModel:
         return replace(self, **nn_split(theta, self.theta_phy.size, self.n1, self.nn_P.shape[0]))
 
 
+def _lag(physics, averaged: bool) -> dict:
+    """{lag_b, lag_a} of the physics' actuator lag where its input is the model input (else {})."""
+    lag = getattr(physics, "lag", None) or getattr(physics, "input_lag", None)   # input_lag: a PGNN's map on w
+    if lag is None or not averaged:
+        return {}
+    b, a = lag.coefficients()
+    return {"lag_b": b, "lag_a": a}
+
+
+@numba.njit(cache=True)
+def _filtered(x, k, y, b, a):
+    """y(k) of A y = B x (a[0] = 1), zero before k = 0: the actuator lag's model input."""
+    acc = 0.0
+    for i in range(b.size):
+        if k - i >= 0:
+            acc += b[i] * x[k - i]
+    for i in range(1, a.size):
+        if k - i >= 0:
+            acc -= a[i] * y[k - i]
+    return acc
+
+
 @numba.njit(cache=True)
 def ctrl_law(k, r, y, y0, vv, br, by, ca):
     """v(k) of the controller A v = B_r r - B_y y (pipeline.systems.controller; r, y held at their
@@ -144,7 +176,7 @@ def ctrl_law(k, r, y, y0, vv, br, by, ca):
 
 @numba.njit(cache=True)
 def _loop(r, d, uff, y0, yrec, urec, n0, n_a, n_b, averaged, th, codes, tp, W1, b1, W2, b2, P, c, so, Ts, br, by, ca,
-          gtau, vsat, D, Dt, sens):
+          gtau, vsat, D, Dt, sens, lb, la):
     N = r.size
     n1, nx = W1.shape[0], P.shape[0]
     nphi = n_a + n_b
@@ -161,6 +193,7 @@ def _loop(r, d, uff, y0, yrec, urec, n0, n_a, n_b, averaged, th, codes, tp, W1, 
     Sc = np.zeros((M, NP))
     Sv = np.zeros((M, NP))
     Sw = np.zeros((M, NP))
+    Su = np.zeros((M if lb.size else 1, NP))    # ∂u/∂θ, the lag's input
     W1P = np.zeros((n1, nphi))   # W1 P: ∂(pre-activation)/∂φ, constant over the run
     for m in range(n1):
         for i in range(nphi):
@@ -181,7 +214,10 @@ def _loop(r, d, uff, y0, yrec, urec, n0, n_a, n_b, averaged, th, codes, tp, W1, 
             y[k] = yrec[k]
             u[k] = urec[k]
             tau[k] = urec[k]
-            w[k] = 0.5 * (u[k] + (u[k - 1] if k >= 1 else 0.0)) if averaged else u[k]
+            if lb.size:
+                w[k] = _filtered(u, k, w, lb, la)
+            else:
+                w[k] = 0.5 * (u[k] + (u[k - 1] if k >= 1 else 0.0)) if averaged else u[k]
             if k - D >= 0:
                 cc[k - D] = urec[k] / gtau - d[k]
                 vv[k - D] = cc[k - D]
@@ -264,7 +300,9 @@ def _loop(r, d, uff, y0, yrec, urec, n0, n_a, n_b, averaged, th, codes, tp, W1, 
         tau[k] = gtau * ((cc[k - Dt] if k - Dt >= 0 else 0.0) + d[k])
         cd = cc[k - D] if k - D >= 0 else 0.0
         u[k] = gtau * (cd + d[k])
-        if averaged:
+        if lb.size:
+            w[k] = _filtered(u, k, w, lb, la)
+        elif averaged:
             w[k] = 0.5 * (u[k] + (u[k - 1] if k >= 1 else 0.0))
         else:
             w[k] = u[k]
@@ -281,7 +319,17 @@ def _loop(r, d, uff, y0, yrec, urec, n0, n_a, n_b, averaged, th, codes, tp, W1, 
                 Sc[k, p] = sv if sat != 0.0 else 0.0
             for p in range(NP):
                 su = gtau * Sc[k - D, p] if k - D >= 0 else 0.0
-                if averaged:
+                if lb.size:
+                    Su[k, p] = su
+                    sw = 0.0
+                    for i in range(lb.size):
+                        if k - i >= 0:
+                            sw += lb[i] * Su[k - i, p]
+                    for i in range(1, la.size):
+                        if k - i >= 0:
+                            sw -= la[i] * Sw[k - i, p]
+                    Sw[k, p] = sw
+                elif averaged:
                     sp = 0.0
                     if k >= 1:
                         sp = gtau * Sc[k - 1 - D, p] if k - 1 - D >= 0 else 0.0
@@ -362,7 +410,8 @@ def simulate_loop(model: LoopModel, ctrl, sig: LoopSignals, convention: str = "d
                               model.theta_phy,
                               model.term_codes, model.term_p,
                               model.W1, model.b1, model.W2, model.b2, model.nn_P, model.nn_c, model.out_scale,
-                              model.Ts, ctrl.b_r, ctrl.b_y, ctrl.a, ctrl.gtau, ctrl.v_sat, D, Dt, sens)
+                              model.Ts, ctrl.b_r, ctrl.b_y, ctrl.a, ctrl.gtau, ctrl.v_sat, D, Dt, sens,
+                              model.lag_b, model.lag_a)
     if sens:
         St = Sc * ctrl.gtau
         if Dt:

@@ -27,6 +27,8 @@ from scipy import signal
 
 from pipeline.identify.least_squares import solve_scaled
 from pipeline.params import DAMP_MAX, FORCE_MAX, FREQ_MAX, MASS_MAX, TS_MAX, schema, spec
+from pipeline.systems.actuator_lag import ActuatorLag, identify_tau
+from pipeline.systems.actuator_lag import Params as ActuatorParams
 from pipeline.systems.base import System, check_signal
 from pipeline.systems.controller import LTIController
 from pipeline.systems.controller import Params as ControllerParams
@@ -70,6 +72,8 @@ class Params:
     physics_input: Literal["averaged", "direct"] = "averaged"
     # M q̈ = τ - Σ terms (pipeline/systems/force_terms.py): viscous F_v q̇, coulomb F_c sign(q̇)
     force_terms: ForceTermsParams = field(default_factory=lambda: ForceTermsParams())
+    # the drive: lag_tau of its current loop τ Ḟ + F = u [s], 'auto' or null (pipeline/systems/actuator_lag.py)
+    actuator: ActuatorParams = field(default_factory=ActuatorParams)
     # name of the measured disturbance column in your files (loaded as d), or null
     disturbance: Optional[str] = None
     # {M, F_v, F_c, OF} from a datasheet or an earlier identification, or null
@@ -99,18 +103,43 @@ class RigidBodyPhysics(LinearMotorPhysics):
 
     input_gain_index = 0
 
-    def __init__(self, Ts: float = 1e-3, averaged_input: bool = True, terms: ForceTerms | None = None):
+    def __init__(self, Ts: float = 1e-3, averaged_input: bool = True, terms: ForceTerms | None = None,
+                 lag: ActuatorLag | None = None):
         super().__init__(Ts, averaged_input)
         self.terms = terms if terms is not None else ForceTerms()
         self.param_names = ("inv_m",) + self.terms.param_names
+        if lag is not None and not self.averaged_input:
+            raise ValueError("an actuator lag (system.actuator.lag_tau) needs physics_input: averaged (the exact "
+                             "sampling of the mass the lag's model extends); set physics_input: averaged")
+        self.lag = lag      # None: the force is the command (pipeline.systems.actuator_lag)
+        self.input_lag = None   # with_direct_input: the lag that made its input w
+
+    def with_lag(self, lag: ActuatorLag | None) -> "RigidBodyPhysics":
+        """The same physics with the force lag ``lag`` (None: none)."""
+        return RigidBodyPhysics(self.Ts, self.averaged_input, self.terms, lag)
+
+    def model_input(self, u) -> np.ndarray:
+        """w of the command u: ū, or with a lag its exact sampling B/(1 - a q⁻¹) u (actuator_lag)."""
+        if self.lag is None:
+            return super().model_input(u)
+        return self.lag.model_input(check_signal("u", u))
+
+    def applied_input(self, w, w_end: float | None = None) -> np.ndarray:
+        """The command for a model input w: (w(t) + w(t+1))/2, or with a lag its inverse (actuator_lag)."""
+        if self.lag is None:
+            return super().applied_input(w, w_end)
+        return self.lag.applied_input(check_signal("w", w), w_end)
 
     @property
     def has_offset(self) -> bool:
         return "offset" in self.terms.names
 
     def with_direct_input(self) -> "RigidBodyPhysics":
-        """The same physics on an input that is already the model input w (no averaging)."""
-        return RigidBodyPhysics(self.Ts, averaged_input=False, terms=self.terms)
+        """The same physics on an input that is already the model input w (no averaging); ``input_lag``
+        remembers the actuator lag that made w (the loop kernel and the exported law apply it to u)."""
+        p = RigidBodyPhysics(self.Ts, averaged_input=False, terms=self.terms)
+        p.input_lag = self.lag
+        return p
 
     def theta_from_physical(self, physical: dict) -> np.ndarray:
         """θ from {M [kg], F_v, F_c, …}; a term the dict does not give is 0 (a datasheet that
@@ -218,13 +247,17 @@ class RigidBodyPhysics(LinearMotorPhysics):
         v = np.gradient(qf, self.Ts)
         acc = np.gradient(v, self.Ts)
         X = np.stack([acc] + self.terms.columns(qf, v) + [qf, v], axis=1)   # [q̈, T_1(q, q̇), …, q, q̇]
-        z = u
-        if decimation > 1:
-            X = signal.decimate(X, int(decimation), axis=0, zero_phase=True)
-            z = signal.decimate(u, int(decimation), zero_phase=True)
-        k = max(1, trim // max(decimation, 1))
-        X, z = X[k:-k], z[k:-k]
-        return X[:, :-2], z, X[:, -2], X[:, -1]
+        X = _rows(X, decimation, trim)
+        return X[:, :-2], self.filtered_target(u, cutoff_hz, order, decimation, trim), X[:, -2], X[:, -1]
+
+    def filtered_target(self, u, cutoff_hz: float = 50.0, order: int = 4, decimation: int = 10,
+                        trim: int = 50) -> np.ndarray:
+        """The force rows of :meth:`filtered_regression`: u, or with a lag the force the mass sees
+        (actuator_lag), filtered like q (zero phase, as q̈)."""
+        if self.lag is not None:
+            b, a = self.butterworth(cutoff_hz, order)
+            u = signal.filtfilt(b, a, self.lag.model_input(u))
+        return _rows(u, decimation, trim)
 
     def stacked_regression(self, y, u, **filt):
         """:meth:`filtered_regression` of one record (arrays) or of several (lists of arrays, one
@@ -291,6 +324,15 @@ class RigidBodyPhysics(LinearMotorPhysics):
         return out
 
 
+def _rows(x, decimation: int, trim: int) -> np.ndarray:
+    """Parallel decimation (``scipy.signal.decimate``, zero phase) of the regression's columns, then
+    ``trim`` samples dropped at each end (filter transients)."""
+    if decimation > 1:
+        x = signal.decimate(x, int(decimation), axis=0, zero_phase=True)
+    k = max(1, trim // max(decimation, 1))
+    return x[k:-k]
+
+
 #: a term the config lacks that would explain this share of the residual's energy is missing (warning)
 MISSING_TERM_SHARE = 0.2
 
@@ -331,6 +373,9 @@ class Recording(System):
     idim : dict or None
         Settings of the filtered inverse-model least squares (:meth:`RigidBodyPhysics.fit_filtered`:
         cutoff_hz, order, decimation, trim).
+    actuator : dict or None
+        ``lag_tau``: the drive's force lag τ [s] (τ Ḟ + F = u, :mod:`pipeline.systems.actuator_lag`),
+        ``'auto'`` (identified by :meth:`fit_physics` from the training records) or None (no lag).
     """
 
     measured = True
@@ -338,7 +383,8 @@ class Recording(System):
     def __init__(self, name: str = Params.name, Ts: float = Params.Ts, controller: dict | None = None,
                  physics_input: str = Params.physics_input, force_terms: dict | None = None,
                  disturbance: str | None = Params.disturbance,
-                 published: dict | None = Params.published, idim: dict | None = None):
+                 published: dict | None = Params.published, idim: dict | None = None,
+                 actuator: dict | None = None):
         if not (isinstance(Ts, (int, float)) and math.isfinite(Ts) and Ts > 0):
             raise ValueError(f"Ts={Ts!r} must be a positive sample time in s")
         if physics_input not in ("averaged", "direct"):
@@ -357,6 +403,17 @@ class Recording(System):
         ft = dict(force_terms or {})
         terms = ForceTerms(tuple(ft.pop("terms", ForceTerms.names)), **ft)
         self._physics = RigidBodyPhysics(self.Ts, averaged_input=physics_input == "averaged", terms=terms)
+        act = dict(actuator or {})
+        unknown = set(act) - {"lag_tau"}
+        if unknown:
+            raise ValueError(f"unknown actuator key(s) {sorted(unknown)}; allowed: lag_tau")
+        self.lag_tau = act.get("lag_tau")          # None | τ [s] | 'auto' (set by fit_physics)
+        if self.lag_tau is not None:
+            if self.lag_tau != "auto":
+                self.use_lag(self.lag_tau)
+            elif physics_input != "averaged":
+                raise ValueError("actuator.lag_tau: auto needs physics_input: averaged (the exact sampling of the "
+                                 "mass the lag's model extends); set physics_input: averaged")
         self._physics.butterworth(**{k: self.idim[k] for k in ("cutoff_hz", "order") if k in self.idim})
 
     @property
@@ -381,9 +438,23 @@ class Recording(System):
         """Shortest training record the physics baseline (``idim`` settings) can use."""
         return self.physics.min_samples(**{k: v for k, v in self.idim.items() if k in ("decimation", "trim")})
 
+    def use_lag(self, tau: float | None) -> None:
+        """Model the force lag τ [s] (None: none) from now on (physics, replay, inverse, export)."""
+        self._physics = self._physics.with_lag(None if tau is None else ActuatorLag(float(tau), self.Ts))
+
+    def identify_lag(self, y, u) -> dict:
+        """τ of the force lag from the training records (lists), with its standard uncertainty
+        (:func:`pipeline.systems.actuator_lag.identify_tau`); the physics uses it from then on."""
+        ys, us = ([y], [u]) if isinstance(y, np.ndarray) and y.ndim == 1 else (list(y), list(u))
+        out = identify_tau(self._physics.with_lag(None), ys, us, **self.idim)
+        self.use_lag(out["tau"])
+        return out
+
     def fit_physics(self, y, u) -> np.ndarray:
         """θ of the physics model from one record (arrays) or several (lists), by the filtered
-        inverse-model least squares."""
+        inverse-model least squares (with ``lag_tau: auto``, τ identified first: :meth:`identify_lag`)."""
+        if self.lag_tau == "auto":
+            self.lag_fit = self.identify_lag(y, u)
         return self.physics.fit_filtered(y, u, **self.idim)
 
     def missing_terms(self, y, u) -> tuple[dict, list[str]]:

@@ -30,7 +30,7 @@ from pipeline.export.guard import Guard, envelope_of, run_guard
 from pipeline.export.package import write_feedforward_csv
 from pipeline.invert.start import resolve, settle_count, started
 from pipeline.runner import ConfigError, implementation
-from stages._common import check_references, reference_specs
+from stages._common import baseline_lag, check_references, reference_specs
 from stages.export import guard_of
 
 UPSTREAM = ("generate", "baseline", "train")
@@ -71,6 +71,7 @@ def start_of(cfg, system):
 
 def run(ctx) -> dict:
     impl = implementation("invert", str(ctx.cfg.invert.kind))
+    baseline_lag(ctx)
     refs = check_references(reference_specs(ctx.cfg.evaluate.references), ctx.system, ctx.cfg)
     st = start_of(ctx.cfg, ctx.system)
     ctrl = ctx.system.ctrl if ctx.system.measured else None

@@ -302,10 +302,12 @@ def _champion_or_warn(experiment: str):
 
 
 def champion(experiment: str) -> tuple[str, str] | None:
-    """Register the experiment's chosen feedforward (issue 23): among its headline runs with a logged
-    model, the lowest value of the first metric of its ``compare_metrics``; the model whose name holds
-    the run's inversion (else its first). Alias ``champion``; the run's metrics as version tags."""
-    runs, _ = split_side(experiment, latest_runs(experiment)[0])
+    """Register the experiment's chosen feedforward (issues 23, 52): among ALL its runs with a logged model
+    (headline and side studies: regularised or not, every inversion), the lowest value of the first metric
+    of its ``compare_metrics``; the model whose name holds the run's inversion (else its first). Alias
+    ``champion``; the version's description states that rule and what the run is; version tags name its
+    inversion, model, regulariser and noise, and its tracking metrics in µm."""
+    runs = latest_runs(experiment)[0]
     models = tracking.logged_models(experiment)
     runs = runs[runs["run_id"].isin(models)] if not runs.empty else runs
     if runs.empty:
@@ -318,13 +320,23 @@ def champion(experiment: str) -> tuple[str, str] | None:
     best = runs.loc[runs[col].astype(float).idxmin()]
     mods = sorted(models[best["run_id"]], key=lambda m: m.name)
     model = next((m for m in mods if str(best.get("tags.invert", "")) in m.name), mods[0])
-    tags = {k[len("metrics."):]: f"{float(v):.6g}" for k, v in best.items()
-            if k.startswith("metrics.evaluate/") and pd.notna(v)
-            and k.rsplit("/", 1)[-1] in ("mae", "max_abs", "rms", "mae_um", "max_abs_um", "rms_um", "sq_norm2")}
+    shown = {k[len("metrics."):]: v for k, v in best.items() if k.startswith("metrics.evaluate/") and pd.notna(v)}
+    # each tracking metric once, in the unit that reads (µm where the run has that twin)
+    tags = {k: f"{float(v):.6g}" for k, v in shown.items()
+            if k.rsplit("/", 1)[-1] in ("mae_um", "max_abs_um", "rms_um", "sq_norm2")
+            or (k.rsplit("/", 1)[-1] in ("mae", "max_abs", "rms") and f"{k}_um" not in shown)}
+    factors = {"inversion": "tags.invert", "model": "tags.model", "regularizer": "tags.regularizer",
+               "noise_structure": "params.system.noise.structure", "noise_std": "params.system.noise.std"}
+    tags |= {k: str(best[c]) for k, c in factors.items() if c in best and pd.notna(best[c])}
+    name = best.get("tags.display_name", best["tags.mlflow.runName"])
     tags |= {"run_id": best["run_id"], "run_key": best["tags.mlflow.runName"], "chosen_by": f"min {metric}",
-             "run_name": best.get("tags.display_name", best["tags.mlflow.runName"])}
+             "run_name": name}
+    value = float(best[col])
+    rule = (f"Lowest `{col.removeprefix('metrics.')}` ({value:.4g}) among all {len(runs)} runs of `{experiment}` "
+            f"with a logged feedforward (every inversion, model and regulariser): `{name}` "
+            f"({', '.join(f'{k} {tags[k]}' for k in factors if k in tags)}).")
     desc = tracking.client().get_experiment_by_name(experiment).tags.get(tracking.NOTE, "")
-    return tracking.register_champion(experiment, best["run_id"], model, metric, tags, desc)
+    return tracking.register_champion(experiment, best["run_id"], model, rule, tags, desc)
 
 
 def compare_patterns(runs: pd.DataFrame) -> list[str]:
@@ -394,7 +406,8 @@ def _claim_table(table: pd.DataFrame, tightened: dict | None = None, verdicts: d
     flag = table[table["metric"] == "fit_stopped_on_cap"]          # one row per fit (a fit may feed several runs)
     capped = flag[pd.to_numeric(flag["value"], errors="coerce") == 1].groupby("experiment")["variant"].agg(list)
     out = ["| claim | experiment | holds | in the checks (second machine, emulated; tolerances tightened 10x) "
-           "| its experiment's fits stopped on a cap |", "| --- | --- | --- | --- | --- |"]
+           "| its experiment's kept fits stopped on a cap (an inner solve or a discarded restart on its cap: "
+           "flagged in the experiment's section) |", "| --- | --- | --- | --- | --- |"]
     for (c, e), g in claimed.groupby(["claim", "experiment"], sort=False):
         cap = (f"{float(fits[(e, 'fits_stopped_on_cap')]):.0f} of {float(fits[(e, 'fits_with_stop_reason')]):.0f}"
                if (e, "fits_stopped_on_cap") in fits.index and c not in claims.CLAIMS_WITHOUT_FITS else "")

@@ -13,6 +13,7 @@ from omegaconf import OmegaConf
 
 from pipeline.params import is_number, schema, spec
 from pipeline.runner import implementation
+from stages._common import baseline_lag
 
 
 @schema
@@ -60,6 +61,7 @@ def validate(cfg, system) -> None:
 def run(ctx) -> dict:
     from pipeline.models.activations import IMPLEMENTATION  # lazy: saves 1.1 s of start-up (torch)
     ctx.tag("tanh", IMPLEMENTATION)          # numpy's or torch's on this machine (the last bits of every NN fit)
+    baseline_lag(ctx)
     return implementation("train", str(ctx.cfg.identify.kind)).fit(ctx)
 
 

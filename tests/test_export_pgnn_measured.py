@@ -325,7 +325,7 @@ def test_pipeline_ships_the_measured_pgnn_writes_its_csv_and_names_the_envelope(
     np.testing.assert_array_equal(r, r_test)
     np.testing.assert_array_equal(t, np.arange(r.size) * hs.axis.TS)
     np.testing.assert_array_equal(u, res["invert"]["u_ff"]["test"])
-    assert {f for f in flags} <= {"", "OUT_OF_RANGE"} and "OUT_OF_RANGE" in flags     # the fast move, flagged
+    assert set(flags) <= {"", "OUT_OF_RANGE"} and "OUT_OF_RANGE" in flags     # the fast move, flagged
     # item 4: the package of the PGNN's analytic inversion, its C checked against the study's u_ff to 1e-9
     pkg = next(store.glob("cache/export/*/artifacts/ff_analytic"))
     man = json.loads((pkg / "manifest.json").read_text())

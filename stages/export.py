@@ -7,8 +7,9 @@ the harness ``main_<name>.c``, every evaluation reference ``r_<ref>.csv`` with t
 ``invert.kind`` of the job: physics (8), direct (13)-(14), analytic (27), newton ([B1] Alg. 1),
 rational_filter ([K]: rational TF or shared-AR PGNN), and fhofc / il_fhofc as a table (one
 package per reference: the signal was optimised offline for it).  On a measured system
-(``Recording``) physics only: the inverse rigid-body force minus the controller's force on the
-reference (``laws.from_measured_physics``).
+(``Recording``): physics (the inverse rigid-body force, ``laws.from_measured_physics``) and the PGNN's
+direct, analytic and Newton inversions (its rigid body with force terms, kinds 4 and 3 of the numba kernels;
+issue 49), each minus the controller's force on the reference (C_r - C_y) r.
 
 Every law is wrapped in its guard (``pipeline.export.guard``; ``export.limits``): input sanitation, the
 training envelope of the identification data's y, the fallback, force saturation and slew limit,
@@ -103,11 +104,15 @@ DEPENDS = ("invert", "start", "export.compile", "export.cc", "export.rtol", "exp
            "export.limits", "evaluate.references")
 
 
-VERSION = 7      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
+#: the laws the exporter ships for a measured system (their stages/invert/<kind>.py set EXPORTS_MEASURED)
+MEASURED_LAWS = ("physics", "direct", "analytic", "newton")
+
+VERSION = 8      # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
                  # is checked over the whole window r(t-2) .. r(t+P), not only at its newest sample; 5: the start at
                  # rest, default limits from the data, the guard's return ramp and latch (issue 48); 6: the start's
                  # header text, the float harness's flag mask; 7: one force_term (templates/force_term.c) for the
-                 # law and the guard, with the spring, position_poly and drag terms (issue 49)
+                 # law and the guard, with the spring, position_poly and drag terms (issue 49); 8: the PGNN of a
+                 # measured axis (issue 49), the controller term as a shared C fragment, feedforward_<ref>.csv
 
 
 def validate(cfg, system) -> None:
@@ -117,9 +122,9 @@ def validate(cfg, system) -> None:
         raise ConfigError(f"export: invert.kind={kind} has no feedforward law to ship; export covers "
                           f"invert.kind in {exportable()} (drop 'export' from stages)")
     if system is not None and system.measured and not getattr(impl, "EXPORTS_MEASURED", False):
-        raise ConfigError(f"export: on a measured system the exporter ships invert.kind=physics (the inverse "
-                          f"rigid-body force minus the controller's force on the reference); invert.kind={kind} "
-                          "is not exported for a measured system: use invert=physics or drop 'export' from stages")
+        raise ConfigError(f"export: on a measured system the exporter ships invert.kind in {list(MEASURED_LAWS)} "
+                          f"(each minus the controller's force on the reference); invert.kind={kind} is not exported "
+                          "for a measured system: use one of those, or drop 'export' from stages")
     if hasattr(impl, "export_check"):
         impl.export_check(cfg, system)
     clash = reference_file_clash(s["name"] for s in reference_specs(OmegaConf.select(cfg, "evaluate.references")))
@@ -196,10 +201,11 @@ def data_limits(segments, Ts: float, ctrl=None, rest: bool = True) -> tuple[floa
     return u_abs or math.inf, du_abs or math.inf
 
 
-def guard_of(ctx) -> tuple[dict, str]:
+def guard_of(ctx, start_at: str | None = None) -> tuple[dict, str]:
     """(the guard of every law of the job, where its limits come from): export.limits, else the identification
     data's force range and slew (``data_limits``, ``Limits.data_margin``), the data's envelope and the physics
-    fallback's coefficients (pipeline.export.guard.Guard)."""
+    fallback's coefficients (pipeline.export.guard.Guard). ``start_at``: the invert stage's ``start.at`` (default:
+    its output's; the invert stage passes its own to flag its u_ff CSV)."""
     lim = ctx.cfg.export.limits          # every key set by pipeline.schema (null: no limit)
     bound = lambda k, none: none if lim.get(k) is None else float(lim.get(k))   # noqa: E731
     ds = ctx.inputs["generate"]["dataset"]
@@ -208,8 +214,9 @@ def guard_of(ctx) -> tuple[dict, str]:
     ctrl = ctx.system.ctrl if ctx.system.measured else None
     pairs = ((seg["u"].to_numpy(dtype=float), None if ctrl is None else seg["r"].to_numpy(dtype=float))
              for seg in ds.segments())
-    start = ctx.inputs["invert"].get("start") or {"at": "zero"}
-    u_abs, du_abs = data_limits(pairs, float(ctx.system.Ts), ctrl, start["at"] == "rest")
+    if start_at is None:
+        start_at = (ctx.inputs["invert"].get("start") or {"at": "zero"})["at"]
+    u_abs, du_abs = data_limits(pairs, float(ctx.system.Ts), ctrl, start_at == "rest")
     if lim.get("data_margin") is not None:     # a null limit from the identification data (Limits.data_margin)
         f = 1.0 + float(lim.data_margin)
         bound = lambda k, none: (f * (-u_abs if k == "u_min" else u_abs if k == "u_max" else du_abs)  # noqa: E731
@@ -276,7 +283,8 @@ def pgnn_laws(ctx, kind: str, **kw) -> dict:
     if model is None:
         raise ConfigError(f"export: invert.kind={kind} needs a trained PGNN; the train stage has none")
     averaged = bool(train.get("model_input")) and bool(getattr(ctx.system.physics, "averaged_input", False))
-    return {f"ff_{kind}": (laws.from_pgnn(model, kind, float(ctx.system.Ts), averaged=averaged, **kw),
+    ctrl = ctx.system.ctrl if ctx.system.measured else None      # minus (C_r - C_y) r, as stages/invert
+    return {f"ff_{kind}": (laws.from_pgnn(model, kind, float(ctx.system.Ts), averaged=averaged, ctrl=ctrl, **kw),
                            every_reference(ctx))}
 
 

@@ -214,7 +214,7 @@ def reference(start: float, segments) -> np.ndarray:
 
 TRAIN_SEGMENTS = {
     "run_a.csv": (0.0, [("dwell", 0.3), ("move", 0.02, 0.25), ("dwell", 0.2), ("move", -0.02, 0.35),
-                        ("dwell", 0.2), ("move", 0.01, 0.18), ("dwell", 0.2), ("chirp", 0.008, 0.5, 12.0, 4.0),
+                        ("dwell", 0.2), ("move", 0.01, 0.18), ("dwell", 0.2), ("chirp", 0.004, 0.5, 12.0, 4.0),
                         ("dwell", 0.2), ("move", -0.015, 0.3), ("dwell", 0.2), ("move", 0.022, 0.5),
                         ("dwell", 0.3)]),
     "run_b.csv": (-0.01, [("dwell", 0.3), ("move", 0.018, 0.3), ("dwell", 0.2), ("move", -0.022, 0.22),

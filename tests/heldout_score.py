@@ -17,7 +17,12 @@ dropped), as it comes and with its value at the first kept sample (the static fo
 since the loop's integrator already holds the load. The acceptance (issue 48): every as-written row stays off
 the actuator limit and reaches an MAE within ``MAE_FACTOR`` × the better hand-shifted row of its law.
 
-    .venv/bin/python tests/heldout_score.py [--work DIR] [--hidden 16] [--lam 0.01] [--skip-pgnn] [--digits N]
+    .venv/bin/python tests/heldout_score.py [--axis a|b] [--work DIR] [--hidden 16] [--lam 0.01] [--skip-pgnn]
+        [--digits N]
+
+``--axis b`` scores the second held-out axis (:mod:`tests.heldout_axis_b`: a flexure spring, a current-loop lag,
+C_r and C_y each with its own denominator, 8 kHz) the same way. The PGNN run ships its feedforward too (issue 49:
+the PGNN inversion of a measured axis exported as C), so its rows hold the package's guarded Python law and C.
 
 Runs in a fresh folder (MLflow store, stage cache and Hydra's output there; nothing is written in the repo);
 prints the commands, their times, the warnings of each run and the table; ``--json FILE`` saves the report.
@@ -44,11 +49,24 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:          # `python tests/heldout_score.py`
     sys.path.insert(0, str(ROOT))
 
-from tests import heldout_axis as axis  # noqa: E402
+from tests import heldout_axis, heldout_axis_b  # noqa: E402
 
-EXPERIMENT = "vaxis"
+#: the held-out axes (--axis): generator module, MLflow experiment
+AXES = {"a": (heldout_axis, "vaxis"), "b": (heldout_axis_b, "flexaxis")}
+axis, EXPERIMENT = AXES["a"]
 PAD_SECONDS = 2.0
-PAD = int(round(PAD_SECONDS / axis.TS))
+
+
+def use_axis(name: str) -> None:
+    """Score the held-out axis ``name`` (AXES) from now on."""
+    global axis, EXPERIMENT
+    if name not in AXES:
+        raise ValueError(f"--axis {name!r}: choose one of {sorted(AXES)}")
+    axis, EXPERIMENT = AXES[name]
+
+
+def pad() -> int:
+    return int(round(PAD_SECONDS / axis.TS))
 PADDED_FILE = "test_padded.csv"
 SCORE_SEED = 11                      # the measurement noise of every scored run (the same for every row)
 MAE_FACTOR = 1.2
@@ -67,7 +85,7 @@ def prepare(folder: Path) -> np.ndarray:
     """The recordings (train1, train2, test) and the padded test recording; returns the test reference."""
     axis.training_recordings(folder)
     r = axis.eval_reference()
-    padded = axis.simulate(np.concatenate([np.full(PAD, r[0]), r]), seed=7)
+    padded = axis.simulate(np.concatenate([np.full(pad(), r[0]), r]), seed=7)
     axis.write_recording(folder / PADDED_FILE, padded)
     return r
 
@@ -82,31 +100,41 @@ def system_overrides(digits: int | None = None) -> list[str]:
     """The machine as a user describes it (conf/system/measured.yaml's keys; ``delay`` is in that file, so
     it takes no ``+``): the 2-DOF controller (its coefficients to the bit, or to ``digits`` significant
     digits), the force terms of the physics."""
-    b_r, b_y, a, delay = axis.controller()
-    return ["system=measured", f"system.name={EXPERIMENT}", f"system.Ts={axis.TS!r}",
-            f"system.controller.num={_floats(b_y, digits)}", f"system.controller.den={_floats(a, digits)}",
-            f"system.controller.num_r={_floats(b_r, digits)}", f"system.controller.delay={delay}",
-            "system.force_terms.terms=[viscous,coulomb,offset]", f"system.force_terms.coulomb_width={axis.W_C!r}"]
+    if hasattr(axis, "controller_paths"):     # C_r = num_r/den_r and C_y = num/den as the tuning tool shows them
+        c = axis.controller_paths()
+        paths = [f"system.controller.{k}={_floats(c[k], digits)}" for k in ("num", "den", "num_r", "den_r")]
+        delay = c["delay"]
+    else:
+        b_r, b_y, a, delay = axis.controller()
+        paths = [f"system.controller.num={_floats(b_y, digits)}", f"system.controller.den={_floats(a, digits)}",
+                 f"system.controller.num_r={_floats(b_r, digits)}"]
+    return ["system=measured", f"system.name={EXPERIMENT}", f"system.Ts={axis.TS!r}", *paths,
+            f"system.controller.delay={delay}", "system.force_terms.terms=[viscous,coulomb,offset]",
+            f"system.force_terms.coulomb_width={axis.W_C!r}"]
+
+
+def _training_files() -> str:
+    return f"data.files=[{','.join(axis.TRAIN_FILES)}]"
 
 
 def _references() -> str:
-    return ("evaluate.references=[{name:test,kind:measured,file:test.csv},"
+    return (f"evaluate.references=[{{name:test,kind:measured,file:{axis.TEST_FILE}}},"
             f"{{name:padded,kind:measured,file:{PADDED_FILE}}}]")
 
 
 def physics_overrides(data: Path, digits: int | None = None) -> list[str]:
-    return [*system_overrides(digits), "data=measured", f"data.path={data}", "data.files=[train1.csv,train2.csv]",
+    return [*system_overrides(digits), "data=measured", f"data.path={data}", _training_files(),
             "evaluate=measured", _references(), "model=physics", "identify=none", "invert=physics",
             "stages=[generate,baseline,train,invert,evaluate,export]", f"experiment_name={EXPERIMENT}"]
 
 
 def pgnn_overrides(data: Path, hidden: int = 16, lam: float = 0.01, digits: int | None = None) -> list[str]:
     """experiment=emps on this machine, one run (the experiment is a sweep); its training file is the EMPS
-    file (data.file=DATA_EMPS), so several files need data.file=null; no export: the exporter refuses a
-    PGNN inversion on a measured system before any work."""
+    file (data.file=DATA_EMPS), so several files need data.file=null; with export: the PGNN's own inversion
+    (invert=analytic of the experiment) shipped as C (issue 49)."""
     return ["experiment=emps", *system_overrides(digits), "data.format=table", f"data.path={data}", "data.file=null",
-            "data.files=[train1.csv,train2.csv]", _references(), "hydra.mode=RUN", f"model.hidden=[{hidden}]",
-            f"regularizer.lam={lam!r}"]
+            _training_files(), _references(), "hydra.mode=RUN", f"model.hidden=[{hidden}]",
+            f"regularizer.lam={lam!r}", "stages=[generate,baseline,train,invert,evaluate,export]"]
 
 
 @dataclass
@@ -225,9 +253,9 @@ def score(law: str, variant: str, source: str, r: np.ndarray, u_ff: np.ndarray |
 def hand_shifted(law: str, art: Path, r: np.ndarray) -> list[Row]:
     """The law's u_ff on the padded reference with the rest samples dropped: as it comes, and minus its
     first value (the static force at r(0), which the loop's integrator already holds)."""
-    u = study_u_ff(art, "padded")[PAD:]
+    u = study_u_ff(art, "padded")[pad():]
     with np.load(art / "evaluate" / "errors.npz") as z:
-        if not np.array_equal(z["padded/r"][PAD:], r):
+        if not np.array_equal(z["padded/r"][pad():], r):
             raise AssertionError("the padded reference is not the test reference after its rest")
     return [score(law, "hand-shifted", "errors.npz padded[2 s:]", r, u),
             score(law, "hand-shifted, static off", "errors.npz padded[2 s:] - u(0)", r, u - u[0])]
@@ -258,9 +286,31 @@ def acceptance(rows: list[Row]) -> list[str]:
     return fails
 
 
+#: issue 49: the chosen PGNN's feedforward exported as C, applied from the first sample, at least this many times
+#: better MAE than no feedforward, with no sample at the actuator limit
+IMPROVEMENT = 100.0
+
+
+def improvement(rows: list[Row]) -> dict:
+    """{source: MAE of no feedforward / MAE of the row} of every as-written row."""
+    none = next(x.mae_um for x in rows if x.law == "none")
+    return {f"{x.law}: {x.source}": none / x.mae_um for x in rows if x.law != "none" and x.as_written}
+
+
+def acceptance_49(rows: list[Row]) -> list[str]:
+    """Issue 49's acceptance: the PGNN's exported C ≥ IMPROVEMENT × better than none, never at the limit."""
+    none = next(x.mae_um for x in rows if x.law == "none")
+    c = [x for x in rows if x.law == "pgnn" and x.as_written and " C (" in x.source]
+    if not c:
+        return ["pgnn: no exported C was scored (no package, or no compiler)"]
+    return [f"pgnn {x.source}: MAE {x.mae_um:.4g} µm is {none / x.mae_um:.3g}× better than none (< {IMPROVEMENT:g}×)"
+            for x in c if not none / x.mae_um >= IMPROVEMENT] + \
+           [f"pgnn {x.source}: {x.saturated} samples at the ±{axis.U_MAX:g} N limit" for x in c if x.saturated]
+
+
 def table(rows: list[Row]) -> str:
-    out = ["| feedforward | variant | u_ff from | MAE [µm] | max abs e [µm] | samples at ±60 N | u_ff(0) [N] | "
-           "max abs u_ff [N] |", "|---|---|---|---|---|---|---|---|"]
+    out = [f"| feedforward | variant | u_ff from | MAE [µm] | max abs e [µm] | samples at ±{axis.U_MAX:g} N | "
+           "u_ff(0) [N] | max abs u_ff [N] |", "|---|---|---|---|---|---|---|---|"]
     for x in rows:
         out.append(f"| {x.law} | {x.variant} | {x.source} | {x.mae_um:.4g} | {x.max_um:.4g} | {x.saturated} | "
                    f"{x.u0:.4g} | {x.u_max:.4g} |")
@@ -268,9 +318,11 @@ def table(rows: list[Row]) -> str:
 
 
 # ---- the whole evaluation ------------------------------------------------------------------------------
-def run(work: Path, hidden: int = 16, lam: float = 0.01, pgnn: bool = True, digits: int | None = None) -> dict:
+def run(work: Path, hidden: int = 16, lam: float = 0.01, pgnn: bool = True, digits: int | None = None,
+        axis_name: str = "a") -> dict:
     """Generates the data, runs the pipeline, scores; returns {steps, timings, runs, rows, acceptance}.
-    ``digits``: the controller's coefficients as a user may type them (None: to the bit)."""
+    ``digits``: the controller's coefficients as a user may type them (None: to the bit); ``axis_name``: AXES."""
+    use_axis(axis_name)
     work = Path(work)
     data = work / "data"
     data.mkdir(parents=True, exist_ok=True)
@@ -302,11 +354,13 @@ def run(work: Path, hidden: int = 16, lam: float = 0.01, pgnn: bool = True, digi
     return {"work": str(work), "steps": [asdict(s) | {"shell": s.shell} for s in steps], "timings": timings,
             "runs": runs, "rows": [asdict(x) for x in rows], "table": table(rows),
             "acceptance": acceptance(rows) + [f"{s.name}: the pipeline failed (exit {s.returncode})"
-                                              for s in steps if s.returncode]}
+                                              for s in steps if s.returncode],
+            "improvement": improvement(rows), "acceptance_49": acceptance_49(rows) if pgnn else []}
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--axis", choices=sorted(AXES), default="a", help="the held-out axis (b: tests/heldout_axis_b.py)")
     ap.add_argument("--work", type=Path, help="folder for data, store, cache and logs (default: a new temp folder)")
     ap.add_argument("--hidden", type=int, default=16)
     ap.add_argument("--lam", type=float, default=0.01)
@@ -315,7 +369,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, help="write the report here")
     a = ap.parse_args(argv)
     work = a.work or Path(tempfile.mkdtemp(prefix="heldout_axis_"))
-    rep = run(work, a.hidden, a.lam, not a.skip_pgnn, a.digits)
+    rep = run(work, a.hidden, a.lam, not a.skip_pgnn, a.digits, a.axis)
     print(f"work folder: {rep['work']}")
     for s in rep["steps"]:
         print(f"\n$ MLFLOW_TRACKING_URI=sqlite:///{work / 'mlflow.db'} PIPELINE_CACHE={work / 'cache'} {s['shell']}")
@@ -329,11 +383,14 @@ def main(argv=None) -> int:
     print("\n" + rep["table"])
     print("\nacceptance (issue 48): " + ("met" if not rep["acceptance"] else "NOT met:\n  "
                                           + "\n  ".join(rep["acceptance"])))
+    print("MAE of no feedforward over each row's: " + ", ".join(f"{k} {v:.3g}×" for k, v in rep["improvement"].items()))
+    print("acceptance (issue 49, the PGNN's C): " + ("met" if not rep["acceptance_49"] else "NOT met:\n  "
+                                                    + "\n  ".join(rep["acceptance_49"])))
     if a.json:
         a.json.write_text(json.dumps({k: v for k, v in rep.items() if k != "steps"}
                                      | {"steps": [{k: v for k, v in s.items() if k != "log"} for s in rep["steps"]]},
                                      indent=1, default=float))
-    return 0 if not rep["acceptance"] else 1
+    return 0 if not rep["acceptance"] and not rep["acceptance_49"] else 1
 
 
 if __name__ == "__main__":

@@ -61,14 +61,17 @@ def test_measured_physics_law_equals_the_invert_stage(controller, terms, average
     assert man["family"] == "rigid_body" and man["preview"] == 1 + int(averaged)
 
 
-def test_other_laws_on_a_measured_system_are_refused_naming_physics():
+def test_other_laws_on_a_measured_system_are_refused_naming_the_shipped_ones():
     from pipeline.errors import ConfigError
     from stages.export import validate
 
     from omegaconf import OmegaConf
     sys_ = _system(PID, COGGING, True)
-    cfg = OmegaConf.create({"invert": {"kind": "direct"}, "model": {"hidden": [16], "activation": "tanh"},
-                            "export": {}})
-    with pytest.raises(ConfigError, match=r"ships invert.kind=physics .* invert.kind=direct is not exported"):
+    cfg = OmegaConf.create({"invert": {"kind": "rational_filter"}, "model": {}, "export": {}})
+    with pytest.raises(ConfigError, match=r"ships invert.kind in \['physics', 'direct', 'analytic', 'newton'\] .* "
+                                          r"invert.kind=rational_filter is not exported"):
         validate(cfg, sys_)
     validate(OmegaConf.create({"invert": {"kind": "physics"}, "model": {}, "export": {}}), sys_)     # accepted
+    for kind in ("direct", "analytic", "newton"):      # the PGNN's inversions (issue 49)
+        validate(OmegaConf.create({"invert": {"kind": kind}, "model": {"hidden": [16], "activation": "tanh"},
+                                   "export": {}}), sys_)

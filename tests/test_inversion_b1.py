@@ -363,8 +363,8 @@ def test_fast_path_of_a_measured_rigid_body_with_force_terms_equals_torch_refere
     """A measured axis's physics (RigidBodyPhysics with every force term: viscous, smooth Coulomb,
     Stribeck, offset, two cogging harmonics) on its direct input has a numba fast path (kind 3):
     analytic [B1] (27), Newton and physics feedforwards equal their torch references to the
-    resolution of u (ulp(y)/ψ, ψ = Ts²/M); on the averaged input there is no fast path, and the C
-    exporter refuses the kind it has no kernel for."""
+    resolution of u (ulp(y)/ψ, ψ = Ts²/M); on the averaged input there is no fast path; the C exporter
+    ships kind 3 (issue 49, tests/test_export_pgnn_measured.py)."""
     from pipeline.export.law import ExportError, from_pgnn
     from pipeline.models.physics_maps import PhysicsModelFeatures, physics_features_for
     from pipeline.systems.force_terms import ForceTerms
@@ -391,8 +391,9 @@ def test_fast_path_of_a_measured_rigid_body_with_force_terms_equals_torch_refere
     for a, b in pairs:
         assert np.all(np.isfinite(a)) and np.max(np.abs(b)) > 10.0
         assert np.max(np.abs(a - b)) < 8 * quantum
-    with pytest.raises(ExportError, match="built-in physics"):
-        from_pgnn(m, "analytic", TS)
+    assert from_pgnn(m, "analytic", TS).ints["kind"] == 3
+    with pytest.raises(ExportError, match="built-in physics"):   # the averaged input: no kernel
+        from_pgnn(PGNN(2, 1, structure="invertible", physics=PhysicsModelFeatures(pm), hidden=(8,)), "analytic", TS)
 
 
 def test_mae_diagnosis_names_the_motion_phase_that_decides_a_failed_mae_ratio():

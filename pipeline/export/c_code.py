@@ -100,8 +100,10 @@ TEMPLATES = {
     "mlp_input.c": "the [K] approximator g_φ: its input normalisation (opens the function)",
     "mlp_hidden.c": "the [K] approximator g_φ: one hidden layer",
     "mlp_output.c": "the [K] approximator g_φ: the output layer (closes the function)",
-    "force_term.c": "shared by rigid_body.c and the guard's physics fallback: T_j(q, q̇) of one force term "
+    "force_term.c": "shared by the rigid-body laws and the guard's physics fallback: T_j(q, q̇) of one force term "
                     "(pipeline.systems.force_terms.term)",
+    "reference_force.c": "shared by the laws of a measured axis: minus the controller's force on y = r, gtau (C_r - "
+                         "C_y) r, from its rest at r0 (LTIController.reference_force)",
     "rigid_body.c": "the physics feedforward of a measured system (rigid body with force terms, minus the controller)",
     "table.c": "the FHOFC / IL-FHOFC table replay",
     "harness.c": "the test harness main_<file>.c (CSV in, u_ff out, --flags, --time, --check)",
@@ -146,7 +148,7 @@ def _nx_law(law: Law) -> int:
     i = law.ints
     if law.family == "pgnn":
         nrh = max(0, i["n_a"] - i["n_k"] - 1)
-        return nrh + i["n_b"] + i["n_a"] + 1 + i["n_phi"]
+        return nrh + i["n_b"] + i["n_a"] + 1 + i["n_phi"] + (i["n_den"] + 1 if "has_ctrl" in i else 0)
     if law.family == "k_filter":
         return i["d_a"] + 1 + i["d_w"] + 1 + 2 * (i["n_b"] + 1)
     if law.family == "rigid_body":
@@ -209,6 +211,27 @@ def _g_code(law: Law) -> tuple[str, str]:
     return arrays, code
 
 
+def _pgnn_controller(law: Law, NAME: str, df2t: str) -> dict:
+    """The pgnn.c placeholders of a measured axis's controller term (``reference_force.c``, as the rigid-body
+    law subtracts it; state after the regressor: the lfilter z, NDEN, then r0); empty on the simulators."""
+    i, a = law.ints, law.arrays
+    if "has_ctrl" not in i:
+        return {"controller": "", "controller_init": "", "controller_step": ""}
+    defs = (f"#define HAS_CTRL {i['has_ctrl']}    /* C_r != C_y: subtract gtau (C_r - C_y) r */\n"
+            f"#define NDEN {i['n_den']}           /* (B_r - B_y), A coefficients in q^-1 (A[0] = 1) */\n"
+            f"#define GTAU ({_num(law.floats['gtau'])})\n"
+            f"#define START_REST_CTRL {int(law.start == 'rest')}   /* the controller term from its rest at r0 */\n"
+            f"#define K0 ({_num(law.floats['k0'])})   /* (C_r - C_y) at rest [units/m]; 0 with integral action */\n"
+            "/* the controller term's state: lfilter z of (C_r - C_y) (r - r0), NDEN, then r0 */\n"
+            "#define XZ (XPHI + NPHI)\n#define XR0 (XZ + NDEN)\n")
+    if i["has_ctrl"]:
+        defs += (_array("NUM", a["num"], "B_r - B_y / A's first coefficient")
+                 + _array("DEN", a["den"], "A in q^-1 / its first coefficient") + df2t)
+    step = _text("reference_force.c") + f"    if (!isfinite(u)) s->status |= {NAME}_SINGULAR;\n"
+    return {"controller": defs, "controller_init": "    s->x[XR0] = START_REST_CTRL ? r0 : 0.0;\n",
+            "controller_step": step}
+
+
 def ts_ns(Ts: float) -> int:
     """Ts in whole nanoseconds (the header's compile-time rate check)."""
     return int(round(float(Ts) * 1e9))
@@ -238,6 +261,8 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
     g = law.g
     flags = [f for f in FLAGS if f[0] in CORE_FLAGS[law.family] + GUARD_FLAGS]
     doc = _LAW_DOC["physics_measured" if law.family == "rigid_body" else law.law]
+    if law.family == "pgnn" and "has_ctrl" in law.ints:     # a measured axis's PGNN (issue 49)
+        doc += "; on a measured axis, minus the known controller's force on y = r, gtau (C_r - C_y) r"
     lim = lambda x: "none" if np.isinf(x) else f"{x:g}"   # noqa: E731
     env = ", ".join(f"{n} in [{lo:.6g}, {hi:.6g}]" for n, lo, hi in zip(REGRESSORS, g.env_lo, g.env_hi))
     common = dict(name=name, NAME=NAME, file=file, doc=doc, source=source, Ts=_num(law.Ts), ts_ns=ts_ns(law.Ts),
@@ -287,7 +312,8 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
         offsets = _blob_offsets(law)
         arrays = _array("BLOB", law.arrays["blob"]) + _lag_defines(law)
         src = _template("pgnn.c").substitute(
-            common, **snippets, arrays=arrays, LAW=law.law.upper(),
+            common, **snippets, arrays=arrays, LAW=law.law.upper(), **_pgnn_controller(law, NAME, df2t),
+            force_term=_text("force_term.c") if i["kind"] in (3, 4) else "",
             **{f"o_{k.lower()}": v for k, v in offsets.items()},
             nrh=max(0, i["n_a"] - i["n_k"] - 1), averaged=int(law.averaged),
             k=i.get("k", 0), u_min=_num(law.floats.get("u_min", -np.inf)),
@@ -314,7 +340,8 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
             arrays += (_array("NUM", a["num"], "B_r - B_y / A's first coefficient")
                        + _array("DEN", a["den"], "A in q^-1 / its first coefficient"))
         src = _template("rigid_body.c").substitute(
-            common, **snippets, arrays=arrays, df2t=df2t if i["has_ctrl"] else "", force_term=_text("force_term.c"),
+            common, **snippets, arrays=arrays, df2t=df2t if i["has_ctrl"] else "",
+            force_term=_text("force_term.c"), reference_force=_text("reference_force.c"),
             n_terms=i["n_terms"], averaged=int(law.averaged), has_ctrl=i["has_ctrl"],
             nden=i["n_den"], gtau=_num(law.floats["gtau"]), start_rest=int(law.start == "rest"),
             k0=_num(law.floats.get("k0", 0.0)))

@@ -40,8 +40,8 @@ from pipeline.errors import ExportError
 from pipeline.export.guard import FLAG, Guard, run_guard
 from pipeline.systems.controller import LTIController
 
-__all__ = ["Law", "ExportError", "LAWS", "guarded", "from_pgnn", "from_linear_motor_physics", "from_measured_physics",
-           "from_k_filter", "from_table", "feedforward"]
+__all__ = ["Law", "ExportError", "LAWS", "guarded", "from_pgnn", "controller_fields", "from_linear_motor_physics",
+           "from_measured_physics", "from_k_filter", "from_table", "feedforward"]
 
 #: every law the exporter covers, by ``invert.kind``
 LAWS = ("physics", "direct", "analytic", "newton", "rational_filter", "fhofc", "il_fhofc")
@@ -142,7 +142,8 @@ class Law:
         """Number of model parameters the law carries (weights, coefficients; table: samples)."""
         if self.family == "pgnn":
             m = self.ints
-            return int(m["p"] + (m["H"] * (m["n_phi"] + 2) + 1 if m["use_nn"] else 0))
+            return int(m["p"] + (m["H"] * (m["n_phi"] + 2) + 1 if m["use_nn"] else 0)
+                       + (2 * m["n_den"] if m.get("has_ctrl") else 0))
         if self.family == "k_filter":
             return int(sum(self.arrays[k].size for k in self.arrays if k.startswith(("g_W", "g_b")))
                        + self.ints["n_a"] + self.ints["n_b"])
@@ -156,10 +157,15 @@ class Law:
         if self.family == "pgnn":
             m = self.ints
             nn = 2 * m["H"] * m["n_phi"] + 5 * m["H"] + 1 if m["use_nn"] else 0   # W φ + b, w2 h, (1 - h²)
-            phys = {0: 2 * m["n_phi"], 1: 14, 2: 12}.get(m["kind"], 0)
             evals = {"newton": self.ints.get("k", 0) + 1}.get(self.law, 1)
+            phys = {0: 2 * m["n_phi"], 1: 14, 2: 12, 3: 9 + 5 * (m["n_cfg"] - 2) // 2,
+                    4: 7 + 2 * (m["n_cfg"] - 2) // 2}.get(m["kind"], 0)
             flops = evals * (nn + 4) + 2 * phys + (3 if self.averaged else 0)
+            flops += 4 * m["n_den"] + 2 if m.get("has_ctrl") else 0          # the controller term, as rigid_body
             calls = evals * m["H"] * int(bool(m["use_nn"]))
+            if m["kind"] in (3, 4):     # the force terms' tanh/exp/cos/sin (the blob's cfg: Ts, n, codes, consts)
+                cfg = self.arrays["blob"][self.arrays["blob"].size - m["n_cfg"]:]
+                calls += 2 * sum(int(c) in (2, 3, 5, 6) for c in cfg[2:2 + int(cfg[1])])
             return {"flops": int(flops), "elementary_calls": int(calls)}
         if self.family == "k_filter":
             i = self.ints
@@ -208,21 +214,24 @@ def strict_json(obj) -> str:
 # builders
 # --------------------------------------------------------------------------------------------
 def from_pgnn(model, law: str, Ts: float, *, averaged: bool = False, k: int = 5,
-              u_bounds=(-math.inf, math.inf), theta_start=None) -> Law:
+              u_bounds=(-math.inf, math.inf), theta_start=None, ctrl=None) -> Law:
     """The [B1] inversion ``law`` (direct | analytic | newton | physics) of a PGNN, from the
     flat arrays of :func:`~pipeline.models.pgnn.fast_pgnn` (the numba kernels' own data); an averaged
-    input of a physics with an actuator lag is inverted with the lag (pipeline.systems.actuator_lag)."""
+    input of a physics with an actuator lag is inverted with the lag (pipeline.systems.actuator_lag). ``ctrl``: the
+    known controller of a measured axis, whose force on y = r, (C_r - C_y) r, the law subtracts
+    (:func:`controller_fields`; the invert stage's u_ff on a measured system, issue 49)."""
     from pipeline.models.fast_pgnn import fast_pgnn  # lazy: saves 2.2 s of start-up (torch, numba kernels)
     if law not in ("direct", "analytic", "newton", "physics"):
         raise ExportError(f"a PGNN is exported by law direct | analytic | newton | physics, not {law!r}")
     fm = fast_pgnn(model, theta_start=theta_start)
-    if fm is not None and fm.meta[0] > 2:   # the C kernel knows the kinds 0-2 (templates/pgnn.c)
+    if fm is not None and fm.meta[0] > 4:   # the C kernel knows the kinds 0-4 (templates/pgnn.c)
         fm = None
     if fm is None:
         phys = type(model.physics).__name__ if model.use_physics else "none"
         raise ExportError(
             f"the exporter supports a PGNN with no NN or one tanh hidden layer and a built-in physics "
-            f"map (LinearFeatures, RigidBodyForward, RigidBodyInverse); this model has hidden="
+            f"map (LinearFeatures, RigidBodyForward, RigidBodyInverse, a measured rigid body with force terms on its "
+            f"direct input); this model has hidden="
             f"{list(model.hidden)}, activation={model.activation}, physics={phys}: use model.hidden=[H] "
             "with model.activation=tanh, or keep the Python feedforward")
     need = {"direct": ("inverse",), "analytic": ("invertible", "forward"),
@@ -242,11 +251,32 @@ def from_pgnn(model, law: str, Ts: float, *, averaged: bool = False, k: int = 5,
         floats = {"u_min": float(u_bounds[0]), "u_max": float(u_bounds[1])}
     if averaged and model.use_physics:
         floats.update(_lag_floats(getattr(model.physics, "pm", model.physics)))
+    arrays, strings = {"blob": fm.blob}, {"structure": fm.structure,
+                                          "model": "physics" if law == "physics" else f"pgnn-{fm.structure}"}
+    if ctrl is not None:      # a measured axis: minus gtau (C_r - C_y) r (none of these keys on the simulators)
+        c_ints, c_floats, c_arrays = controller_fields(ctrl)
+        ints.update(c_ints)
+        floats.update(c_floats)
+        arrays.update(c_arrays)
+        strings["controller"] = ctrl.structure
     return Law(law=law, family="pgnn", Ts=float(Ts), preview=fm.n_k + 1 + int(averaged),
                rest="zero" if law == "physics" and fm.structure == "inverse" else "first",
-               averaged=bool(averaged), ints=ints, floats=floats, arrays={"blob": fm.blob},
-               strings={"structure": fm.structure,
-                        "model": "physics" if law == "physics" else f"pgnn-{fm.structure}"})
+               averaged=bool(averaged), ints=ints, floats=floats, arrays=arrays, strings=strings)
+
+
+def controller_fields(ctrl) -> tuple[dict, dict, dict]:
+    """(ints, floats, arrays) of the known controller's force on y = r, gtau (C_r - C_y) r
+    (``LTIController.reference_force``), that a measured axis's law subtracts: B_r, B_y, A and the filter
+    (B_r - B_y)/A normalised as ``lfilter`` normalises it, its rest gain K0 per metre (start 'rest')."""
+    db, den = ctrl.reference_filter()
+    has_ctrl = bool(np.any(db))
+    try:
+        k0 = ctrl.rest_gain() if has_ctrl else 0.0      # the controller term's rest value per metre (start 'rest')
+    except ValueError:
+        k0 = 0.0                                         # no rest away from 0: start 'rest' is refused upstream
+    return ({"has_ctrl": int(has_ctrl), "n_den": int(den.size)}, {"gtau": float(ctrl.gtau), "k0": float(k0)},
+            {"b_r": ctrl.b_r, "b_y": ctrl.b_y, "a": ctrl.a,
+             "num": db / den[0], "den": den / den[0]})     # lfilter divides by den[0] first
 
 
 def from_linear_motor_physics(physics, theta) -> Law:
@@ -274,24 +304,18 @@ def from_measured_physics(physics, theta, ctrl) -> Law:
     theta = physics._check_theta(theta)
     codes, consts = physics.terms.kernel()
     t = physics.terms
-    db, den = ctrl.reference_filter()
-    has_ctrl = bool(np.any(db))
-    try:
-        k0 = ctrl.rest_gain() if has_ctrl else 0.0      # the controller term's rest value per metre (start 'rest')
-    except ValueError:
-        k0 = 0.0                                         # no rest away from 0: start 'rest' is refused upstream
+    c_ints, c_floats, c_arrays = controller_fields(ctrl)
     return Law(law="physics", family="rigid_body", Ts=float(physics.Ts), preview=1 + int(physics.averaged_input),
                rest="zero", averaged=bool(physics.averaged_input),
-               ints={"n_terms": int(codes.size), "has_ctrl": int(has_ctrl), "n_den": int(den.size),
-                     "cogging_harmonics": int(t.cogging_harmonics), "position_order": int(t.position_order)},
-               floats={"gtau": float(ctrl.gtau), "k0": float(k0), "stribeck_velocity": float(t.stribeck_velocity),
+               ints={"n_terms": int(codes.size), **c_ints, "cogging_harmonics": int(t.cogging_harmonics),
+                     "position_order": int(t.position_order)},
+               floats={**c_floats, "stribeck_velocity": float(t.stribeck_velocity),
                        "coulomb_width": 0.0 if t.coulomb_width is None else float(t.coulomb_width),
                        "cogging_period": 0.0 if t.cogging_period is None else float(t.cogging_period),
                        "position_scale": 0.0 if t.position_scale is None else float(t.position_scale),
                        **_lag_floats(physics)},
                arrays={"theta": theta, "theta_inv": physics.inverse_theta(theta), "codes": codes,
-                       "consts": consts, "b_r": ctrl.b_r, "b_y": ctrl.b_y, "a": ctrl.a,
-                       "num": db / den[0], "den": den / den[0]},   # lfilter divides by den[0] first
+                       "consts": consts, **c_arrays},
                strings={"model": "physics-measured", "terms": ",".join(t.names), "controller": ctrl.structure})
 
 
@@ -442,7 +466,7 @@ def _started(law: Law, r: np.ndarray, r0: float) -> tuple[np.ndarray, np.ndarray
         kept: list = []
         _core(law, np.full(n, r0), keep=kept)
         n_y = law.ints["n_a"] + 1
-        u, f = _core(law, r, u_past=kept[0][n_y:n_y + law.ints["n_b"]].copy())
+        u, f = _core(law, r, u_past=kept[0][n_y:n_y + law.ints["n_b"]].copy(), r0=r0)
     else:
         u, f = _core(law, np.concatenate([np.full(n, r0), r]))
         u, f = u[n:], f[n:]
@@ -458,9 +482,11 @@ def _check_reference(r) -> np.ndarray:
     return r
 
 
-def _core(law: Law, r: np.ndarray, **pgnn) -> tuple[np.ndarray, np.ndarray]:
+def _core(law: Law, r: np.ndarray, r0: float | None = None, **pgnn) -> tuple[np.ndarray, np.ndarray]:
     """(u_ff, the law's own flags) on a finite reference r, as the C law_step computes them (``pgnn``: the
-    input history before t = 0 and the state's receiver, :func:`_pgnn_run`)."""
+    input history before t = 0 and the state's receiver, :func:`_pgnn_run`; ``r0``: where the controller term
+    starts at rest, default r(0) for start 'rest')."""
+    r0 = (float(r[0]) if law.start == "rest" else 0.0) if r0 is None else r0
     N = r.size
     if law.family == "table":
         R, U, n = law.arrays["r"], law.arrays["u"], law.ints["n"]
@@ -477,19 +503,29 @@ def _core(law: Law, r: np.ndarray, **pgnn) -> tuple[np.ndarray, np.ndarray]:
             )
             u = rational_feedforward(_k_model(law), r).f
         else:
-            physics, ctrl = _rigid_body(law)   # feedforward's w, its overflow kept (applied_input refuses it)
+            physics = _rigid_body(law)   # feedforward's w, its overflow kept (applied_input refuses it)
             w = physics.inverse_force(law.arrays["theta"], r)
             with np.errstate(over="ignore", invalid="ignore"):
-                u = (_applied(law, w) if law.averaged else w[:-1]) \
-                    - ctrl.reference_force(r, float(r[0]) if law.start == "rest" else 0.0)   # from rest at r(0)
+                u = (_applied(law, w) if law.averaged else w[:-1]) - _controller_force(law, r, r0)
         return u, np.where(np.isfinite(u), 0, FLAG["SINGULAR"])
     w, f = _pgnn_run(law, np.append(r, r[-1]) if law.averaged else r, **pgnn)
     f = f | np.where(np.isfinite(w), 0, FLAG["SINGULAR"])    # an overflow: kept, the guard falls back
-    if not law.averaged:
+    if law.averaged:
+        flags = f[1:].copy()          # step t runs w(t+1); the first also w(0)
+        flags[0] |= f[0]
+        w, f = _applied(law, w), flags
+    if "gtau" not in law.floats:      # no controller term (a simulator's law)
         return w, f
-    flags = f[1:].copy()          # step t runs w(t+1); the first also w(0)
-    flags[0] |= f[0]
-    return _applied(law, w), flags
+    with np.errstate(over="ignore", invalid="ignore"):
+        u = w - _controller_force(law, r, r0)      # a measured axis: minus gtau (C_r - C_y) r, as stages/invert
+    return u, f | np.where(np.isfinite(u), 0, FLAG["SINGULAR"])
+
+
+def _controller_force(law: Law, r: np.ndarray, r0: float) -> np.ndarray:
+    """gtau (C_r - C_y) r from rest at r0 (``LTIController.reference_force``, the study's class) of the law's
+    controller (:func:`controller_fields`)."""
+    a = law.arrays
+    return LTIController(a["b_r"], a["b_y"], a["a"], law.floats["gtau"]).reference_force(r, r0)
 
 
 def _pgnn_run(law: Law, r: np.ndarray, u_past=None, keep: list | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -523,7 +559,7 @@ def _pgnn_run(law: Law, r: np.ndarray, u_past=None, keep: list | None = None) ->
 
 
 def _rigid_body(law: Law):
-    """(RigidBodyPhysics, LTIController) rebuilt from the law (the study's classes)."""
+    """The RigidBodyPhysics rebuilt from the law (the study's class)."""
     from pipeline.systems.force_terms import ForceTerms  # lazy: saves 0.6 s of start-up (numba kernels)
     from pipeline.systems.measured import RigidBodyPhysics  # lazy: saves 0.6 s of start-up (numba kernels)
     f = law.floats
@@ -537,7 +573,7 @@ def _rigid_body(law: Law):
     a = law.arrays
     if not (np.array_equal(terms.kernel()[0], a["codes"]) and np.array_equal(terms.kernel()[1], a["consts"])):
         raise ExportError("the law's force terms do not match its kernel codes: a corrupted law")
-    return physics, LTIController(a["b_r"], a["b_y"], a["a"], f["gtau"])
+    return physics
 
 
 def _k_model(law: Law):

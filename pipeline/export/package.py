@@ -246,6 +246,17 @@ def _write_vectors(path: Path, r: np.ndarray, u: np.ndarray, flags: np.ndarray) 
         f.writelines(f"{float(a)!r},{float(b)!r},{int(c)}\n" for a, b, c in zip(r, u, flags))
 
 
+def write_feedforward_csv(path: Path, Ts: float, r, u, flags) -> None:
+    """The feedforward of one reference where a user looks (issue 49): t [s], r, u_ff (17 digits: the doubles) and
+    flags by name (``|``-joined, e.g. ``SATURATED|RATE_LIMITED``; empty where nothing acted)."""
+    flags = np.asarray(flags, dtype=np.int64)
+    words = {int(v): "|".join(n for n, b, _ in FLAGS if int(v) & b) for v in np.unique(flags)}
+    with open(path, "w") as f:
+        f.write("t,r,u_ff,flags\n")
+        f.writelines(f"{k * Ts!r},{float(a)!r},{float(b)!r},{words[int(c)]}\n"
+                     for k, (a, b, c) in enumerate(zip(r, u, flags)))
+
+
 def _flag_counts(flags: np.ndarray) -> dict:
     return {n: int(np.count_nonzero(flags & b)) for n, b, _ in FLAGS if np.any(flags & b)}
 
@@ -285,6 +296,8 @@ def _build(law, name, folder, references, source, cc, rtol, repeats, keep_exe, *
             raise ExportError(f"the exported law {name} does not reproduce the study on {ref!r} in Python: "
                               f"max|Δu|/max|u| = {d:.3g} > {rtol:g}")
         ug, fg = guarded_u[ref] = guarded(law, r)
+        write_feedforward_csv(folder / f"feedforward_{safe}.csv", law.Ts, r, ug, fg)     # as shipped, with its flags
+        refs[ref]["feedforward"] = f"feedforward_{safe}.csv"
         refs[ref]["guard_max_rel_change"] = rel_diff(ug, u)      # 0: the guard left the study's u_ff alone
         refs[ref]["flags"] = _flag_counts(fg)
     first = next(iter(refs.values()))["file"]

@@ -105,6 +105,15 @@ def _fast_physics(kind, cfg, theta, phi):
         v = (phi[1] - phi[2]) / Ts
         sg = 1.0 if v > 0 else (-1.0 if v < 0 else 0.0)
         return theta[0] * acc + theta[1] * v + theta[2] * sg
+    elif kind == 4:  # its inverse layout: θ'₀ δ²y(t+1) + Σ_j θ'_j T_j(y(t), δy(t)) (RigidBodyPhysics.inverse_features)
+        Ts = cfg[0]
+        nt = int(cfg[1])
+        acc = (phi[0] - 2.0 * phi[1] + phi[2]) / (Ts * Ts)
+        v = (phi[1] - phi[2]) / Ts
+        s = theta[0] * acc
+        for j in range(nt):
+            s += theta[1 + j] * term(int(cfg[2 + j]), cfg[2 + nt + j], phi[1], v)[0]
+        return s
     else:  # measured rigid body with force terms (PhysicsModelFeatures of RigidBodyPhysics, direct input)
         Ts = cfg[0]
         nt = int(cfg[1])

@@ -26,7 +26,7 @@ __all__ = ["PhysicsFeatures", "LinearFeatures", "RigidBodyForward", "RigidBodyIn
            "physics_features_for"]
 
 # numba kernel ids of the built-in physics maps (pipeline.models.fast_pgnn._fast_physics)
-_KIND_LINEAR, _KIND_RIGID_FWD, _KIND_RIGID_INV, _KIND_RIGID_TERMS = 0, 1, 2, 3
+_KIND_LINEAR, _KIND_RIGID_FWD, _KIND_RIGID_INV, _KIND_RIGID_TERMS, _KIND_RIGID_TERMS_INV = 0, 1, 2, 3, 4
 
 
 # --------------------------------------------------------------------------------------------
@@ -184,10 +184,11 @@ class PhysicsModelFeatures(PhysicsFeatures):
     known plants to the built-in maps.
 
     Numba fast path: only for a measured rigid body with force terms
-    (:class:`pipeline.systems.measured.RigidBodyPhysics`) on its direct input, forward layout:
+    (:class:`pipeline.systems.measured.RigidBodyPhysics`) on its direct input, forward layout (kind 3):
     ``y(t) = 2y(t-1) - y(t-2) + Ts² (θ₀ w(t-1) - Σ_j θ_j T_j(y(t-1), δy(t-1)))`` with the terms'
-    kernel codes (``kernel_terms``).  Any other model has none (the inversions then use their torch
-    reference, one sample at a time).
+    kernel codes (``kernel_terms``), and inverse layout (kind 4, issue 49):
+    ``w = θ'₀ δ²y(t+1) + Σ_j θ'_j T_j(y(t), δy(t))`` on φ' = [y(t+1), y(t), y(t-1), …].  Any other model
+    has none (the inversions then use their torch reference, one sample at a time).
     """
 
     def __init__(self, physics_model, inverse: bool = False):
@@ -208,10 +209,12 @@ class PhysicsModelFeatures(PhysicsFeatures):
         pm = self.pm
         rigid = (getattr(pm, "physics_law", None) == "rigid_body" and hasattr(pm, "kernel_terms")
                  and not getattr(pm, "averaged_input", True))
-        return _KIND_RIGID_TERMS if rigid and not self.inverse else -1
+        if not rigid:
+            return -1
+        return _KIND_RIGID_TERMS_INV if self.inverse else _KIND_RIGID_TERMS
 
     def fast_config(self):
-        if self.fast_kind != _KIND_RIGID_TERMS:
+        if self.fast_kind not in (_KIND_RIGID_TERMS, _KIND_RIGID_TERMS_INV):
             return super().fast_config()
         codes, p = self.pm.kernel_terms()
         return np.concatenate([[self.pm.Ts, float(codes.size)], codes.astype(np.float64), p])

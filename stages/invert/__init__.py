@@ -8,23 +8,37 @@ reference_force``): zero for error feedback, the velocity feedback on r for the 
 Every law starts as the ``start`` node says (``pipeline.invert.start``): at rest at r(0) on a measured
 system (every state steady there, the controller term from its rest value; with ``start.static=exclude``
 the force at rest taken off), the papers' conventions on the simulators.
+
+Every reference's feedforward is written where a user looks (issue 49): the artifact
+``invert/feedforward/<ref>.csv`` with columns t [s], r, u_ff (the study's, the one evaluate replays) and flags:
+where the exported law's guard (``export.limits``, its defaults from the identification data; the training
+envelope) would act on the sample, e.g. ``SATURATED|RATE_LIMITED`` or ``OUT_OF_RANGE``, empty otherwise. When a
+reference leaves the training data's velocity or acceleration range the stage warns, tags ``envelope_warning``
+with the factor ("reference 'test' reaches 1.66× the training velocity") and the remedy, and logs
+``envelope_velocity_factor`` and ``envelope_acceleration_factor`` (the largest over the references; per
+reference ``<ref>/envelope_…``): max |δr| / max |δy| of the training data, likewise δ².
 """
 from __future__ import annotations
 
+import re
 import time
 import warnings
 
 import numpy as np
 
-from pipeline.export.guard import envelope_of
 from pipeline.errors import NonPhysical
+from pipeline.export.guard import Guard, envelope_of, run_guard
+from pipeline.export.package import write_feedforward_csv
 from pipeline.invert.start import resolve, settle_count, started
 from pipeline.runner import ConfigError, implementation
 from stages._common import baseline_lag, check_references, reference_specs
+from stages.export import guard_of
 
 UPSTREAM = ("generate", "baseline", "train")
-DEPENDS = ("invert", "evaluate.references", "evaluate.noise", "start")  # fhofc scores the bound terms on the measured Y
-VERSION = 3   # 2: reference_warning when the feedforward spikes at an end of the reference; 3: start (issue 48)
+DEPENDS = ("invert", "evaluate.references", "evaluate.noise", "start",  # fhofc scores the bound terms on the measured Y
+           "export.limits")                                           # the flags of the u_ff CSV
+VERSION = 4   # 2: reference_warning when the feedforward spikes at an end of the reference; 3: start (issue 48);
+              # 4: invert/feedforward/<ref>.csv, envelope factors (issue 49)
 KIND_KEY = "invert.kind"
 
 
@@ -69,7 +83,7 @@ def _run(ctx) -> dict:
     refs = check_references(reference_specs(ctx.cfg.evaluate.references), ctx.system, ctx.cfg)
     st = start_of(ctx.cfg, ctx.system)
     ctrl = ctx.system.ctrl if ctx.system.measured else None
-    u_ff, edge = {}, []
+    u_ff, edge, u_start = {}, [], {}
     for name, r in ctx.progress(refs.items(), desc="feedforward", total=len(refs)):
         t0 = time.perf_counter()
         law = lambda rr: np.asarray(impl.feedforward(ctx, name, rr), dtype=np.float64)   # noqa: E731
@@ -79,6 +93,8 @@ def _run(ctx) -> dict:
             settle = settle_count(law, [r0])
             del ctx.metrics[n_metrics:]     # the law's own metrics of the rest probe are not the reference's
             f, u_rest = started(law, r, r0, settle)
+            last = {m[0]: m for m in ctx.metrics[n_metrics:]}   # the rest run's and the reference's: the latter's,
+            ctx.metrics[n_metrics:] = list(last.values())       # once (a key twice at one time breaks MLflow's log)
             ctx.metric(f"{name}/start_settle_samples", settle)
         else:
             f = law(r)
@@ -95,6 +111,7 @@ def _run(ctx) -> dict:
             if st.static == "exclude":
                 f = f - u_rest
             ctx.metric(f"{name}/static_force_at_start", u_rest)
+            u_start[name] = 0.0 if st.static == "exclude" else u_rest   # the guard's output before t = 0
         if ctrl is not None or st.rest:   # the law's own max|u_ff| was of the model inverse alone: the applied one
             key = f"{ctx.name}/{name}/max_abs_u_ff"
             ctx.metrics[:] = [m for m in ctx.metrics if m[0] != key]
@@ -110,6 +127,7 @@ def _run(ctx) -> dict:
     if env:
         warnings.warn(env, stacklevel=1)
         ctx.tag("envelope_warning", env)
+    write_feedforward(ctx, refs, u_ff, st, u_start)
     ctx.tag("start", f"{st.at}, static {st.static}")
     out = {"u_ff": u_ff, "r": refs, "start": {"at": st.at, "static": st.static}}
     if ctx.system.measured:   # evaluate replays the identified model in the recorded loop
@@ -159,28 +177,80 @@ def edge_warning(name: str, r: np.ndarray, u_ff: np.ndarray, Ts: float, at: str 
 def envelope_warning(ctx, refs: dict) -> str | None:
     """A warning naming every reference that leaves the identification data's range of position, velocity or
     acceleration (the law's regressors, r standing in for y; ``pipeline.export.guard.envelope_of`` without margin):
-    there the model is extrapolated ([B1] Definition 6), and the exported guard flags it OUT_OF_RANGE."""
+    there the model is extrapolated ([B1] Definition 6), and the exported guard flags it OUT_OF_RANGE. The factor
+    max |δr| / max |δy| of the training data (likewise δ²) is logged per reference and its largest over them
+    (``envelope_velocity_factor``, ``envelope_acceleration_factor``); the warning names it and the remedy."""
     ds = ctx.inputs["generate"].get("dataset")
     if ds is None:
         return None
     Ts = float(ctx.system.Ts)
     lo, hi = envelope_of((seg["y"].to_numpy(dtype=float) for seg in ds.segments()), Ts, 0.0)
-    names, parts = ("position", "velocity", "acceleration"), []
+    names, units, parts = ("position", "velocity", "acceleration"), ("", "/s", "/s²"), []
+    worst = [0.0, 0.0, 0.0]
     for name, r in refs.items():
         rlo, rhi = envelope_of([r], Ts, 0.0)
         out = []
-        for i, q in enumerate(names):
+        for i in (1, 2, 0):   # the velocity and acceleration first: the regressors the NN is most sensitive to
+            q = names[i]
+            span = max(abs(lo[i]), abs(hi[i]))
+            factor = max(abs(rlo[i]), abs(rhi[i])) / span if span > 0 else (np.inf if rhi[i] > rlo[i] else 0.0)
+            if i:          # the regressors' factors: velocity, acceleration
+                ctx.metric(f"{name}/envelope_{q}_factor", factor)
+                worst[i] = max(worst[i], factor)
             if rlo[i] < lo[i] or rhi[i] > hi[i]:
-                span = max(abs(lo[i]), abs(hi[i])) or 1.0
-                out.append(f"{q} {rlo[i]:.4g} .. {rhi[i]:.4g} against {lo[i]:.4g} .. {hi[i]:.4g} "
-                           f"({max(abs(rlo[i]), abs(rhi[i])) / span:.3g}x the training's largest)")
+                out.append(f"{factor:.3g}× the training {q} ({rlo[i]:.4g} .. {rhi[i]:.4g} against {lo[i]:.4g} .. "
+                           f"{hi[i]:.4g} {'m' if i == 0 else 'm' + units[i]})")
         if out:
-            parts.append(f"reference '{name}': " + "; ".join(out))
+            parts.append(f"reference '{name}' reaches " + ", ".join(out))
+    if refs:
+        ctx.metric("envelope_velocity_factor", worst[1])
+        ctx.metric("envelope_acceleration_factor", worst[2])
     if not parts:
         return None
-    return ("the feedforward extrapolates the model beyond its training data: " + " | ".join(parts)
-            + ". Record training data that cover the reference (faster, longer moves); an exported law flags "
-            "OUT_OF_RANGE beyond export.limits.envelope_margin (0.1 of each range by default) outside them.")
+    return ("; ".join(parts) + ": there the feedforward extrapolates the model beyond its training data. Record a "
+            "training run that covers it (moves as fast, accelerations as high and positions as far as the "
+            "reference's) and train again; an exported law flags OUT_OF_RANGE beyond export.limits.envelope_margin "
+            "(0.1 of each range by default) outside them.")
+
+
+def guard_preview(ctx) -> int:
+    """P of the exported law of ``invert.kind`` (pipeline.export.law): the PGNN inversions read r(t) .. r(t+n_k+1),
+    the physics laws r(t) .. r(t+1), one more on an averaged model input; the [K] filters and tables r(t) only."""
+    kind = str(ctx.cfg.invert.kind)
+    averaged = bool(getattr(getattr(ctx.system, "physics", None), "averaged_input", False))
+    if kind in ("direct", "analytic", "newton"):
+        train = ctx.inputs["train"]
+        return int(train["model"].n_k) + 1 + int(averaged and bool(train.get("model_input")))
+    return 1 + int(averaged) if kind == "physics" else 0
+
+
+def feedforward_flags(ctx, refs: dict, u_ff: dict, st, u_start: dict) -> dict:
+    """{ref: flags} of the exported law's guard (stages.export.guard_of: export.limits, defaults from the data, the
+    training envelope) run on the study's u_ff: where it would saturate, rate-limit, flag OUT_OF_RANGE or fall
+    back. Zeros without an export node."""
+    if ctx.cfg.get("export") is None or ctx.inputs["generate"].get("dataset") is None:
+        return {name: np.zeros(r.size, dtype=np.int64) for name, r in refs.items()}
+    g = Guard(**guard_of(ctx, st.at)[0])
+    P, Ts = guard_preview(ctx), float(ctx.system.Ts)
+    out = {}
+    for name, r in refs.items():
+        # the law's r0 (pipeline.export.law.start_position): the physics law and the [K] filters of the papers' start
+        # from r = 0, every other law from r(0)
+        r0 = 0.0 if not st.rest and str(ctx.cfg.invert.kind) in ("physics", "rational_filter") else float(r[0])
+        u0 = min(max(u_start.get(name, 0.0), g.u_min), g.u_max)     # inside the limits, as the C's init clamps it
+        u = u_ff[name]
+        out[name] = run_guard(g, Ts, P, r, r0, lambda _r, u=u: (u, np.zeros(u.size, dtype=np.int64)), u_start=u0)[1]
+    return out
+
+
+def write_feedforward(ctx, refs: dict, u_ff: dict, st, u_start: dict) -> None:
+    """``invert/feedforward/<ref>.csv`` per reference: t [s], r, u_ff (the study's) and the guard's flags by name
+    (``|``-joined, empty where it would not act); the count of flagged samples as ``<ref>/guard_flagged_samples``."""
+    flags = feedforward_flags(ctx, refs, u_ff, st, u_start)
+    for name, r in refs.items():
+        path = ctx.artifact(f"feedforward/{re.sub(r'[^A-Za-z0-9_.-]', '_', name)}.csv")
+        write_feedforward_csv(path, float(ctx.system.Ts), r, u_ff[name], flags[name])
+        ctx.metric(f"{name}/guard_flagged_samples", int(np.count_nonzero(flags[name])))
 
 
 def loop_model(ctx):

@@ -17,7 +17,9 @@ class Params:
     model_structure: Literal["forward", "inverse", "invertible"] = "inverse"
 
 
-VERSION = 2   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
+VERSION = 3   # 2: averaged model input: w(N) is the law's next sample on the held reference (pipeline.export)
+              # 3: a measured rigid body's inverse layout (kind 4) inverts on the numba fast path (issue 49; the
+              # torch reference summed in another order: last bits)
 
 
 def check(cfg, system) -> None:
@@ -33,6 +35,9 @@ def feedforward(ctx, name, r):
 
 
 # ---- export (stages/export.py asks this module)
+EXPORTS_MEASURED = True   # a measured axis ships the PGNN's inversion minus the controller's force on y = r
+
+
 def export_check(cfg, system) -> None:
     pgnn_check(cfg, "direct")
 

@@ -74,6 +74,9 @@ def feedforward(ctx, name, r):
 
 
 # ---- export (stages/export.py asks this module)
+EXPORTS_MEASURED = True   # a measured axis ships the PGNN's inversion minus the controller's force on y = r
+
+
 def export_check(cfg, system) -> None:
     pgnn_check(cfg, "newton")
 

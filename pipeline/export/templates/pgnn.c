@@ -4,7 +4,8 @@
 #include <math.h>
 #include "${file}.h"
 
-#define KIND ${kind}            /* physics map: 0 linear, 1 rigid body forward, 2 rigid body inverse, -1 none */
+#define KIND ${kind}            /* physics map: 0 linear, 1 rigid body forward, 2 rigid body inverse, -1 none,
+                                   3/4 a measured rigid body with force terms on its direct input, forward/inverse */
 #define H ${H}                  /* hidden tanh neurons */
 #define NPHI ${n_phi}           /* regressor length n_a + n_b */
 #define UIDX ${u_index}         /* u(t-n_k-1) in the forward regressor */
@@ -25,7 +26,7 @@
 #define XUH (XRH + NRH)
 #define XRW (XUH + NB)
 #define XPHI (XRW + NA + 1)
-
+${controller}
 /* the numba kernels' flat parameter array (pipeline.models.pgnn.FastPGNN.blob):
  * [θ̂_phy (P) | θ*_phy, the physics start (P) | W, first layer with the input map folded in (H x NPHI) |
  *  b (H) | w2 = output weights x output scale (H) | b2 | physics map configuration] */
@@ -41,7 +42,7 @@ ${arrays}#define TH (BLOB + ${o_th})
 #pragma clang diagnostic push
 #pragma clang diagnostic ignored "-Wunused-function"
 #endif
-static inline double physics(const double *th, const double *phi)
+${force_term}static inline double physics(const double *th, const double *phi)
 {   /* f_phy(θ, φ) of the built-in maps (pipeline.models.pgnn._fast_physics) */
 #if KIND == 0
     double s = 0.0;
@@ -60,6 +61,24 @@ static inline double physics(const double *th, const double *phi)
     const double v = (phi[1] - phi[2]) / Ts;
     const double sg = v > 0 ? 1.0 : (v < 0 ? -1.0 : 0.0);
     return th[0] * acc + th[1] * v + th[2] * sg;
+#elif KIND == 3   /* y(t) = 2y(t-1) - y(t-2) + Ts² (θ₀ w(t-1) - Σ_j θ_j T_j(y(t-1), δy(t-1))) */
+    const double Ts = CFG[0];
+    const int nt = (int)CFG[1];
+    const double y1 = phi[0], y2 = phi[1];
+    const double v = (y1 - y2) / Ts;
+    double s = Ts * Ts * phi[2] * th[0];
+    int j;
+    for (j = 0; j < nt; ++j) s += -Ts * Ts * force_term((int)CFG[2 + j], CFG[2 + nt + j], y1, v) * th[1 + j];
+    return 2.0 * y1 - y2 + s;
+#elif KIND == 4   /* its inverse layout: θ'₀ δ²y(t+1) + Σ_j θ'_j T_j(y(t), δy(t)) */
+    const double Ts = CFG[0];
+    const int nt = (int)CFG[1];
+    const double acc = (phi[0] - 2.0 * phi[1] + phi[2]) / (Ts * Ts);
+    const double v = (phi[1] - phi[2]) / Ts;
+    double s = th[0] * acc;
+    int j;
+    for (j = 0; j < nt; ++j) s += th[1 + j] * force_term((int)CFG[2 + j], CFG[2 + nt + j], phi[1], v);
+    return s;
 #else
     (void)th; (void)phi;
     return 0.0;
@@ -70,7 +89,7 @@ static inline double gain(const double *th)
 {   /* ψ = ∂f_phy/∂u(t-n_k-1) in closed form (_fast_physics_gain) */
 #if KIND == 0
     return th[UIDX];
-#elif KIND == 1
+#elif KIND == 1 || KIND == 3
     return CFG[0] * CFG[0] * th[0];
 #else
     (void)th;
@@ -228,11 +247,11 @@ static void law_init(${name}_state *s, double r0)
     int i;
     for (i = 0; i < ${NAME}_NX; ++i) s->x[i] = 0.0;
     for (i = 0; i < NRH; ++i) s->x[XRH + i] = r0;
-${reset}}
+${controller_init}${reset}}
 
 static double law_step(${name}_state *s, const double *r_preview)
 {
     double u;
     s->status = 0;
-${averaged_step}    return u;
+${averaged_step}${controller_step}    return u;
 }

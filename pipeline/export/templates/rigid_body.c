@@ -44,13 +44,6 @@ ${reset}}
 static double law_step(${name}_state *s, const double *r_preview)
 {
     double u;
-${averaged_step}#if HAS_CTRL   /* minus the controller's force on y = r: gtau (C_r - C_y) r */
-#if START_REST_CTRL
-    u = u - GTAU * (df2t(s->x + XZ, r_preview[0] - s->x[XR0]) + K0 * s->x[XR0]);
-#else
-    u = u - GTAU * df2t(s->x + XZ, r_preview[0]);
-#endif
-#endif
-    s->status = isfinite(u) ? 0 : ${NAME}_SINGULAR;
+${averaged_step}${reference_force}    s->status = isfinite(u) ? 0 : ${NAME}_SINGULAR;
     return u;
 }

@@ -18,7 +18,7 @@ since the loop's integrator already holds the load. The acceptance (issue 48): e
 the actuator limit and reaches an MAE within ``MAE_FACTOR`` × the better hand-shifted row of its law.
 
     .venv/bin/python tests/heldout_score.py [--axis a|b] [--work DIR] [--hidden 16] [--lam 0.01] [--skip-pgnn]
-        [--digits N]
+        [--digits N] [--physics basic|engineer]
 
 ``--axis b`` scores the second held-out axis (:mod:`tests.heldout_axis_b`: a flexure spring, a current-loop lag,
 C_r and C_y each with its own denominator, 8 kHz) the same way. The PGNN run ships its feedforward too (issue 49:
@@ -96,10 +96,19 @@ def _floats(p, digits: int | None = None) -> str:
     return "[" + ",".join(repr(float(x)) if digits is None else f"{x:.{digits}g}" for x in p) + "]"
 
 
+#: the physics a user configures (--physics): ``basic`` the default terms with the generator's Coulomb width;
+#: ``engineer`` what issue 49 added, chosen from the data: a spring, the Coulomb width and the drive's lag
+PHYSICS = {"basic": lambda: ["system.force_terms.terms=[viscous,coulomb,offset]",
+                             f"system.force_terms.coulomb_width={axis.W_C!r}"],
+           "engineer": lambda: ["system.force_terms.terms=[viscous,coulomb,offset,spring]",
+                                "system.force_terms.coulomb_width=auto", "system.actuator.lag_tau=auto"]}
+physics = "basic"
+
+
 def system_overrides(digits: int | None = None) -> list[str]:
     """The machine as a user describes it (conf/system/measured.yaml's keys; ``delay`` is in that file, so
     it takes no ``+``): the 2-DOF controller (its coefficients to the bit, or to ``digits`` significant
-    digits), the force terms of the physics."""
+    digits), the force terms of the physics (:data:`PHYSICS`)."""
     if hasattr(axis, "controller_paths"):     # C_r = num_r/den_r and C_y = num/den as the tuning tool shows them
         c = axis.controller_paths()
         paths = [f"system.controller.{k}={_floats(c[k], digits)}" for k in ("num", "den", "num_r", "den_r")]
@@ -109,8 +118,7 @@ def system_overrides(digits: int | None = None) -> list[str]:
         paths = [f"system.controller.num={_floats(b_y, digits)}", f"system.controller.den={_floats(a, digits)}",
                  f"system.controller.num_r={_floats(b_r, digits)}"]
     return ["system=measured", f"system.name={EXPERIMENT}", f"system.Ts={axis.TS!r}", *paths,
-            f"system.controller.delay={delay}", "system.force_terms.terms=[viscous,coulomb,offset]",
-            f"system.force_terms.coulomb_width={axis.W_C!r}"]
+            f"system.controller.delay={delay}", *PHYSICS[physics]()]
 
 
 def _training_files() -> str:
@@ -367,7 +375,12 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-pgnn", action="store_true")
     ap.add_argument("--digits", type=int, help="type the controller's coefficients to this many significant digits")
     ap.add_argument("--json", type=Path, help="write the report here")
+    ap.add_argument("--physics", choices=sorted(PHYSICS), default="basic",
+                    help="basic: viscous, coulomb (the generator's width), offset; engineer: + spring, "
+                         "coulomb_width=auto, actuator lag_tau=auto (issue 49)")
     a = ap.parse_args(argv)
+    global physics
+    physics = a.physics
     work = a.work or Path(tempfile.mkdtemp(prefix="heldout_axis_"))
     rep = run(work, a.hidden, a.lam, not a.skip_pgnn, a.digits, a.axis)
     print(f"work folder: {rep['work']}")

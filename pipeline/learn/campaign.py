@@ -31,6 +31,7 @@ from pipeline import data
 from pipeline.errors import ConfigError
 from pipeline.learn import safety
 from pipeline.learn.update import LoopModel, make_update
+from pipeline.plots import pyplot
 from pipeline.params import DAMP_MAX, FORCE_MAX, FREQ_MAX, ITER_MAX, MASS_MAX, SPEED_MAX, STIFF_MAX, TS_MAX, \
     schema, spec
 from pipeline.systems.controller import LTIController
@@ -352,9 +353,7 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
 
 # ---- plots and MLflow --------------------------------------------------------------------------------------
 def plot_check(check: dict, path: Path) -> None:
-    import matplotlib  # lazy: saves 0.3 s of start-up (matplotlib)
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # lazy: saves 0.3 s of start-up (matplotlib)
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 3.2))
     ax.semilogx(check["f_hz"], check["rho"], label="|Q(1 - αLG)| + uncertainty")
     ax.axhline(1.0, color="r", lw=0.8, label="1: divergence")
@@ -369,9 +368,7 @@ def plot_check(check: dict, path: Path) -> None:
 
 
 def plot_errors(trials: list[dict], path: Path) -> None:
-    import matplotlib  # lazy: saves 0.3 s of start-up (matplotlib)
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # lazy: saves 0.3 s of start-up (matplotlib)
+    plt = pyplot()
     j = [h["trial"] for h in trials]
     fig, ax = plt.subplots(figsize=(6, 3.2))
     ax.semilogy(j, [h["rms"] for h in trials], "o-", label="‖e_j‖ (rms)")

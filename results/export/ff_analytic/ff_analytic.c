@@ -4,7 +4,8 @@
 #include <math.h>
 #include "ff_analytic.h"
 
-#define KIND 1            /* physics map: 0 linear, 1 rigid body forward, 2 rigid body inverse, -1 none */
+#define KIND 1            /* physics map: 0 linear, 1 rigid body forward, 2 rigid body inverse, -1 none,
+                                   3/4 a measured rigid body with force terms on its direct input, forward/inverse */
 #define H 16                  /* hidden tanh neurons */
 #define NPHI 3           /* regressor length n_a + n_b */
 #define UIDX 2         /* u(t-n_k-1) in the forward regressor */
@@ -30,25 +31,25 @@
  * [θ̂_phy (P) | θ*_phy, the physics start (P) | W, first layer with the input map folded in (H x NPHI) |
  *  b (H) | w2 = output weights x output scale (H) | b2 | physics map configuration] */
 static const double BLOB[89] = {
-    0.04989635340560448, 0.44226973944079356, 0.6033027560606097, 0.04973197666618563,
-    0.44226973944061004, 0.603302756047546, 164.23193665999713, 95.34513993308002, 0.0,
-    -3.477367960501539, -0.6766253898452927, 0.0, -155.60231057797503, -121.24849969980134, 0.0,
-    -72.13189774683866, -67.81018159605406, 0.0, 93.92153829580346, 76.6115516053081, 0.0,
-    -8.021945883700356, 2.1464451004226843, 0.0, 1.4975611814268064, -5.5754088282036065, 0.0,
-    0.5649737270610024, 3.5596913874843246, 0.0, -181.29327788264158, -173.64891105968005, 0.0,
-    -2.1002863132134526, 33.745853164141316, 0.0, -98.66003790537822, -138.57258553471394, 0.0,
-    18.817876015765773, 14.981033256802483, 0.0, 253.89744773360016, 240.1992216845336, 0.0,
-    94.34064732979516, 94.14555903919764, 0.0, 6.716218244320448, -4.017357874256009, 0.0,
-    -15.099633638920828, -10.66047806219871, 0.0, -18.90737354227843, 0.9411724826485294,
-    -21.23087621804422, -3.767161332093985, -16.047150435049197, 1.625009347362691,
-    -0.12406955492159798, 0.24852202323593184, 17.469481815561856, -2.2269689037087277,
-    21.969118001121846, 2.7909687507657575, 25.56902927667925, 5.064179796127386,
-    0.25872233396023797, -2.925864212980597, -6.238795200835397e-07, -2.8087368451017427e-06,
-    6.347531142383524e-07, -3.4492893257099956e-06, -2.053610155210411e-06,
-    3.3309670079809466e-06, 1.7481903368139994e-06, -5.971215374116731e-07, 3.91894005175095e-07,
-    2.041942497482203e-06, -1.5166585209934658e-06, 3.354140107739579e-06,
-    -3.666363428514224e-07, -3.2066730107041134e-06, -1.747322580166662e-06,
-    3.393350723684013e-06, 1.0813527123138925e-06, 0.001, 2.0
+    0.049879777805239764, 0.4422697394413543, 0.6033027560649366, 0.04973197666618535,
+    0.4422697394410392, 0.6033027560475183, 117.83376580817242, 107.06475191840963, 0.0,
+    -16.60191373053262, -6.577312067904989, 0.0, -150.07513997007226, -143.11685926915325, 0.0,
+    -59.58172671788405, -54.32893376765333, 0.0, 81.59877658325335, 81.09503096289696, 0.0,
+    -9.263518335241319, -3.7603048853935013, 0.0, 1.3549823021077247, -7.054489626970793, 0.0,
+    0.9615679971618882, 4.873755276258988, 0.0, -18.439664800016153, -9.565013453947724, 0.0,
+    44.05641639228283, 60.883411880880736, 0.0, -78.57181888401354, -91.2476257776471, 0.0,
+    16.55801728450002, 17.34673778009307, 0.0, 224.22817396625686, 227.34402268853853, 0.0,
+    93.40040960902216, 95.9883017258321, 0.0, 8.23004812896292, -1.9788116308070764, 0.0,
+    -7.2782508986046945, -1.1472494023731457, 0.0, -16.260331157865497, 0.7875972237580198,
+    -22.421387169381468, -3.0554921741727528, -15.558224239412977, 1.2828249232738649,
+    -0.19470625408684533, 0.23199767974905702, 1.9827319224248758, -7.505755437982931,
+    15.752586967866781, 2.494129598475819, 23.3963615077325, 5.072853467863183,
+    0.3798927348575808, -0.6265509122448172, -1.3277659220434859e-06, -3.1361220501437424e-06,
+    5.948538547294779e-07, -2.7874826683796963e-06, -1.2739069852424124e-06,
+    2.155065546218784e-06, 2.8623493340682e-06, -1.3706876620466586e-06, 1.61783384131941e-06,
+    2.3229498360295125e-06, -1.5531629938615781e-06, 3.1148305592293365e-06,
+    -3.5929538775399796e-07, -2.2012423053675164e-06, -2.3246083279403056e-06,
+    1.7119407200602e-06, -8.388531840102408e-08, 0.001, 2.0
 };
 #define TH (BLOB + 0)
 #define TS (BLOB + 3)
@@ -81,6 +82,24 @@ static inline double physics(const double *th, const double *phi)
     const double v = (phi[1] - phi[2]) / Ts;
     const double sg = v > 0 ? 1.0 : (v < 0 ? -1.0 : 0.0);
     return th[0] * acc + th[1] * v + th[2] * sg;
+#elif KIND == 3   /* y(t) = 2y(t-1) - y(t-2) + Ts² (θ₀ w(t-1) - Σ_j θ_j T_j(y(t-1), δy(t-1))) */
+    const double Ts = CFG[0];
+    const int nt = (int)CFG[1];
+    const double y1 = phi[0], y2 = phi[1];
+    const double v = (y1 - y2) / Ts;
+    double s = Ts * Ts * phi[2] * th[0];
+    int j;
+    for (j = 0; j < nt; ++j) s += -Ts * Ts * force_term((int)CFG[2 + j], CFG[2 + nt + j], y1, v) * th[1 + j];
+    return 2.0 * y1 - y2 + s;
+#elif KIND == 4   /* its inverse layout: θ'₀ δ²y(t+1) + Σ_j θ'_j T_j(y(t), δy(t)) */
+    const double Ts = CFG[0];
+    const int nt = (int)CFG[1];
+    const double acc = (phi[0] - 2.0 * phi[1] + phi[2]) / (Ts * Ts);
+    const double v = (phi[1] - phi[2]) / Ts;
+    double s = th[0] * acc;
+    int j;
+    for (j = 0; j < nt; ++j) s += th[1 + j] * force_term((int)CFG[2 + j], CFG[2 + nt + j], phi[1], v);
+    return s;
 #else
     (void)th; (void)phi;
     return 0.0;
@@ -91,7 +110,7 @@ static inline double gain(const double *th)
 {   /* ψ = ∂f_phy/∂u(t-n_k-1) in closed form (_fast_physics_gain) */
 #if KIND == 0
     return th[UIDX];
-#elif KIND == 1
+#elif KIND == 1 || KIND == 3
     return CFG[0] * CFG[0] * th[0];
 #else
     (void)th;
@@ -176,9 +195,9 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
     int flags = 0, i;
     double u = analytic_solve(phi, r_next, 1, 0);   /* physics start, θ*_phy */
     double a, psi, best_u, best_v = HUGE_VAL, first_v = (double)NAN, last_v = (double)NAN;
-    if (!isfinite(u)) { u = 0.0; flags |= FF_ANALYTIC_4D04B765_SINGULAR; }
-    if (u < U_MIN) { u = U_MIN; flags |= FF_ANALYTIC_4D04B765_BOUNDS; }
-    else if (u > U_MAX) { u = U_MAX; flags |= FF_ANALYTIC_4D04B765_BOUNDS; }
+    if (!isfinite(u)) { u = 0.0; flags |= FF_ANALYTIC_CC8FFC1B_SINGULAR; }
+    if (u < U_MIN) { u = U_MIN; flags |= FF_ANALYTIC_CC8FFC1B_BOUNDS; }
+    else if (u > U_MAX) { u = U_MAX; flags |= FF_ANALYTIC_CC8FFC1B_BOUNDS; }
     phi[UIDX] = 0.0;
     physics_affine(TH, phi, &a, &psi);              /* θ̂_phy: ŷ = a + ψ u + f_NN */
     best_u = u;
@@ -187,19 +206,19 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
         phi[UIDX] = u;
         nn = nn_affine(phi, &dnn);
         V = r_next - (a + psi * u + nn);             /* [B1] (23) */
-        if (!isfinite(V)) { flags |= FF_ANALYTIC_4D04B765_SINGULAR; break; }
+        if (!isfinite(V)) { flags |= FF_ANALYTIC_CC8FFC1B_SINGULAR; break; }
         av = fabs(V);
         if (i == 0) first_v = av;
         last_v = av;
         if (av < best_v) { best_u = u; best_v = av; }
         if (i == K_NEWTON || V == 0.0) break;
         dV = -(psi + dnn);                           /* [B1] (24), (25) */
-        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_ANALYTIC_4D04B765_SINGULAR; break; }
+        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_ANALYTIC_CC8FFC1B_SINGULAR; break; }
         u_new = u - V / dV;
-        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_ANALYTIC_4D04B765_BOUNDS; break; }
+        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_ANALYTIC_CC8FFC1B_BOUNDS; break; }
         u = u_new;
     }
-    if (last_v > first_v) flags |= FF_ANALYTIC_4D04B765_DIVERGED;
+    if (last_v > first_v) flags |= FF_ANALYTIC_CC8FFC1B_DIVERGED;
     if (best_v == HUGE_VAL) best_u = u;
     phi[UIDX] = 0.0;
     *flags_out = flags;
@@ -209,7 +228,7 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
 #pragma clang diagnostic pop
 #endif
 
-static inline double law_w(ff_analytic_4d04b765_state *s, const double *rp)
+static inline double law_w(ff_analytic_cc8ffc1b_state *s, const double *rp)
 {   /* one sample of the law: the model input w(t) from r(t .. t+NK+1) and the state */
     double *x = s->x, *rh = x + XRH, *uh = x + XUH, *rw = x + XRW, *phi = x + XPHI;
     double w;
@@ -235,7 +254,7 @@ static inline double law_w(ff_analytic_4d04b765_state *s, const double *rp)
 #else                                               /* LAW_PHYSICS on a forward model */
     w = analytic_solve(phi, rw[0], 1, 0);
 #endif
-    if (!isfinite(w)) flags |= FF_ANALYTIC_4D04B765_SINGULAR;    /* as the kernels: kept (the guard falls back) */
+    if (!isfinite(w)) flags |= FF_ANALYTIC_CC8FFC1B_SINGULAR;    /* as the kernels: kept (the guard falls back) */
     for (i = NB - 1; i > 0; --i) uh[i] = uh[i - 1];
     uh[0] = w;
     for (i = NRH - 1; i > 0; --i) rh[i] = rh[i - 1];
@@ -244,10 +263,10 @@ static inline double law_w(ff_analytic_4d04b765_state *s, const double *rp)
     return w;
 }
 
-static void law_init(ff_analytic_4d04b765_state *s, double r0)
+static void law_init(ff_analytic_cc8ffc1b_state *s, double r0)
 {
     int i;
-    for (i = 0; i < FF_ANALYTIC_4D04B765_NX; ++i) s->x[i] = 0.0;
+    for (i = 0; i < FF_ANALYTIC_CC8FFC1B_NX; ++i) s->x[i] = 0.0;
     for (i = 0; i < NRH; ++i) s->x[XRH + i] = r0;
     s->w_prev = 0.0;
     s->primed = 0;
@@ -266,7 +285,7 @@ static void law_init(ff_analytic_4d04b765_state *s, double r0)
     s->r_hist[1] = r0;
 }
 
-static double law_step(ff_analytic_4d04b765_state *s, const double *r_preview)
+static double law_step(ff_analytic_cc8ffc1b_state *s, const double *r_preview)
 {
     double u;
     s->status = 0;
@@ -274,7 +293,14 @@ static double law_step(ff_analytic_4d04b765_state *s, const double *r_preview)
     if (!s->primed) { s->w_prev = law_w(s, r_preview); s->primed = 1; }
     {
         const double w_next = law_w(s, r_preview + 1);
+#if defined(LAG_A0)   /* the actuator lag's inverse (pipeline.systems.actuator_lag): ZPETC preview, then its IIR */
+        const double p = LAG_P0 * s->w_prev + LAG_P1 * w_next;
+        u = (p + LAG_B1 * s->x[XLAG] - LAG_A1 * s->x[XLAG + 1]) / LAG_A0;
+        s->x[XLAG] = p;
+        s->x[XLAG + 1] = u;
+#else
         u = 0.5 * (s->w_prev + w_next);
+#endif
         s->w_prev = w_next;
     }
 #else
@@ -289,26 +315,27 @@ static double law_step(ff_analytic_4d04b765_state *s, const double *r_preview)
  * deletes every isfinite() below, and a NaN reference or an overflow reaches the actuator unflagged */
 #error "ff_analytic.c: do not build the guarded feedforward with -ffast-math, -Ofast or -ffinite-math-only: they delete every isfinite() check of the guard (a NaN reference or an overflow would reach the actuator with no flag); drop that flag (use -O2 or -O3)"
 #endif
-#define G_PREVIEW FF_ANALYTIC_4D04B765_PREVIEW
+#define G_PREVIEW FF_ANALYTIC_CC8FFC1B_PREVIEW
 #define G_TS (0.001)
-#define U_LO (-376.4980271294816)           /* saturation [N] */
-#define U_HI (376.4980271294816)
-#define DU_MAX (478.2709150574738)         /* slew limit x Ts: the largest |u(t) - u(t-1)| [N] */
+#define U_LO (-376.49802712948303)           /* saturation [N] */
+#define U_HI (376.49802712948303)
+#define DU_MAX (478.2709150574739)         /* slew limit x Ts: the largest |u(t) - u(t-1)| [N] */
 #define FALLBACK_KIND 0        /* 0 hold, 1 physics, 2 ramp */
 #define ENVELOPE_FALLS_BACK 0  /* 1: out of the envelope is invalid; 0: flagged only */
 #define RAMP_N (100.0)         /* ramp_time / Ts: samples of the ramp to 0 and of the return to the law */
-static const double ENV_LO[3] = {-0.1205056140893973, -0.10878271303569609, -15.696705526759004};   /* training envelope of r, dr/dt, d2r/dt2 */
-static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717170017};
+static const double ENV_LO[3] = {-0.12050561408939725, -0.10878271303569609, -15.696705526774268};   /* training envelope of r, dr/dt, d2r/dt2 */
+static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717171406};
 #if FALLBACK_KIND == 1   /* physics fallback M d2r + sum_j p_j T_j(r, dr), every force term of the system */
 #define NPHYS 2
 static const double PHYS[NPHYS + 1] = {0.0, 0.0, 0.0};          /* M, p_1 .. p_n */
 static const int PHYS_CODES[NPHYS + 1] = {0, 1, 0};      /* T_j: pipeline.systems.force_terms codes */
 static const double PHYS_CONSTS[NPHYS + 1] = {0.0, 0.0, 0.0}; /* shape constant of each T_j (+ one unused) */
 
-static double phys_term(int code, double p, double q, double v)
-{   /* T(q, q̇) of one force term (pipeline.systems.force_terms.term; guard.py _term) */
+static inline double force_term(int code, double p, double q, double v)
+{   /* T(q, q̇) of one force term (pipeline.systems.force_terms.term, codes of ForceTerms; guard.py _term) */
     const double sg = v > 0 ? 1.0 : (v < 0 ? -1.0 : 0.0);
-    double x;
+    double x, t;
+    int k;
     switch (code) {
     case 0: return v;                             /* viscous */
     case 1: return sg;                            /* Coulomb, sign */
@@ -316,7 +343,13 @@ static double phys_term(int code, double p, double q, double v)
     case 3: x = v / p; return sg * exp(-(x * x)); /* Stribeck */
     case 4: return 1.0;                           /* offset (gravity) */
     case 5: return cos(p * q);                    /* cogging cos */
-    default: return sin(p * q);                   /* cogging sin */
+    case 6: return sin(p * q);                    /* cogging sin */
+    case 7: return v * fabs(v);                   /* drag */
+    default:                                      /* (q/p)^k, k = code - 7: spring (k = 1, p = 1), position_poly */
+        x = q / p;
+        t = x;
+        for (k = code - 7; k > 1; --k) t = t * x;
+        return t;
     }
 }
 #endif
@@ -325,7 +358,7 @@ static double phys_term(int code, double p, double q, double v)
 #define SETTLE_N 0u          /* rest samples the law needs to reach its steady state */
 #define STATIC_EXCLUDE 0  /* 1: the force at rest at r0 is taken off (the loop holds the load) */
 
-void ff_analytic_4d04b765_init(ff_analytic_4d04b765_state *s, double r0)
+void ff_analytic_cc8ffc1b_init(ff_analytic_cc8ffc1b_state *s, double r0)
 {
     const double r = isfinite(r0) ? r0 : 0.0;
     law_init(s, r);
@@ -348,7 +381,7 @@ void ff_analytic_4d04b765_init(ff_analytic_4d04b765_state *s, double r0)
 #endif
 }
 
-double ff_analytic_4d04b765_step(ff_analytic_4d04b765_state *s, const double *r_preview)
+double ff_analytic_cc8ffc1b_step(ff_analytic_cc8ffc1b_state *s, const double *r_preview)
 {
     double ext[G_PREVIEW + 3];   /* r(t-2), r(t-1), r(t) .. r(t+P) after sanitation */
     double x[3], u;
@@ -356,14 +389,14 @@ double ff_analytic_4d04b765_step(ff_analytic_4d04b765_state *s, const double *r_
     ext[0] = s->r_hist[1];
     ext[1] = s->r_hist[0];
     if (s->r_bad != 0u) {      /* r(t-1) or r(t-2) was replaced: a step in the law's differences */
-        flags |= FF_ANALYTIC_4D04B765_NONFINITE_INPUT;
+        flags |= FF_ANALYTIC_CC8FFC1B_NONFINITE_INPUT;
     }
     for (i = 0; i <= G_PREVIEW; ++i) {
         if (isfinite(r_preview[i])) {
             ext[i + 2] = r_preview[i];
         } else {
             ext[i + 2] = ext[i + 1];
-            flags |= FF_ANALYTIC_4D04B765_NONFINITE_INPUT;
+            flags |= FF_ANALYTIC_CC8FFC1B_NONFINITE_INPUT;
         }
     }
     s->r_bad = ((s->r_bad << 1u) | (isfinite(r_preview[0]) ? 0u : 1u)) & 3u;
@@ -377,20 +410,20 @@ double ff_analytic_4d04b765_step(ff_analytic_4d04b765_state *s, const double *r_
             if (!(isfinite(x[i]) && (ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
         }
     }   /* x: the newest, n = t + P (the physics fallback's regressors) */
-    if (!inside) flags |= FF_ANALYTIC_4D04B765_OUT_OF_RANGE;
+    if (!inside) flags |= FF_ANALYTIC_CC8FFC1B_OUT_OF_RANGE;
     u = law_step(s, ext + 2);
 #if START_REST
     u -= s->u_static;
 #endif
     flags |= s->status;
     if (!isfinite(u)) { s->latched = 1; }   /* the law's state may hold inf/NaN: not trusted until init */
-    if (s->latched != 0) { flags |= FF_ANALYTIC_4D04B765_SINGULAR; }
+    if (s->latched != 0) { flags |= FF_ANALYTIC_CC8FFC1B_SINGULAR; }
     /* invalid: a replaced input, an overflow (inf regressor, non-finite output, the law's SINGULAR: Newton
      * returns 0 N or its last finite iterate when it overflows), out of the envelope when that falls back */
-    invalid = ((flags & (FF_ANALYTIC_4D04B765_NONFINITE_INPUT | FF_ANALYTIC_4D04B765_SINGULAR)) != 0) || (overflow != 0) || (s->latched != 0)
+    invalid = ((flags & (FF_ANALYTIC_CC8FFC1B_NONFINITE_INPUT | FF_ANALYTIC_CC8FFC1B_SINGULAR)) != 0) || (overflow != 0) || (s->latched != 0)
               || (ENVELOPE_FALLS_BACK && !inside);
     if (invalid) {
-        flags |= FF_ANALYTIC_4D04B765_FALLBACK;
+        flags |= FF_ANALYTIC_CC8FFC1B_FALLBACK;
         s->n_back = 0u;
         if (s->n_invalid < UINT64_MAX) s->n_invalid++;
 #if FALLBACK_KIND == 2                /* ramp to 0 over RAMP_N samples */
@@ -399,10 +432,10 @@ double ff_analytic_4d04b765_step(ff_analytic_4d04b765_state *s, const double *r_
             u = s->u_hold * (g > 0.0 ? g : 0.0);
         }
 #elif FALLBACK_KIND == 1              /* physics on a finite reference, else hold */
-        if ((flags & FF_ANALYTIC_4D04B765_NONFINITE_INPUT) == 0) {
+        if ((flags & FF_ANALYTIC_CC8FFC1B_NONFINITE_INPUT) == 0) {
             u = PHYS[0] * x[2];
             for (j = 0; j < NPHYS; ++j) {
-                u += PHYS[1 + j] * phys_term(PHYS_CODES[j], PHYS_CONSTS[j], x[0], x[1]);
+                u += PHYS[1 + j] * force_term(PHYS_CODES[j], PHYS_CONSTS[j], x[0], x[1]);
             }
             if (!isfinite(u)) u = s->u_hold;
         } else {
@@ -418,14 +451,14 @@ double ff_analytic_4d04b765_step(ff_analytic_4d04b765_state *s, const double *r_
         s->n_invalid = 0u;
         if (s->n_back > 0u) {
             const double g = (double)s->n_back / RAMP_N;
-            if (g < 1.0) { u = s->u_from + (u - s->u_from) * g; flags |= FF_ANALYTIC_4D04B765_FALLBACK; }
+            if (g < 1.0) { u = s->u_from + (u - s->u_from) * g; flags |= FF_ANALYTIC_CC8FFC1B_FALLBACK; }
             else { s->n_back = 0u; }
         }
     }
-    if (u > U_HI) { u = U_HI; flags |= FF_ANALYTIC_4D04B765_SATURATED; }
-    else if (u < U_LO) { u = U_LO; flags |= FF_ANALYTIC_4D04B765_SATURATED; }
-    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_ANALYTIC_4D04B765_RATE_LIMITED; }
-    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_ANALYTIC_4D04B765_RATE_LIMITED; }
+    if (u > U_HI) { u = U_HI; flags |= FF_ANALYTIC_CC8FFC1B_SATURATED; }
+    else if (u < U_LO) { u = U_LO; flags |= FF_ANALYTIC_CC8FFC1B_SATURATED; }
+    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_ANALYTIC_CC8FFC1B_RATE_LIMITED; }
+    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_ANALYTIC_CC8FFC1B_RATE_LIMITED; }
     if (!invalid) s->u_hold = u;
     s->u_prev = u;
     s->r_hist[1] = s->r_hist[0];

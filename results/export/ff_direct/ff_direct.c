@@ -4,7 +4,8 @@
 #include <math.h>
 #include "ff_direct.h"
 
-#define KIND 2            /* physics map: 0 linear, 1 rigid body forward, 2 rigid body inverse, -1 none */
+#define KIND 2            /* physics map: 0 linear, 1 rigid body forward, 2 rigid body inverse, -1 none,
+                                   3/4 a measured rigid body with force terms on its direct input, forward/inverse */
 #define H 16                  /* hidden tanh neurons */
 #define NPHI 3           /* regressor length n_a + n_b */
 #define UIDX 2         /* u(t-n_k-1) in the forward regressor */
@@ -30,28 +31,28 @@
  * [θ̂_phy (P) | θ*_phy, the physics start (P) | W, first layer with the input map folded in (H x NPHI) |
  *  b (H) | w2 = output weights x output scale (H) | b2 | physics map configuration] */
 static const double BLOB[88] = {
-    17.65928727532208, 6.748204234189272, 12.05362384893134, 17.66002608221686,
-    6.747834680232088, 12.007639933283246, 87.53805036778004, 76.6803889406183,
-    47.27282699455257, 21.433896403559142, 22.543267706424853, 10.817028094174821,
-    -56.06395280560697, -51.68818232633539, -47.794887932015094, -108.8171909371678,
-    -90.2010830986524, -57.10411072170191, -13.02001087548501, -14.426362822894466,
-    -0.4356241655694581, -1.9196694161561465, 16.308571148133414, 24.904022033245575,
-    -109.47395261598108, -122.02827647290238, -121.36024944975674, 125.51172721510848,
-    140.3460085592834, 175.72428593601174, 105.86933866353219, 109.93808568200653,
-    98.43315228495283, -0.7602013723512395, 11.56354611053474, 11.503967635616766,
-    26.4893473122101, 43.43102164571206, 61.18808572600763, -65.3545121535271,
-    -71.65121619053822, -66.59501342672661, -34.45544933998006, -58.24940619010366,
-    -66.50599385165867, 105.79007875883339, 118.53354717255472, 121.82768034502875,
-    -77.0199828496792, -82.43438959939215, -74.84058254182197, -41.15432666099034,
-    -38.42645950554603, -13.919648614442163, 12.314075221132157, 3.4303506876784944,
-    -12.40522795142318, 18.59220518629447, 0.11176610875714568, -4.274069427601627,
-    -0.53720055679379, -10.357534572961178, -30.703440733373792, -0.9833511795368058,
-    7.5395505149486635, -16.710895734101516, 8.38478940240244, 9.23822520217934,
-    12.488583814973222, 4.95457980817964, -47.49796433391733, -72.37930700442534,
-    -50.72953303042807, -10.618523554455185, 41.780815317566265, -54.339128469764816,
-    -10.360723149243565, 7.263195464057675, 12.579045182093425, 30.60503467963634,
-    94.39587100398475, 29.84527089250581, -119.82203282682606, 10.133343726393518,
-    53.19608877686, 80.73481042812894, -26.91153126507843, 0.001
+    17.65903616971076, 6.748486036801297, 12.062632854588804, 17.660026082216906,
+    6.747834680239192, 12.007639933282821, 88.97285695515102, 75.41718043629483,
+    42.58942878922281, 25.429579931662687, 23.13748485753794, 7.795089836353754,
+    -58.32395778893189, -53.486673139572204, -49.03809800308709, -122.48364362494627,
+    -102.00601427921153, -66.7947482575399, -13.355647182745907, -14.22684310335735,
+    0.2130911830484493, -1.8029032870539952, 18.64770694653459, 29.191302067189326,
+    -107.85340732147507, -119.80803554247596, -118.50425591238753, 147.7421929357589,
+    164.78015402720493, 202.39136493732653, 119.25235729525956, 122.77523629150544,
+    111.034718293799, 3.5488646208946086, 13.833208290091516, 11.597352056263757,
+    23.65211037216068, 42.10768728276204, 61.95153207717817, -66.05562975072357,
+    -72.17042849563728, -67.33975881352995, -31.762153447949768, -58.70222918837738,
+    -70.65633641645033, 109.42013012259021, 122.68566257914593, 126.44468265589974,
+    -78.10536434288579, -82.16082733981658, -72.92640628104792, -40.630045830763954,
+    -37.52056179143555, -12.41038856252096, 12.070673705227783, 3.5092112591323215,
+    -12.818014089230115, 21.125120047205908, 0.21738287281830052, -5.073140846385641,
+    -0.5167632340200384, -12.033372514526445, -34.42443326826644, -1.2726709394197318,
+    7.362408130723799, -16.83094796287615, 8.452959557949233, 9.57776698557938,
+    12.388539212068007, 4.756312852806943, -49.23800363566739, -76.12250884839027,
+    -51.23220718945635, -9.252612732186362, 45.142944957924854, -60.91992510629206,
+    -10.45426692277684, 6.701055980023633, 12.972189724663515, 39.683299044642396,
+    100.63478932773135, 30.836420936252935, -124.60575428763923, 10.002939823687797,
+    57.187057036312616, 88.40641601270245, -36.08796127248347, 0.001
 };
 #define TH (BLOB + 0)
 #define TS (BLOB + 3)
@@ -84,6 +85,24 @@ static inline double physics(const double *th, const double *phi)
     const double v = (phi[1] - phi[2]) / Ts;
     const double sg = v > 0 ? 1.0 : (v < 0 ? -1.0 : 0.0);
     return th[0] * acc + th[1] * v + th[2] * sg;
+#elif KIND == 3   /* y(t) = 2y(t-1) - y(t-2) + Ts² (θ₀ w(t-1) - Σ_j θ_j T_j(y(t-1), δy(t-1))) */
+    const double Ts = CFG[0];
+    const int nt = (int)CFG[1];
+    const double y1 = phi[0], y2 = phi[1];
+    const double v = (y1 - y2) / Ts;
+    double s = Ts * Ts * phi[2] * th[0];
+    int j;
+    for (j = 0; j < nt; ++j) s += -Ts * Ts * force_term((int)CFG[2 + j], CFG[2 + nt + j], y1, v) * th[1 + j];
+    return 2.0 * y1 - y2 + s;
+#elif KIND == 4   /* its inverse layout: θ'₀ δ²y(t+1) + Σ_j θ'_j T_j(y(t), δy(t)) */
+    const double Ts = CFG[0];
+    const int nt = (int)CFG[1];
+    const double acc = (phi[0] - 2.0 * phi[1] + phi[2]) / (Ts * Ts);
+    const double v = (phi[1] - phi[2]) / Ts;
+    double s = th[0] * acc;
+    int j;
+    for (j = 0; j < nt; ++j) s += th[1 + j] * force_term((int)CFG[2 + j], CFG[2 + nt + j], phi[1], v);
+    return s;
 #else
     (void)th; (void)phi;
     return 0.0;
@@ -94,7 +113,7 @@ static inline double gain(const double *th)
 {   /* ψ = ∂f_phy/∂u(t-n_k-1) in closed form (_fast_physics_gain) */
 #if KIND == 0
     return th[UIDX];
-#elif KIND == 1
+#elif KIND == 1 || KIND == 3
     return CFG[0] * CFG[0] * th[0];
 #else
     (void)th;
@@ -179,9 +198,9 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
     int flags = 0, i;
     double u = analytic_solve(phi, r_next, 1, 0);   /* physics start, θ*_phy */
     double a, psi, best_u, best_v = HUGE_VAL, first_v = (double)NAN, last_v = (double)NAN;
-    if (!isfinite(u)) { u = 0.0; flags |= FF_DIRECT_07B07023_SINGULAR; }
-    if (u < U_MIN) { u = U_MIN; flags |= FF_DIRECT_07B07023_BOUNDS; }
-    else if (u > U_MAX) { u = U_MAX; flags |= FF_DIRECT_07B07023_BOUNDS; }
+    if (!isfinite(u)) { u = 0.0; flags |= FF_DIRECT_0A8BE6DC_SINGULAR; }
+    if (u < U_MIN) { u = U_MIN; flags |= FF_DIRECT_0A8BE6DC_BOUNDS; }
+    else if (u > U_MAX) { u = U_MAX; flags |= FF_DIRECT_0A8BE6DC_BOUNDS; }
     phi[UIDX] = 0.0;
     physics_affine(TH, phi, &a, &psi);              /* θ̂_phy: ŷ = a + ψ u + f_NN */
     best_u = u;
@@ -190,19 +209,19 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
         phi[UIDX] = u;
         nn = nn_affine(phi, &dnn);
         V = r_next - (a + psi * u + nn);             /* [B1] (23) */
-        if (!isfinite(V)) { flags |= FF_DIRECT_07B07023_SINGULAR; break; }
+        if (!isfinite(V)) { flags |= FF_DIRECT_0A8BE6DC_SINGULAR; break; }
         av = fabs(V);
         if (i == 0) first_v = av;
         last_v = av;
         if (av < best_v) { best_u = u; best_v = av; }
         if (i == K_NEWTON || V == 0.0) break;
         dV = -(psi + dnn);                           /* [B1] (24), (25) */
-        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_DIRECT_07B07023_SINGULAR; break; }
+        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_DIRECT_0A8BE6DC_SINGULAR; break; }
         u_new = u - V / dV;
-        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_DIRECT_07B07023_BOUNDS; break; }
+        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_DIRECT_0A8BE6DC_BOUNDS; break; }
         u = u_new;
     }
-    if (last_v > first_v) flags |= FF_DIRECT_07B07023_DIVERGED;
+    if (last_v > first_v) flags |= FF_DIRECT_0A8BE6DC_DIVERGED;
     if (best_v == HUGE_VAL) best_u = u;
     phi[UIDX] = 0.0;
     *flags_out = flags;
@@ -212,7 +231,7 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
 #pragma clang diagnostic pop
 #endif
 
-static inline double law_w(ff_direct_07b07023_state *s, const double *rp)
+static inline double law_w(ff_direct_0a8be6dc_state *s, const double *rp)
 {   /* one sample of the law: the model input w(t) from r(t .. t+NK+1) and the state */
     double *x = s->x, *rh = x + XRH, *uh = x + XUH, *rw = x + XRW, *phi = x + XPHI;
     double w;
@@ -238,7 +257,7 @@ static inline double law_w(ff_direct_07b07023_state *s, const double *rp)
 #else                                               /* LAW_PHYSICS on a forward model */
     w = analytic_solve(phi, rw[0], 1, 0);
 #endif
-    if (!isfinite(w)) flags |= FF_DIRECT_07B07023_SINGULAR;    /* as the kernels: kept (the guard falls back) */
+    if (!isfinite(w)) flags |= FF_DIRECT_0A8BE6DC_SINGULAR;    /* as the kernels: kept (the guard falls back) */
     for (i = NB - 1; i > 0; --i) uh[i] = uh[i - 1];
     uh[0] = w;
     for (i = NRH - 1; i > 0; --i) rh[i] = rh[i - 1];
@@ -247,10 +266,10 @@ static inline double law_w(ff_direct_07b07023_state *s, const double *rp)
     return w;
 }
 
-static void law_init(ff_direct_07b07023_state *s, double r0)
+static void law_init(ff_direct_0a8be6dc_state *s, double r0)
 {
     int i;
-    for (i = 0; i < FF_DIRECT_07B07023_NX; ++i) s->x[i] = 0.0;
+    for (i = 0; i < FF_DIRECT_0A8BE6DC_NX; ++i) s->x[i] = 0.0;
     for (i = 0; i < NRH; ++i) s->x[XRH + i] = r0;
     s->w_prev = 0.0;
     s->primed = 0;
@@ -269,7 +288,7 @@ static void law_init(ff_direct_07b07023_state *s, double r0)
     s->r_hist[1] = r0;
 }
 
-static double law_step(ff_direct_07b07023_state *s, const double *r_preview)
+static double law_step(ff_direct_0a8be6dc_state *s, const double *r_preview)
 {
     double u;
     s->status = 0;
@@ -277,7 +296,14 @@ static double law_step(ff_direct_07b07023_state *s, const double *r_preview)
     if (!s->primed) { s->w_prev = law_w(s, r_preview); s->primed = 1; }
     {
         const double w_next = law_w(s, r_preview + 1);
+#if defined(LAG_A0)   /* the actuator lag's inverse (pipeline.systems.actuator_lag): ZPETC preview, then its IIR */
+        const double p = LAG_P0 * s->w_prev + LAG_P1 * w_next;
+        u = (p + LAG_B1 * s->x[XLAG] - LAG_A1 * s->x[XLAG + 1]) / LAG_A0;
+        s->x[XLAG] = p;
+        s->x[XLAG + 1] = u;
+#else
         u = 0.5 * (s->w_prev + w_next);
+#endif
         s->w_prev = w_next;
     }
 #else
@@ -292,26 +318,27 @@ static double law_step(ff_direct_07b07023_state *s, const double *r_preview)
  * deletes every isfinite() below, and a NaN reference or an overflow reaches the actuator unflagged */
 #error "ff_direct.c: do not build the guarded feedforward with -ffast-math, -Ofast or -ffinite-math-only: they delete every isfinite() check of the guard (a NaN reference or an overflow would reach the actuator with no flag); drop that flag (use -O2 or -O3)"
 #endif
-#define G_PREVIEW FF_DIRECT_07B07023_PREVIEW
+#define G_PREVIEW FF_DIRECT_0A8BE6DC_PREVIEW
 #define G_TS (0.001)
-#define U_LO (-376.4980271294816)           /* saturation [N] */
-#define U_HI (376.4980271294816)
-#define DU_MAX (478.2709150574738)         /* slew limit x Ts: the largest |u(t) - u(t-1)| [N] */
+#define U_LO (-376.49802712948303)           /* saturation [N] */
+#define U_HI (376.49802712948303)
+#define DU_MAX (478.2709150574739)         /* slew limit x Ts: the largest |u(t) - u(t-1)| [N] */
 #define FALLBACK_KIND 0        /* 0 hold, 1 physics, 2 ramp */
 #define ENVELOPE_FALLS_BACK 0  /* 1: out of the envelope is invalid; 0: flagged only */
 #define RAMP_N (100.0)         /* ramp_time / Ts: samples of the ramp to 0 and of the return to the law */
-static const double ENV_LO[3] = {-0.1205056140893973, -0.10878271303569609, -15.696705526759004};   /* training envelope of r, dr/dt, d2r/dt2 */
-static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717170017};
+static const double ENV_LO[3] = {-0.12050561408939725, -0.10878271303569609, -15.696705526774268};   /* training envelope of r, dr/dt, d2r/dt2 */
+static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717171406};
 #if FALLBACK_KIND == 1   /* physics fallback M d2r + sum_j p_j T_j(r, dr), every force term of the system */
 #define NPHYS 2
 static const double PHYS[NPHYS + 1] = {0.0, 0.0, 0.0};          /* M, p_1 .. p_n */
 static const int PHYS_CODES[NPHYS + 1] = {0, 1, 0};      /* T_j: pipeline.systems.force_terms codes */
 static const double PHYS_CONSTS[NPHYS + 1] = {0.0, 0.0, 0.0}; /* shape constant of each T_j (+ one unused) */
 
-static double phys_term(int code, double p, double q, double v)
-{   /* T(q, q̇) of one force term (pipeline.systems.force_terms.term; guard.py _term) */
+static inline double force_term(int code, double p, double q, double v)
+{   /* T(q, q̇) of one force term (pipeline.systems.force_terms.term, codes of ForceTerms; guard.py _term) */
     const double sg = v > 0 ? 1.0 : (v < 0 ? -1.0 : 0.0);
-    double x;
+    double x, t;
+    int k;
     switch (code) {
     case 0: return v;                             /* viscous */
     case 1: return sg;                            /* Coulomb, sign */
@@ -319,7 +346,13 @@ static double phys_term(int code, double p, double q, double v)
     case 3: x = v / p; return sg * exp(-(x * x)); /* Stribeck */
     case 4: return 1.0;                           /* offset (gravity) */
     case 5: return cos(p * q);                    /* cogging cos */
-    default: return sin(p * q);                   /* cogging sin */
+    case 6: return sin(p * q);                    /* cogging sin */
+    case 7: return v * fabs(v);                   /* drag */
+    default:                                      /* (q/p)^k, k = code - 7: spring (k = 1, p = 1), position_poly */
+        x = q / p;
+        t = x;
+        for (k = code - 7; k > 1; --k) t = t * x;
+        return t;
     }
 }
 #endif
@@ -328,7 +361,7 @@ static double phys_term(int code, double p, double q, double v)
 #define SETTLE_N 0u          /* rest samples the law needs to reach its steady state */
 #define STATIC_EXCLUDE 0  /* 1: the force at rest at r0 is taken off (the loop holds the load) */
 
-void ff_direct_07b07023_init(ff_direct_07b07023_state *s, double r0)
+void ff_direct_0a8be6dc_init(ff_direct_0a8be6dc_state *s, double r0)
 {
     const double r = isfinite(r0) ? r0 : 0.0;
     law_init(s, r);
@@ -351,7 +384,7 @@ void ff_direct_07b07023_init(ff_direct_07b07023_state *s, double r0)
 #endif
 }
 
-double ff_direct_07b07023_step(ff_direct_07b07023_state *s, const double *r_preview)
+double ff_direct_0a8be6dc_step(ff_direct_0a8be6dc_state *s, const double *r_preview)
 {
     double ext[G_PREVIEW + 3];   /* r(t-2), r(t-1), r(t) .. r(t+P) after sanitation */
     double x[3], u;
@@ -359,14 +392,14 @@ double ff_direct_07b07023_step(ff_direct_07b07023_state *s, const double *r_prev
     ext[0] = s->r_hist[1];
     ext[1] = s->r_hist[0];
     if (s->r_bad != 0u) {      /* r(t-1) or r(t-2) was replaced: a step in the law's differences */
-        flags |= FF_DIRECT_07B07023_NONFINITE_INPUT;
+        flags |= FF_DIRECT_0A8BE6DC_NONFINITE_INPUT;
     }
     for (i = 0; i <= G_PREVIEW; ++i) {
         if (isfinite(r_preview[i])) {
             ext[i + 2] = r_preview[i];
         } else {
             ext[i + 2] = ext[i + 1];
-            flags |= FF_DIRECT_07B07023_NONFINITE_INPUT;
+            flags |= FF_DIRECT_0A8BE6DC_NONFINITE_INPUT;
         }
     }
     s->r_bad = ((s->r_bad << 1u) | (isfinite(r_preview[0]) ? 0u : 1u)) & 3u;
@@ -380,20 +413,20 @@ double ff_direct_07b07023_step(ff_direct_07b07023_state *s, const double *r_prev
             if (!(isfinite(x[i]) && (ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
         }
     }   /* x: the newest, n = t + P (the physics fallback's regressors) */
-    if (!inside) flags |= FF_DIRECT_07B07023_OUT_OF_RANGE;
+    if (!inside) flags |= FF_DIRECT_0A8BE6DC_OUT_OF_RANGE;
     u = law_step(s, ext + 2);
 #if START_REST
     u -= s->u_static;
 #endif
     flags |= s->status;
     if (!isfinite(u)) { s->latched = 1; }   /* the law's state may hold inf/NaN: not trusted until init */
-    if (s->latched != 0) { flags |= FF_DIRECT_07B07023_SINGULAR; }
+    if (s->latched != 0) { flags |= FF_DIRECT_0A8BE6DC_SINGULAR; }
     /* invalid: a replaced input, an overflow (inf regressor, non-finite output, the law's SINGULAR: Newton
      * returns 0 N or its last finite iterate when it overflows), out of the envelope when that falls back */
-    invalid = ((flags & (FF_DIRECT_07B07023_NONFINITE_INPUT | FF_DIRECT_07B07023_SINGULAR)) != 0) || (overflow != 0) || (s->latched != 0)
+    invalid = ((flags & (FF_DIRECT_0A8BE6DC_NONFINITE_INPUT | FF_DIRECT_0A8BE6DC_SINGULAR)) != 0) || (overflow != 0) || (s->latched != 0)
               || (ENVELOPE_FALLS_BACK && !inside);
     if (invalid) {
-        flags |= FF_DIRECT_07B07023_FALLBACK;
+        flags |= FF_DIRECT_0A8BE6DC_FALLBACK;
         s->n_back = 0u;
         if (s->n_invalid < UINT64_MAX) s->n_invalid++;
 #if FALLBACK_KIND == 2                /* ramp to 0 over RAMP_N samples */
@@ -402,10 +435,10 @@ double ff_direct_07b07023_step(ff_direct_07b07023_state *s, const double *r_prev
             u = s->u_hold * (g > 0.0 ? g : 0.0);
         }
 #elif FALLBACK_KIND == 1              /* physics on a finite reference, else hold */
-        if ((flags & FF_DIRECT_07B07023_NONFINITE_INPUT) == 0) {
+        if ((flags & FF_DIRECT_0A8BE6DC_NONFINITE_INPUT) == 0) {
             u = PHYS[0] * x[2];
             for (j = 0; j < NPHYS; ++j) {
-                u += PHYS[1 + j] * phys_term(PHYS_CODES[j], PHYS_CONSTS[j], x[0], x[1]);
+                u += PHYS[1 + j] * force_term(PHYS_CODES[j], PHYS_CONSTS[j], x[0], x[1]);
             }
             if (!isfinite(u)) u = s->u_hold;
         } else {
@@ -421,14 +454,14 @@ double ff_direct_07b07023_step(ff_direct_07b07023_state *s, const double *r_prev
         s->n_invalid = 0u;
         if (s->n_back > 0u) {
             const double g = (double)s->n_back / RAMP_N;
-            if (g < 1.0) { u = s->u_from + (u - s->u_from) * g; flags |= FF_DIRECT_07B07023_FALLBACK; }
+            if (g < 1.0) { u = s->u_from + (u - s->u_from) * g; flags |= FF_DIRECT_0A8BE6DC_FALLBACK; }
             else { s->n_back = 0u; }
         }
     }
-    if (u > U_HI) { u = U_HI; flags |= FF_DIRECT_07B07023_SATURATED; }
-    else if (u < U_LO) { u = U_LO; flags |= FF_DIRECT_07B07023_SATURATED; }
-    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_DIRECT_07B07023_RATE_LIMITED; }
-    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_DIRECT_07B07023_RATE_LIMITED; }
+    if (u > U_HI) { u = U_HI; flags |= FF_DIRECT_0A8BE6DC_SATURATED; }
+    else if (u < U_LO) { u = U_LO; flags |= FF_DIRECT_0A8BE6DC_SATURATED; }
+    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_DIRECT_0A8BE6DC_RATE_LIMITED; }
+    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_DIRECT_0A8BE6DC_RATE_LIMITED; }
     if (!invalid) s->u_hold = u;
     s->u_prev = u;
     s->r_hist[1] = s->r_hist[0];

@@ -4,7 +4,8 @@
 #include <math.h>
 #include "ff_newton.h"
 
-#define KIND 1            /* physics map: 0 linear, 1 rigid body forward, 2 rigid body inverse, -1 none */
+#define KIND 1            /* physics map: 0 linear, 1 rigid body forward, 2 rigid body inverse, -1 none,
+                                   3/4 a measured rigid body with force terms on its direct input, forward/inverse */
 #define H 16                  /* hidden tanh neurons */
 #define NPHI 3           /* regressor length n_a + n_b */
 #define UIDX 2         /* u(t-n_k-1) in the forward regressor */
@@ -30,29 +31,29 @@
  * [θ̂_phy (P) | θ*_phy, the physics start (P) | W, first layer with the input map folded in (H x NPHI) |
  *  b (H) | w2 = output weights x output scale (H) | b2 | physics map configuration] */
 static const double BLOB[89] = {
-    0.04973197666615259, 0.44226973944090225, 0.6033027560660155, 0.04973197666618563,
-    0.44226973944061004, 0.603302756047546, -6.1642898040382486, 27.670427356268462,
-    0.018555061472712995, -46.705321867468804, -55.612439311695375, -0.0007316328649225768,
-    -36.34556304303487, 7.436710278091807, -0.023269376289442145, 19.506442357555983,
-    -4.336695552249089, 0.014793148882015576, 202.72022702558232, 218.84540656051712,
-    0.0011013689802793919, -58.1501242324058, -97.62496806035924, -0.000567059032600226,
-    -49.72122549658988, 0.7890291571237106, -0.0002532177827756699, 25.950385552936545,
-    18.260378818601414, 0.00031209146498928863, 26.555976545763887, 38.903548088335256,
-    0.0004385083365202772, -168.9033939753875, -175.08999111745456, -0.0014841631661542116,
-    155.7441024895557, 115.73149588284988, 0.0009507698430093588, 19.82903156061229,
-    14.942152106303269, 0.0004256512926828516, -2.630416399213347, 7.739805784930589,
-    0.010049998774526801, -167.21354063824813, -87.14224726394953, -0.00040156508542684853,
-    -136.8476729841759, -108.76419833077904, -0.0006255959786610607, 205.77818483941127,
-    153.764859281432, -0.001260696032468078, -0.568216645545463, -3.865191888448459,
-    0.7136715846511551, -0.44019001374248495, -9.948374153919875, 15.49203320513631,
-    -3.2075330745504083, 0.9638263476504867, 2.3885331506940584, 16.706563108175796,
-    20.666867702838505, -1.8590807989362108, -0.11057190567767021, -0.5094264509116282,
-    24.136682964404923, -26.21992713052945, 1.9855170573009167e-06, -5.6708160000505115e-06,
-    7.732679213963745e-07, -1.478756031530313e-06, -4.037126814856154e-07,
-    -2.566845188489941e-06, -1.8100595840404204e-06, 3.940336874441435e-06,
-    -9.751950972141617e-06, 5.003274640809631e-07, -6.497757346192752e-07, 1.278823490823147e-06,
-    2.623083186288097e-07, 7.176359424560102e-07, 2.1317962028828896e-06, -4.305149965711313e-07,
-    3.041839064160443e-07, 0.001, 2.0
+    0.04973197666638607, 0.4422697394413077, 0.6033027560649972, 0.04973197666618535,
+    0.4422697394410392, 0.6033027560475183, -7.530253054069419, 29.51833876318002,
+    0.017983423322467048, -44.55628633641583, -56.42458880117366, -0.0007251460823495207,
+    -38.288372192806726, 9.126071487270167, -0.022135191089519182, 167.8028088611352,
+    177.70817623042305, 0.0015010833778400959, 206.43604037909947, 222.8970635515638,
+    0.0010878918690738033, -53.78877147378408, -96.74360079339922, -0.000739535903819357,
+    -54.81368446143853, 6.927292663923345, -0.0002485857380876528, 27.623238381435215,
+    16.595144691372248, 0.00031381885204583726, 26.295240828516878, 38.86562388025432,
+    0.00044041904132106983, -23.185501858702303, 6.341345669822778, -0.015117843991336886,
+    161.82414163771523, 110.95234419853658, 0.0009621239306819449, 20.284428101030187,
+    14.319179793470493, 0.0004388479660585691, -4.186223026387747, 5.862880499457118,
+    0.009404235448718325, -172.0827208504277, -83.12036371797168, -0.0003932192970412914,
+    -142.4956082232429, -107.21975567634023, -0.0008961180836967124, 210.0642316353733,
+    147.56361131571848, -0.0012598490490134775, -0.6781723219453724, -3.8174297866061777,
+    0.8249837164749674, -16.781648137462987, -10.131677377967787, 15.078485389990098,
+    -3.0980678732270834, 0.9872790773716965, 2.3829781490494137, 0.576455965220768,
+    20.764860060186116, -1.8544643856551783, -0.0864127502949143, -0.5121717562463105,
+    24.576379486660986, -26.081493794823462, 2.2491182658735246e-06, -5.995242194876561e-06,
+    8.28824943596849e-07, -4.989483197253963e-07, -4.014161821055655e-07, -2.743539727500257e-06,
+    -1.9038434160117738e-06, 4.132898867756841e-06, -1.0362834107509675e-05,
+    1.5686132306708152e-06, -6.443155980518006e-07, 1.2858915616737574e-06,
+    1.3420292315049283e-07, 7.151023746796225e-07, 2.090473033653038e-06,
+    -4.3244902337800453e-07, 5.183657245170641e-07, 0.001, 2.0
 };
 #define TH (BLOB + 0)
 #define TS (BLOB + 3)
@@ -85,6 +86,24 @@ static inline double physics(const double *th, const double *phi)
     const double v = (phi[1] - phi[2]) / Ts;
     const double sg = v > 0 ? 1.0 : (v < 0 ? -1.0 : 0.0);
     return th[0] * acc + th[1] * v + th[2] * sg;
+#elif KIND == 3   /* y(t) = 2y(t-1) - y(t-2) + Ts² (θ₀ w(t-1) - Σ_j θ_j T_j(y(t-1), δy(t-1))) */
+    const double Ts = CFG[0];
+    const int nt = (int)CFG[1];
+    const double y1 = phi[0], y2 = phi[1];
+    const double v = (y1 - y2) / Ts;
+    double s = Ts * Ts * phi[2] * th[0];
+    int j;
+    for (j = 0; j < nt; ++j) s += -Ts * Ts * force_term((int)CFG[2 + j], CFG[2 + nt + j], y1, v) * th[1 + j];
+    return 2.0 * y1 - y2 + s;
+#elif KIND == 4   /* its inverse layout: θ'₀ δ²y(t+1) + Σ_j θ'_j T_j(y(t), δy(t)) */
+    const double Ts = CFG[0];
+    const int nt = (int)CFG[1];
+    const double acc = (phi[0] - 2.0 * phi[1] + phi[2]) / (Ts * Ts);
+    const double v = (phi[1] - phi[2]) / Ts;
+    double s = th[0] * acc;
+    int j;
+    for (j = 0; j < nt; ++j) s += th[1 + j] * force_term((int)CFG[2 + j], CFG[2 + nt + j], phi[1], v);
+    return s;
 #else
     (void)th; (void)phi;
     return 0.0;
@@ -95,7 +114,7 @@ static inline double gain(const double *th)
 {   /* ψ = ∂f_phy/∂u(t-n_k-1) in closed form (_fast_physics_gain) */
 #if KIND == 0
     return th[UIDX];
-#elif KIND == 1
+#elif KIND == 1 || KIND == 3
     return CFG[0] * CFG[0] * th[0];
 #else
     (void)th;
@@ -180,9 +199,9 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
     int flags = 0, i;
     double u = analytic_solve(phi, r_next, 1, 0);   /* physics start, θ*_phy */
     double a, psi, best_u, best_v = HUGE_VAL, first_v = (double)NAN, last_v = (double)NAN;
-    if (!isfinite(u)) { u = 0.0; flags |= FF_NEWTON_92173A7A_SINGULAR; }
-    if (u < U_MIN) { u = U_MIN; flags |= FF_NEWTON_92173A7A_BOUNDS; }
-    else if (u > U_MAX) { u = U_MAX; flags |= FF_NEWTON_92173A7A_BOUNDS; }
+    if (!isfinite(u)) { u = 0.0; flags |= FF_NEWTON_18931F07_SINGULAR; }
+    if (u < U_MIN) { u = U_MIN; flags |= FF_NEWTON_18931F07_BOUNDS; }
+    else if (u > U_MAX) { u = U_MAX; flags |= FF_NEWTON_18931F07_BOUNDS; }
     phi[UIDX] = 0.0;
     physics_affine(TH, phi, &a, &psi);              /* θ̂_phy: ŷ = a + ψ u + f_NN */
     best_u = u;
@@ -191,19 +210,19 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
         phi[UIDX] = u;
         nn = nn_affine(phi, &dnn);
         V = r_next - (a + psi * u + nn);             /* [B1] (23) */
-        if (!isfinite(V)) { flags |= FF_NEWTON_92173A7A_SINGULAR; break; }
+        if (!isfinite(V)) { flags |= FF_NEWTON_18931F07_SINGULAR; break; }
         av = fabs(V);
         if (i == 0) first_v = av;
         last_v = av;
         if (av < best_v) { best_u = u; best_v = av; }
         if (i == K_NEWTON || V == 0.0) break;
         dV = -(psi + dnn);                           /* [B1] (24), (25) */
-        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_NEWTON_92173A7A_SINGULAR; break; }
+        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_NEWTON_18931F07_SINGULAR; break; }
         u_new = u - V / dV;
-        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_NEWTON_92173A7A_BOUNDS; break; }
+        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_NEWTON_18931F07_BOUNDS; break; }
         u = u_new;
     }
-    if (last_v > first_v) flags |= FF_NEWTON_92173A7A_DIVERGED;
+    if (last_v > first_v) flags |= FF_NEWTON_18931F07_DIVERGED;
     if (best_v == HUGE_VAL) best_u = u;
     phi[UIDX] = 0.0;
     *flags_out = flags;
@@ -213,7 +232,7 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
 #pragma clang diagnostic pop
 #endif
 
-static inline double law_w(ff_newton_92173a7a_state *s, const double *rp)
+static inline double law_w(ff_newton_18931f07_state *s, const double *rp)
 {   /* one sample of the law: the model input w(t) from r(t .. t+NK+1) and the state */
     double *x = s->x, *rh = x + XRH, *uh = x + XUH, *rw = x + XRW, *phi = x + XPHI;
     double w;
@@ -239,7 +258,7 @@ static inline double law_w(ff_newton_92173a7a_state *s, const double *rp)
 #else                                               /* LAW_PHYSICS on a forward model */
     w = analytic_solve(phi, rw[0], 1, 0);
 #endif
-    if (!isfinite(w)) flags |= FF_NEWTON_92173A7A_SINGULAR;    /* as the kernels: kept (the guard falls back) */
+    if (!isfinite(w)) flags |= FF_NEWTON_18931F07_SINGULAR;    /* as the kernels: kept (the guard falls back) */
     for (i = NB - 1; i > 0; --i) uh[i] = uh[i - 1];
     uh[0] = w;
     for (i = NRH - 1; i > 0; --i) rh[i] = rh[i - 1];
@@ -248,10 +267,10 @@ static inline double law_w(ff_newton_92173a7a_state *s, const double *rp)
     return w;
 }
 
-static void law_init(ff_newton_92173a7a_state *s, double r0)
+static void law_init(ff_newton_18931f07_state *s, double r0)
 {
     int i;
-    for (i = 0; i < FF_NEWTON_92173A7A_NX; ++i) s->x[i] = 0.0;
+    for (i = 0; i < FF_NEWTON_18931F07_NX; ++i) s->x[i] = 0.0;
     for (i = 0; i < NRH; ++i) s->x[XRH + i] = r0;
     s->w_prev = 0.0;
     s->primed = 0;
@@ -270,7 +289,7 @@ static void law_init(ff_newton_92173a7a_state *s, double r0)
     s->r_hist[1] = r0;
 }
 
-static double law_step(ff_newton_92173a7a_state *s, const double *r_preview)
+static double law_step(ff_newton_18931f07_state *s, const double *r_preview)
 {
     double u;
     s->status = 0;
@@ -278,7 +297,14 @@ static double law_step(ff_newton_92173a7a_state *s, const double *r_preview)
     if (!s->primed) { s->w_prev = law_w(s, r_preview); s->primed = 1; }
     {
         const double w_next = law_w(s, r_preview + 1);
+#if defined(LAG_A0)   /* the actuator lag's inverse (pipeline.systems.actuator_lag): ZPETC preview, then its IIR */
+        const double p = LAG_P0 * s->w_prev + LAG_P1 * w_next;
+        u = (p + LAG_B1 * s->x[XLAG] - LAG_A1 * s->x[XLAG + 1]) / LAG_A0;
+        s->x[XLAG] = p;
+        s->x[XLAG + 1] = u;
+#else
         u = 0.5 * (s->w_prev + w_next);
+#endif
         s->w_prev = w_next;
     }
 #else
@@ -293,26 +319,27 @@ static double law_step(ff_newton_92173a7a_state *s, const double *r_preview)
  * deletes every isfinite() below, and a NaN reference or an overflow reaches the actuator unflagged */
 #error "ff_newton.c: do not build the guarded feedforward with -ffast-math, -Ofast or -ffinite-math-only: they delete every isfinite() check of the guard (a NaN reference or an overflow would reach the actuator with no flag); drop that flag (use -O2 or -O3)"
 #endif
-#define G_PREVIEW FF_NEWTON_92173A7A_PREVIEW
+#define G_PREVIEW FF_NEWTON_18931F07_PREVIEW
 #define G_TS (0.001)
-#define U_LO (-376.4980271294816)           /* saturation [N] */
-#define U_HI (376.4980271294816)
-#define DU_MAX (478.2709150574738)         /* slew limit x Ts: the largest |u(t) - u(t-1)| [N] */
+#define U_LO (-376.49802712948303)           /* saturation [N] */
+#define U_HI (376.49802712948303)
+#define DU_MAX (478.2709150574739)         /* slew limit x Ts: the largest |u(t) - u(t-1)| [N] */
 #define FALLBACK_KIND 0        /* 0 hold, 1 physics, 2 ramp */
 #define ENVELOPE_FALLS_BACK 0  /* 1: out of the envelope is invalid; 0: flagged only */
 #define RAMP_N (100.0)         /* ramp_time / Ts: samples of the ramp to 0 and of the return to the law */
-static const double ENV_LO[3] = {-0.1205056140893973, -0.10878271303569609, -15.696705526759004};   /* training envelope of r, dr/dt, d2r/dt2 */
-static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717170017};
+static const double ENV_LO[3] = {-0.12050561408939725, -0.10878271303569609, -15.696705526774268};   /* training envelope of r, dr/dt, d2r/dt2 */
+static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717171406};
 #if FALLBACK_KIND == 1   /* physics fallback M d2r + sum_j p_j T_j(r, dr), every force term of the system */
 #define NPHYS 2
 static const double PHYS[NPHYS + 1] = {0.0, 0.0, 0.0};          /* M, p_1 .. p_n */
 static const int PHYS_CODES[NPHYS + 1] = {0, 1, 0};      /* T_j: pipeline.systems.force_terms codes */
 static const double PHYS_CONSTS[NPHYS + 1] = {0.0, 0.0, 0.0}; /* shape constant of each T_j (+ one unused) */
 
-static double phys_term(int code, double p, double q, double v)
-{   /* T(q, q̇) of one force term (pipeline.systems.force_terms.term; guard.py _term) */
+static inline double force_term(int code, double p, double q, double v)
+{   /* T(q, q̇) of one force term (pipeline.systems.force_terms.term, codes of ForceTerms; guard.py _term) */
     const double sg = v > 0 ? 1.0 : (v < 0 ? -1.0 : 0.0);
-    double x;
+    double x, t;
+    int k;
     switch (code) {
     case 0: return v;                             /* viscous */
     case 1: return sg;                            /* Coulomb, sign */
@@ -320,7 +347,13 @@ static double phys_term(int code, double p, double q, double v)
     case 3: x = v / p; return sg * exp(-(x * x)); /* Stribeck */
     case 4: return 1.0;                           /* offset (gravity) */
     case 5: return cos(p * q);                    /* cogging cos */
-    default: return sin(p * q);                   /* cogging sin */
+    case 6: return sin(p * q);                    /* cogging sin */
+    case 7: return v * fabs(v);                   /* drag */
+    default:                                      /* (q/p)^k, k = code - 7: spring (k = 1, p = 1), position_poly */
+        x = q / p;
+        t = x;
+        for (k = code - 7; k > 1; --k) t = t * x;
+        return t;
     }
 }
 #endif
@@ -329,7 +362,7 @@ static double phys_term(int code, double p, double q, double v)
 #define SETTLE_N 0u          /* rest samples the law needs to reach its steady state */
 #define STATIC_EXCLUDE 0  /* 1: the force at rest at r0 is taken off (the loop holds the load) */
 
-void ff_newton_92173a7a_init(ff_newton_92173a7a_state *s, double r0)
+void ff_newton_18931f07_init(ff_newton_18931f07_state *s, double r0)
 {
     const double r = isfinite(r0) ? r0 : 0.0;
     law_init(s, r);
@@ -352,7 +385,7 @@ void ff_newton_92173a7a_init(ff_newton_92173a7a_state *s, double r0)
 #endif
 }
 
-double ff_newton_92173a7a_step(ff_newton_92173a7a_state *s, const double *r_preview)
+double ff_newton_18931f07_step(ff_newton_18931f07_state *s, const double *r_preview)
 {
     double ext[G_PREVIEW + 3];   /* r(t-2), r(t-1), r(t) .. r(t+P) after sanitation */
     double x[3], u;
@@ -360,14 +393,14 @@ double ff_newton_92173a7a_step(ff_newton_92173a7a_state *s, const double *r_prev
     ext[0] = s->r_hist[1];
     ext[1] = s->r_hist[0];
     if (s->r_bad != 0u) {      /* r(t-1) or r(t-2) was replaced: a step in the law's differences */
-        flags |= FF_NEWTON_92173A7A_NONFINITE_INPUT;
+        flags |= FF_NEWTON_18931F07_NONFINITE_INPUT;
     }
     for (i = 0; i <= G_PREVIEW; ++i) {
         if (isfinite(r_preview[i])) {
             ext[i + 2] = r_preview[i];
         } else {
             ext[i + 2] = ext[i + 1];
-            flags |= FF_NEWTON_92173A7A_NONFINITE_INPUT;
+            flags |= FF_NEWTON_18931F07_NONFINITE_INPUT;
         }
     }
     s->r_bad = ((s->r_bad << 1u) | (isfinite(r_preview[0]) ? 0u : 1u)) & 3u;
@@ -381,20 +414,20 @@ double ff_newton_92173a7a_step(ff_newton_92173a7a_state *s, const double *r_prev
             if (!(isfinite(x[i]) && (ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
         }
     }   /* x: the newest, n = t + P (the physics fallback's regressors) */
-    if (!inside) flags |= FF_NEWTON_92173A7A_OUT_OF_RANGE;
+    if (!inside) flags |= FF_NEWTON_18931F07_OUT_OF_RANGE;
     u = law_step(s, ext + 2);
 #if START_REST
     u -= s->u_static;
 #endif
     flags |= s->status;
     if (!isfinite(u)) { s->latched = 1; }   /* the law's state may hold inf/NaN: not trusted until init */
-    if (s->latched != 0) { flags |= FF_NEWTON_92173A7A_SINGULAR; }
+    if (s->latched != 0) { flags |= FF_NEWTON_18931F07_SINGULAR; }
     /* invalid: a replaced input, an overflow (inf regressor, non-finite output, the law's SINGULAR: Newton
      * returns 0 N or its last finite iterate when it overflows), out of the envelope when that falls back */
-    invalid = ((flags & (FF_NEWTON_92173A7A_NONFINITE_INPUT | FF_NEWTON_92173A7A_SINGULAR)) != 0) || (overflow != 0) || (s->latched != 0)
+    invalid = ((flags & (FF_NEWTON_18931F07_NONFINITE_INPUT | FF_NEWTON_18931F07_SINGULAR)) != 0) || (overflow != 0) || (s->latched != 0)
               || (ENVELOPE_FALLS_BACK && !inside);
     if (invalid) {
-        flags |= FF_NEWTON_92173A7A_FALLBACK;
+        flags |= FF_NEWTON_18931F07_FALLBACK;
         s->n_back = 0u;
         if (s->n_invalid < UINT64_MAX) s->n_invalid++;
 #if FALLBACK_KIND == 2                /* ramp to 0 over RAMP_N samples */
@@ -403,10 +436,10 @@ double ff_newton_92173a7a_step(ff_newton_92173a7a_state *s, const double *r_prev
             u = s->u_hold * (g > 0.0 ? g : 0.0);
         }
 #elif FALLBACK_KIND == 1              /* physics on a finite reference, else hold */
-        if ((flags & FF_NEWTON_92173A7A_NONFINITE_INPUT) == 0) {
+        if ((flags & FF_NEWTON_18931F07_NONFINITE_INPUT) == 0) {
             u = PHYS[0] * x[2];
             for (j = 0; j < NPHYS; ++j) {
-                u += PHYS[1 + j] * phys_term(PHYS_CODES[j], PHYS_CONSTS[j], x[0], x[1]);
+                u += PHYS[1 + j] * force_term(PHYS_CODES[j], PHYS_CONSTS[j], x[0], x[1]);
             }
             if (!isfinite(u)) u = s->u_hold;
         } else {
@@ -422,14 +455,14 @@ double ff_newton_92173a7a_step(ff_newton_92173a7a_state *s, const double *r_prev
         s->n_invalid = 0u;
         if (s->n_back > 0u) {
             const double g = (double)s->n_back / RAMP_N;
-            if (g < 1.0) { u = s->u_from + (u - s->u_from) * g; flags |= FF_NEWTON_92173A7A_FALLBACK; }
+            if (g < 1.0) { u = s->u_from + (u - s->u_from) * g; flags |= FF_NEWTON_18931F07_FALLBACK; }
             else { s->n_back = 0u; }
         }
     }
-    if (u > U_HI) { u = U_HI; flags |= FF_NEWTON_92173A7A_SATURATED; }
-    else if (u < U_LO) { u = U_LO; flags |= FF_NEWTON_92173A7A_SATURATED; }
-    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_NEWTON_92173A7A_RATE_LIMITED; }
-    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_NEWTON_92173A7A_RATE_LIMITED; }
+    if (u > U_HI) { u = U_HI; flags |= FF_NEWTON_18931F07_SATURATED; }
+    else if (u < U_LO) { u = U_LO; flags |= FF_NEWTON_18931F07_SATURATED; }
+    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_NEWTON_18931F07_RATE_LIMITED; }
+    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_NEWTON_18931F07_RATE_LIMITED; }
     if (!invalid) s->u_hold = u;
     s->u_prev = u;
     s->r_hist[1] = s->r_hist[0];

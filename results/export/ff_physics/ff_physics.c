@@ -4,7 +4,8 @@
 #include <math.h>
 #include "ff_physics.h"
 
-#define KIND 2            /* physics map: 0 linear, 1 rigid body forward, 2 rigid body inverse, -1 none */
+#define KIND 2            /* physics map: 0 linear, 1 rigid body forward, 2 rigid body inverse, -1 none,
+                                   3/4 a measured rigid body with force terms on its direct input, forward/inverse */
 #define H 0                  /* hidden tanh neurons */
 #define NPHI 3           /* regressor length n_a + n_b */
 #define UIDX 2         /* u(t-n_k-1) in the forward regressor */
@@ -30,8 +31,8 @@
  * [θ̂_phy (P) | θ*_phy, the physics start (P) | W, first layer with the input map folded in (H x NPHI) |
  *  b (H) | w2 = output weights x output scale (H) | b2 | physics map configuration] */
 static const double BLOB[8] = {
-    20.100243861280035, 8.795315568588403, 12.190681381301424, 20.100243861280035,
-    8.795315568588403, 12.190681381301424, 0.0, 0.001
+    20.10024386128005, 8.795315568590485, 12.190681381301255, 20.10024386128005,
+    8.795315568590485, 12.190681381301255, 0.0, 0.001
 };
 #define TH (BLOB + 0)
 #define TS (BLOB + 3)
@@ -64,6 +65,24 @@ static inline double physics(const double *th, const double *phi)
     const double v = (phi[1] - phi[2]) / Ts;
     const double sg = v > 0 ? 1.0 : (v < 0 ? -1.0 : 0.0);
     return th[0] * acc + th[1] * v + th[2] * sg;
+#elif KIND == 3   /* y(t) = 2y(t-1) - y(t-2) + Ts² (θ₀ w(t-1) - Σ_j θ_j T_j(y(t-1), δy(t-1))) */
+    const double Ts = CFG[0];
+    const int nt = (int)CFG[1];
+    const double y1 = phi[0], y2 = phi[1];
+    const double v = (y1 - y2) / Ts;
+    double s = Ts * Ts * phi[2] * th[0];
+    int j;
+    for (j = 0; j < nt; ++j) s += -Ts * Ts * force_term((int)CFG[2 + j], CFG[2 + nt + j], y1, v) * th[1 + j];
+    return 2.0 * y1 - y2 + s;
+#elif KIND == 4   /* its inverse layout: θ'₀ δ²y(t+1) + Σ_j θ'_j T_j(y(t), δy(t)) */
+    const double Ts = CFG[0];
+    const int nt = (int)CFG[1];
+    const double acc = (phi[0] - 2.0 * phi[1] + phi[2]) / (Ts * Ts);
+    const double v = (phi[1] - phi[2]) / Ts;
+    double s = th[0] * acc;
+    int j;
+    for (j = 0; j < nt; ++j) s += th[1 + j] * force_term((int)CFG[2 + j], CFG[2 + nt + j], phi[1], v);
+    return s;
 #else
     (void)th; (void)phi;
     return 0.0;
@@ -74,7 +93,7 @@ static inline double gain(const double *th)
 {   /* ψ = ∂f_phy/∂u(t-n_k-1) in closed form (_fast_physics_gain) */
 #if KIND == 0
     return th[UIDX];
-#elif KIND == 1
+#elif KIND == 1 || KIND == 3
     return CFG[0] * CFG[0] * th[0];
 #else
     (void)th;
@@ -159,9 +178,9 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
     int flags = 0, i;
     double u = analytic_solve(phi, r_next, 1, 0);   /* physics start, θ*_phy */
     double a, psi, best_u, best_v = HUGE_VAL, first_v = (double)NAN, last_v = (double)NAN;
-    if (!isfinite(u)) { u = 0.0; flags |= FF_PHYSICS_5A2AAF3D_SINGULAR; }
-    if (u < U_MIN) { u = U_MIN; flags |= FF_PHYSICS_5A2AAF3D_BOUNDS; }
-    else if (u > U_MAX) { u = U_MAX; flags |= FF_PHYSICS_5A2AAF3D_BOUNDS; }
+    if (!isfinite(u)) { u = 0.0; flags |= FF_PHYSICS_0BE2F1A6_SINGULAR; }
+    if (u < U_MIN) { u = U_MIN; flags |= FF_PHYSICS_0BE2F1A6_BOUNDS; }
+    else if (u > U_MAX) { u = U_MAX; flags |= FF_PHYSICS_0BE2F1A6_BOUNDS; }
     phi[UIDX] = 0.0;
     physics_affine(TH, phi, &a, &psi);              /* θ̂_phy: ŷ = a + ψ u + f_NN */
     best_u = u;
@@ -170,19 +189,19 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
         phi[UIDX] = u;
         nn = nn_affine(phi, &dnn);
         V = r_next - (a + psi * u + nn);             /* [B1] (23) */
-        if (!isfinite(V)) { flags |= FF_PHYSICS_5A2AAF3D_SINGULAR; break; }
+        if (!isfinite(V)) { flags |= FF_PHYSICS_0BE2F1A6_SINGULAR; break; }
         av = fabs(V);
         if (i == 0) first_v = av;
         last_v = av;
         if (av < best_v) { best_u = u; best_v = av; }
         if (i == K_NEWTON || V == 0.0) break;
         dV = -(psi + dnn);                           /* [B1] (24), (25) */
-        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_PHYSICS_5A2AAF3D_SINGULAR; break; }
+        if (dV == 0.0 || !isfinite(dV)) { flags |= FF_PHYSICS_0BE2F1A6_SINGULAR; break; }
         u_new = u - V / dV;
-        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_PHYSICS_5A2AAF3D_BOUNDS; break; }
+        if (!(U_MIN <= u_new && u_new <= U_MAX)) { flags |= FF_PHYSICS_0BE2F1A6_BOUNDS; break; }
         u = u_new;
     }
-    if (last_v > first_v) flags |= FF_PHYSICS_5A2AAF3D_DIVERGED;
+    if (last_v > first_v) flags |= FF_PHYSICS_0BE2F1A6_DIVERGED;
     if (best_v == HUGE_VAL) best_u = u;
     phi[UIDX] = 0.0;
     *flags_out = flags;
@@ -192,7 +211,7 @@ static inline double newton_solve(double *phi, double r_next, int *flags_out)
 #pragma clang diagnostic pop
 #endif
 
-static inline double law_w(ff_physics_5a2aaf3d_state *s, const double *rp)
+static inline double law_w(ff_physics_0be2f1a6_state *s, const double *rp)
 {   /* one sample of the law: the model input w(t) from r(t .. t+NK+1) and the state */
     double *x = s->x, *rh = x + XRH, *uh = x + XUH, *rw = x + XRW, *phi = x + XPHI;
     double w;
@@ -218,7 +237,7 @@ static inline double law_w(ff_physics_5a2aaf3d_state *s, const double *rp)
 #else                                               /* LAW_PHYSICS on a forward model */
     w = analytic_solve(phi, rw[0], 1, 0);
 #endif
-    if (!isfinite(w)) flags |= FF_PHYSICS_5A2AAF3D_SINGULAR;    /* as the kernels: kept (the guard falls back) */
+    if (!isfinite(w)) flags |= FF_PHYSICS_0BE2F1A6_SINGULAR;    /* as the kernels: kept (the guard falls back) */
     for (i = NB - 1; i > 0; --i) uh[i] = uh[i - 1];
     uh[0] = w;
     for (i = NRH - 1; i > 0; --i) rh[i] = rh[i - 1];
@@ -227,10 +246,10 @@ static inline double law_w(ff_physics_5a2aaf3d_state *s, const double *rp)
     return w;
 }
 
-static void law_init(ff_physics_5a2aaf3d_state *s, double r0)
+static void law_init(ff_physics_0be2f1a6_state *s, double r0)
 {
     int i;
-    for (i = 0; i < FF_PHYSICS_5A2AAF3D_NX; ++i) s->x[i] = 0.0;
+    for (i = 0; i < FF_PHYSICS_0BE2F1A6_NX; ++i) s->x[i] = 0.0;
     for (i = 0; i < NRH; ++i) s->x[XRH + i] = r0;
     s->w_prev = 0.0;
     s->primed = 0;
@@ -249,7 +268,7 @@ static void law_init(ff_physics_5a2aaf3d_state *s, double r0)
     s->r_hist[1] = r0;
 }
 
-static double law_step(ff_physics_5a2aaf3d_state *s, const double *r_preview)
+static double law_step(ff_physics_0be2f1a6_state *s, const double *r_preview)
 {
     double u;
     s->status = 0;
@@ -257,7 +276,14 @@ static double law_step(ff_physics_5a2aaf3d_state *s, const double *r_preview)
     if (!s->primed) { s->w_prev = law_w(s, r_preview); s->primed = 1; }
     {
         const double w_next = law_w(s, r_preview + 1);
+#if defined(LAG_A0)   /* the actuator lag's inverse (pipeline.systems.actuator_lag): ZPETC preview, then its IIR */
+        const double p = LAG_P0 * s->w_prev + LAG_P1 * w_next;
+        u = (p + LAG_B1 * s->x[XLAG] - LAG_A1 * s->x[XLAG + 1]) / LAG_A0;
+        s->x[XLAG] = p;
+        s->x[XLAG + 1] = u;
+#else
         u = 0.5 * (s->w_prev + w_next);
+#endif
         s->w_prev = w_next;
     }
 #else
@@ -272,26 +298,27 @@ static double law_step(ff_physics_5a2aaf3d_state *s, const double *r_preview)
  * deletes every isfinite() below, and a NaN reference or an overflow reaches the actuator unflagged */
 #error "ff_physics.c: do not build the guarded feedforward with -ffast-math, -Ofast or -ffinite-math-only: they delete every isfinite() check of the guard (a NaN reference or an overflow would reach the actuator with no flag); drop that flag (use -O2 or -O3)"
 #endif
-#define G_PREVIEW FF_PHYSICS_5A2AAF3D_PREVIEW
+#define G_PREVIEW FF_PHYSICS_0BE2F1A6_PREVIEW
 #define G_TS (0.001)
-#define U_LO (-376.4980271294816)           /* saturation [N] */
-#define U_HI (376.4980271294816)
-#define DU_MAX (478.2709150574738)         /* slew limit x Ts: the largest |u(t) - u(t-1)| [N] */
+#define U_LO (-376.49802712948303)           /* saturation [N] */
+#define U_HI (376.49802712948303)
+#define DU_MAX (478.2709150574739)         /* slew limit x Ts: the largest |u(t) - u(t-1)| [N] */
 #define FALLBACK_KIND 0        /* 0 hold, 1 physics, 2 ramp */
 #define ENVELOPE_FALLS_BACK 0  /* 1: out of the envelope is invalid; 0: flagged only */
 #define RAMP_N (100.0)         /* ramp_time / Ts: samples of the ramp to 0 and of the return to the law */
-static const double ENV_LO[3] = {-0.1205056140893973, -0.10878271303569609, -15.696705526759004};   /* training envelope of r, dr/dt, d2r/dt2 */
-static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717170017};
+static const double ENV_LO[3] = {-0.12050561408939725, -0.10878271303569609, -15.696705526774268};   /* training envelope of r, dr/dt, d2r/dt2 */
+static const double ENV_HI[3] = {0.12049608005720291, 0.10454017667000659, 16.539157717171406};
 #if FALLBACK_KIND == 1   /* physics fallback M d2r + sum_j p_j T_j(r, dr), every force term of the system */
 #define NPHYS 2
 static const double PHYS[NPHYS + 1] = {0.0, 0.0, 0.0};          /* M, p_1 .. p_n */
 static const int PHYS_CODES[NPHYS + 1] = {0, 1, 0};      /* T_j: pipeline.systems.force_terms codes */
 static const double PHYS_CONSTS[NPHYS + 1] = {0.0, 0.0, 0.0}; /* shape constant of each T_j (+ one unused) */
 
-static double phys_term(int code, double p, double q, double v)
-{   /* T(q, q̇) of one force term (pipeline.systems.force_terms.term; guard.py _term) */
+static inline double force_term(int code, double p, double q, double v)
+{   /* T(q, q̇) of one force term (pipeline.systems.force_terms.term, codes of ForceTerms; guard.py _term) */
     const double sg = v > 0 ? 1.0 : (v < 0 ? -1.0 : 0.0);
-    double x;
+    double x, t;
+    int k;
     switch (code) {
     case 0: return v;                             /* viscous */
     case 1: return sg;                            /* Coulomb, sign */
@@ -299,7 +326,13 @@ static double phys_term(int code, double p, double q, double v)
     case 3: x = v / p; return sg * exp(-(x * x)); /* Stribeck */
     case 4: return 1.0;                           /* offset (gravity) */
     case 5: return cos(p * q);                    /* cogging cos */
-    default: return sin(p * q);                   /* cogging sin */
+    case 6: return sin(p * q);                    /* cogging sin */
+    case 7: return v * fabs(v);                   /* drag */
+    default:                                      /* (q/p)^k, k = code - 7: spring (k = 1, p = 1), position_poly */
+        x = q / p;
+        t = x;
+        for (k = code - 7; k > 1; --k) t = t * x;
+        return t;
     }
 }
 #endif
@@ -308,7 +341,7 @@ static double phys_term(int code, double p, double q, double v)
 #define SETTLE_N 0u          /* rest samples the law needs to reach its steady state */
 #define STATIC_EXCLUDE 0  /* 1: the force at rest at r0 is taken off (the loop holds the load) */
 
-void ff_physics_5a2aaf3d_init(ff_physics_5a2aaf3d_state *s, double r0)
+void ff_physics_0be2f1a6_init(ff_physics_0be2f1a6_state *s, double r0)
 {
     const double r = isfinite(r0) ? r0 : 0.0;
     law_init(s, r);
@@ -331,7 +364,7 @@ void ff_physics_5a2aaf3d_init(ff_physics_5a2aaf3d_state *s, double r0)
 #endif
 }
 
-double ff_physics_5a2aaf3d_step(ff_physics_5a2aaf3d_state *s, const double *r_preview)
+double ff_physics_0be2f1a6_step(ff_physics_0be2f1a6_state *s, const double *r_preview)
 {
     double ext[G_PREVIEW + 3];   /* r(t-2), r(t-1), r(t) .. r(t+P) after sanitation */
     double x[3], u;
@@ -339,14 +372,14 @@ double ff_physics_5a2aaf3d_step(ff_physics_5a2aaf3d_state *s, const double *r_pr
     ext[0] = s->r_hist[1];
     ext[1] = s->r_hist[0];
     if (s->r_bad != 0u) {      /* r(t-1) or r(t-2) was replaced: a step in the law's differences */
-        flags |= FF_PHYSICS_5A2AAF3D_NONFINITE_INPUT;
+        flags |= FF_PHYSICS_0BE2F1A6_NONFINITE_INPUT;
     }
     for (i = 0; i <= G_PREVIEW; ++i) {
         if (isfinite(r_preview[i])) {
             ext[i + 2] = r_preview[i];
         } else {
             ext[i + 2] = ext[i + 1];
-            flags |= FF_PHYSICS_5A2AAF3D_NONFINITE_INPUT;
+            flags |= FF_PHYSICS_0BE2F1A6_NONFINITE_INPUT;
         }
     }
     s->r_bad = ((s->r_bad << 1u) | (isfinite(r_preview[0]) ? 0u : 1u)) & 3u;
@@ -360,20 +393,20 @@ double ff_physics_5a2aaf3d_step(ff_physics_5a2aaf3d_state *s, const double *r_pr
             if (!(isfinite(x[i]) && (ENV_LO[i] <= x[i]) && (x[i] <= ENV_HI[i]))) inside = 0;
         }
     }   /* x: the newest, n = t + P (the physics fallback's regressors) */
-    if (!inside) flags |= FF_PHYSICS_5A2AAF3D_OUT_OF_RANGE;
+    if (!inside) flags |= FF_PHYSICS_0BE2F1A6_OUT_OF_RANGE;
     u = law_step(s, ext + 2);
 #if START_REST
     u -= s->u_static;
 #endif
     flags |= s->status;
     if (!isfinite(u)) { s->latched = 1; }   /* the law's state may hold inf/NaN: not trusted until init */
-    if (s->latched != 0) { flags |= FF_PHYSICS_5A2AAF3D_SINGULAR; }
+    if (s->latched != 0) { flags |= FF_PHYSICS_0BE2F1A6_SINGULAR; }
     /* invalid: a replaced input, an overflow (inf regressor, non-finite output, the law's SINGULAR: Newton
      * returns 0 N or its last finite iterate when it overflows), out of the envelope when that falls back */
-    invalid = ((flags & (FF_PHYSICS_5A2AAF3D_NONFINITE_INPUT | FF_PHYSICS_5A2AAF3D_SINGULAR)) != 0) || (overflow != 0) || (s->latched != 0)
+    invalid = ((flags & (FF_PHYSICS_0BE2F1A6_NONFINITE_INPUT | FF_PHYSICS_0BE2F1A6_SINGULAR)) != 0) || (overflow != 0) || (s->latched != 0)
               || (ENVELOPE_FALLS_BACK && !inside);
     if (invalid) {
-        flags |= FF_PHYSICS_5A2AAF3D_FALLBACK;
+        flags |= FF_PHYSICS_0BE2F1A6_FALLBACK;
         s->n_back = 0u;
         if (s->n_invalid < UINT64_MAX) s->n_invalid++;
 #if FALLBACK_KIND == 2                /* ramp to 0 over RAMP_N samples */
@@ -382,10 +415,10 @@ double ff_physics_5a2aaf3d_step(ff_physics_5a2aaf3d_state *s, const double *r_pr
             u = s->u_hold * (g > 0.0 ? g : 0.0);
         }
 #elif FALLBACK_KIND == 1              /* physics on a finite reference, else hold */
-        if ((flags & FF_PHYSICS_5A2AAF3D_NONFINITE_INPUT) == 0) {
+        if ((flags & FF_PHYSICS_0BE2F1A6_NONFINITE_INPUT) == 0) {
             u = PHYS[0] * x[2];
             for (j = 0; j < NPHYS; ++j) {
-                u += PHYS[1 + j] * phys_term(PHYS_CODES[j], PHYS_CONSTS[j], x[0], x[1]);
+                u += PHYS[1 + j] * force_term(PHYS_CODES[j], PHYS_CONSTS[j], x[0], x[1]);
             }
             if (!isfinite(u)) u = s->u_hold;
         } else {
@@ -401,14 +434,14 @@ double ff_physics_5a2aaf3d_step(ff_physics_5a2aaf3d_state *s, const double *r_pr
         s->n_invalid = 0u;
         if (s->n_back > 0u) {
             const double g = (double)s->n_back / RAMP_N;
-            if (g < 1.0) { u = s->u_from + (u - s->u_from) * g; flags |= FF_PHYSICS_5A2AAF3D_FALLBACK; }
+            if (g < 1.0) { u = s->u_from + (u - s->u_from) * g; flags |= FF_PHYSICS_0BE2F1A6_FALLBACK; }
             else { s->n_back = 0u; }
         }
     }
-    if (u > U_HI) { u = U_HI; flags |= FF_PHYSICS_5A2AAF3D_SATURATED; }
-    else if (u < U_LO) { u = U_LO; flags |= FF_PHYSICS_5A2AAF3D_SATURATED; }
-    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_PHYSICS_5A2AAF3D_RATE_LIMITED; }
-    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_PHYSICS_5A2AAF3D_RATE_LIMITED; }
+    if (u > U_HI) { u = U_HI; flags |= FF_PHYSICS_0BE2F1A6_SATURATED; }
+    else if (u < U_LO) { u = U_LO; flags |= FF_PHYSICS_0BE2F1A6_SATURATED; }
+    if (u - s->u_prev > DU_MAX) { u = s->u_prev + DU_MAX; flags |= FF_PHYSICS_0BE2F1A6_RATE_LIMITED; }
+    else if (s->u_prev - u > DU_MAX) { u = s->u_prev - DU_MAX; flags |= FF_PHYSICS_0BE2F1A6_RATE_LIMITED; }
     if (!invalid) s->u_hold = u;
     s->u_prev = u;
     s->r_hist[1] = s->r_hist[0];

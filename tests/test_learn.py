@@ -348,3 +348,71 @@ def test_a_phase_error_the_model_check_misses_is_measured_from_two_trials_and_sl
     assert lo < 25 < hi
     rms = [h["rms"] for h in log]
     assert all(b < a for a, b in zip(rms, rms[1:])) and all((h["measured_rho"] or 0) < 1 for h in log[2:]), rms
+
+
+# ---- the campaign's model from a finished run of a measured system (learn init --run) ----------------------
+def _axis_run(folder: Path, cfg_of) -> tuple[str, np.ndarray]:
+    """The pipeline's baseline on one short recording of tests/heldout_axis.py (gravity, cable spring, viscous and
+    smooth Coulomb friction, 2-DOF PID); returns (its run id, a reference for the campaign)."""
+    from pipeline import runner, tracking
+    from tests import heldout_axis as ax
+    train = ax.reference(0.04, [("dwell", 0.2), ("move", 0.08, 0.45), ("dwell", 0.2), ("move", 0.05, 0.5),
+                                ("dwell", 0.2), ("sine", 0.015, 0.6, 1.5), ("dwell", 0.3)])
+    ax.write_recording(folder / "train.csv", ax.simulate(train, seed=1))
+    b_r, b_y, a, delay = ax.controller()
+    fl = lambda x: "[" + ",".join(repr(float(v)) for v in x) + "]"   # noqa: E731
+    runner.run_job(cfg_of("system=measured", "system.name=learn_axis", f"system.Ts={ax.TS!r}",
+                          f"system.controller.num={fl(b_y)}", f"system.controller.den={fl(a)}",
+                          f"system.controller.num_r={fl(b_r)}", f"system.controller.delay={delay}",
+                          "system.force_terms.terms=[viscous,coulomb,offset,spring]",
+                          f"system.force_terms.coulomb_width={ax.W_C!r}", "data=measured", f"data.path={folder}",
+                          "data.file=train.csv", "model=physics", "identify=none", "invert=physics",
+                          "experiment_name=learn_axis", "stages=[generate,baseline]"))
+    return tracking.search_runs("learn_axis").iloc[0]["run_id"], train
+
+
+def test_init_from_a_run_takes_the_runs_model_controller_and_limits(store, cfg_of, tmp_path, capsys):
+    """`learn init --run RUN_ID`: Ts, the controller, the physics the run's baseline identified (its metrics
+    baseline/M, F_v, F_c, K to the bit), the configured Coulomb width, and the export's default limits
+    ±1.5 max|u - (C_r - C_y) r| and 1.5 max|Δ(u - (C_r - C_y) r)|/Ts of the training recording (here computed
+    with scipy.signal.lfilter from the recording: A v_r = (B_r - B_y) (r - r(0)), the static gain 0 at r(0)
+    (B_r(1) = B_y(1)), as the export's law counts it: undelayed)."""
+    from tests import heldout_axis as ax
+    from pipeline import tracking
+    run_id, r = _axis_run(tmp_path, cfg_of)
+    pd.DataFrame({"t": np.arange(r.size) * ax.TS, "r": r}).to_csv(tmp_path / "ref.csv", index=False,
+                                                                   float_format="%.17g")
+    (tmp_path / "learn.yaml").write_text(yaml.safe_dump({"learn": {"q_cutoff_hz": 150.0}}))
+    camp = str(tmp_path / "camp")
+    assert learn_main(["init", camp, "--run", run_id, "--reference", str(tmp_path / "ref.csv"), "--config",
+                       str(tmp_path / "learn.yaml"), "--no-mlflow"]) == 0, capsys.readouterr().err
+    out = capsys.readouterr().out
+    assert f"model of run {run_id}: M " in out and "not in the campaign's model: OF" in out
+    c = campaign.load(camp)
+    metrics = tracking.client().get_run(run_id).data.metrics
+    for k in ("M", "F_v", "F_c", "K"):
+        assert c.config["model"][k] == metrics[f"baseline/{k}"], k
+    assert c.config["model"]["coulomb_width"] == ax.W_C
+    assert c.config["model"]["M"] == pytest.approx(ax.M, rel=0.05) and c.config["model"]["K"] > 0
+    assert c.state["source_run"]["physical"]["OF"] == metrics["baseline/OF"]
+    b_r, b_y, a, delay = ax.controller()
+    assert c.Ts == ax.TS and c.config["controller"]["num"] == list(b_y) and c.config["controller"]["delay"] == delay
+    assert c.config["learn"]["q_cutoff_hz"] == 150.0           # the file's sections over the defaults
+    rec = pd.read_csv(tmp_path / "train.csv")
+    x = rec["r"].to_numpy() - rec["r"].iloc[0]
+    kr = signal.lfilter(np.asarray(b_r) - np.asarray(b_y), a, x)
+    f = rec["u"].to_numpy() - kr
+    assert c.config["safety"]["u_max"] == pytest.approx(1.5 * np.max(np.abs(f)), rel=1e-9)
+    assert c.config["safety"]["rate"] == pytest.approx(1.5 * np.max(np.abs(np.diff(f))) / ax.TS, rel=1e-9)
+    # bad input: one line, exit 2, before any work
+    for rid, match in (("0123abcd", "no run '0123abcd' in the tracking store"),
+                       (tracking.client().create_run(tracking.experiment_id("learn_axis")).info.run_id,
+                        "is RUNNING, not FINISHED")):
+        assert learn_main(["init", str(tmp_path / "c2"), "--run", rid, "--reference", str(tmp_path / "ref.csv")]) == 2
+        err = capsys.readouterr().err
+        assert match in err and err.count("\n") == 1, err
+        assert not (tmp_path / "c2").exists()
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"model": {"M": 1.0}}))
+    assert learn_main(["init", str(tmp_path / "c2"), "--run", run_id, "--reference", str(tmp_path / "ref.csv"),
+                       "--config", str(tmp_path / "bad.yaml")]) == 2
+    assert "bad.yaml: sets ['model'], which --run takes from the run" in capsys.readouterr().err

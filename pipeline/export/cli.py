@@ -35,7 +35,7 @@ from pipeline.export.law import ExportError
 from pipeline.export.package import replace_dir
 from pipeline.runner import ORDER, ROOT, ConfigError
 
-__all__ = ["main", "export_run"]
+__all__ = ["main", "export_run", "stored_run", "run_config"]
 
 
 def _writable(out: Path) -> None:
@@ -138,25 +138,23 @@ def stored_as_data(cfg: DictConfig, run_id: str) -> DictConfig:
     return cfg
 
 
-def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool = True,
-               cc: str | None = None) -> dict:
-    """Export the feedforward of run ``run_id`` to ``out``; returns {package: manifest}.  ``cc``:
-    the C compiler (None: the default of conf/config.yaml, never the one stored with the run)."""
-    out = Path(out)
-    _writable(out)
+def stored_run(run_id: str):
+    """The MLflow run ``run_id`` of the tracking store (not a sweep's parent), or a one-line ConfigError."""
     client = tracking.client()
     try:
         run = client.get_run(run_id)
     except mlflow.exceptions.MlflowException as exc:
         raise ConfigError(f"no run {run_id!r} in the tracking store {tracking.tracking_uri()} "
                           "(set MLFLOW_TRACKING_URI to the store the run is in)") from exc
-    tags = run.data.tags
-    if tags.get("sweep") == "parent":
-        raise ConfigError(f"run {run_id} is the parent of a sweep; export one of its children (make ui lists them)")
-    stages = [s for s in tags.get("stages", "").split(",") if s]
-    if "invert" not in stages:
-        raise ConfigError(f"run {run_id} designed no feedforward (stages={stages}): export needs a run with the "
-                          "invert stage")
+    if run.data.tags.get("sweep") == "parent":
+        raise ConfigError(f"run {run_id} is the parent of a sweep; give one of its children (make ui lists them)")
+    return run
+
+
+def run_config(run) -> DictConfig:
+    """The config of a stored run, composed again from this code's ``conf/`` and the run's tag ``overrides``
+    (:func:`recomposed`), or its stored ``<run id>.yaml`` checked as data (:func:`stored_as_data`)."""
+    run_id = run.info.run_id
     with tempfile.TemporaryDirectory() as tmp:
         try:
             path = mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=f"{run_id}.yaml", dst_path=tmp)
@@ -171,7 +169,21 @@ def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool 
     if not isinstance(cfg, DictConfig):
         raise ConfigError(f"run {run_id}'s config artifact {run_id}.yaml is not a mapping: the run was altered or "
                           "not made by this pipeline")
-    cfg = recomposed(run_id, tags.get("overrides"), cfg) or stored_as_data(cfg, run_id)
+    return recomposed(run_id, run.data.tags.get("overrides"), cfg) or stored_as_data(cfg, run_id)
+
+
+def export_run(run_id: str, out: Path, *, register: bool = False, compile: bool = True,
+               cc: str | None = None) -> dict:
+    """Export the feedforward of run ``run_id`` to ``out``; returns {package: manifest}.  ``cc``:
+    the C compiler (None: the default of conf/config.yaml, never the one stored with the run)."""
+    out = Path(out)
+    _writable(out)
+    run = stored_run(run_id)
+    stages = [s for s in run.data.tags.get("stages", "").split(",") if s]
+    if "invert" not in stages:
+        raise ConfigError(f"run {run_id} designed no feedforward (stages={stages}): export needs a run with the "
+                          "invert stage")
+    cfg = run_config(run)
     kind = str(OmegaConf.select(cfg, "invert.kind", default=""))
     if kind not in runner.exportable():
         raise ConfigError(f"run {run_id} has invert.kind={kind!r}, which has no feedforward law to ship; "

@@ -101,15 +101,30 @@ def _build(cls, node: dict):
                   for f in fields(cls) if f.name in node})
 
 
-def read_config(path: Path) -> CampaignConfig:
-    """The campaign config (YAML or JSON), every key checked (pipeline.schema) before any work."""
+#: the sections ``learn init --run`` takes from the run (pipeline.learn.from_run); a config file then gives the rest
+FROM_RUN = ("Ts", "controller", "model")
+
+
+def read_config(path: Path | None, base: dict | None = None) -> CampaignConfig:
+    """The campaign config (YAML or JSON), every key checked (pipeline.schema) before any work. ``base``: the
+    Ts, controller, model and safety limits of a run (``--run``); the file (optional then) gives learn and
+    safety, its safety keys over the run's."""
     import yaml  # lazy: saves 0.1 s of start-up (only learn init reads YAML)
     from pipeline import schema as sch  # lazy: saves 0.3 s of start-up (the config schema machinery)
-    path = Path(path)
-    if not path.exists():
-        raise ConfigError(f"campaign config {path} does not exist; README \"Learn on the machine\" shows one")
-    node = yaml.safe_load(path.read_text())
-    sch._check_node(CampaignConfig, node, "", f"a campaign config ({path.name})")
+    node, name = {}, "the run's model"
+    if path is not None:
+        path = Path(path)
+        if not path.exists():
+            raise ConfigError(f"campaign config {path} does not exist; README \"Learn on the machine\" shows one")
+        node, name = yaml.safe_load(path.read_text()), f"a campaign config ({path.name})"
+    if base is not None:
+        both = [k for k in FROM_RUN if isinstance(node, dict) and k in node]
+        if both:
+            raise ConfigError(f"{path.name}: sets {both}, which --run takes from the run; drop them from the file "
+                              "(it gives learn and safety) or drop --run")
+        safety = {**base.get("safety", {}), **((node or {}).get("safety") or {})}
+        node = {**base, **(node or {}), **({"safety": safety} if safety else {})}
+    sch._check_node(CampaignConfig, node, "", name)
     return _build(CampaignConfig, node)
 
 
@@ -206,15 +221,22 @@ def _limits(c: Campaign, rec: dict) -> tuple[float, float, str]:
                          f"±{f:g} × {u_abs:.6g} N and {f:g} × {du_abs:.6g} N/s of the first recording")
 
 
-def init(folder, config: Path, reference: Path, u_ff0: Path | None = None, force: bool = False,
-         tracking: bool = True) -> Campaign:
+def init(folder, config: Path | None, reference: Path, u_ff0: Path | None = None, force: bool = False,
+         tracking: bool = True, run_id: str | None = None) -> Campaign:
     """A new campaign in ``folder``: config checked, the convergence check passed (or ``force``), u_ff_0.csv
-    written (zero, or ``u_ff0``'s u_ff column)."""
+    written (zero, or ``u_ff0``'s u_ff column). ``run_id``: Ts, controller, model and limits from that finished
+    run of a measured system (pipeline.learn.from_run); ``config`` then optional (learn, safety)."""
     folder = Path(folder)
     if (folder / STATE).exists():
         raise ConfigError(f"{folder} already holds a campaign; continue it with `pgnn-ff learn {folder} "
                           "--recording …`, or give a new folder")
-    cfg = read_config(config)
+    if config is None and run_id is None:
+        raise ConfigError("learn init needs --config campaign.yaml, or --run RUN_ID (the model of a finished run)")
+    source = None
+    if run_id is not None:
+        from pipeline.learn import from_run  # lazy: saves 3.0 s of start-up (mlflow, hydra, the stages)
+        source = from_run.model_of(run_id)
+    cfg = read_config(config, source and source["config"])
     if not Path(reference).exists():
         raise ConfigError(f"reference {reference} does not exist; give a CSV with columns t, r")
     frame = pd.read_csv(reference)
@@ -230,6 +252,8 @@ def init(folder, config: Path, reference: Path, u_ff0: Path | None = None, force
         raise ConfigError(str(exc)) from None
     c = Campaign(folder, json.loads(json.dumps(asdict(cfg))), r, {"trials": [], "gain": cfg.learn.gain,
                                                                   "stopped": False, "limits": None})
+    if source is not None:
+        c.state["source_run"] = {"run_id": run_id, "physical": source["physical"], "dropped": source["dropped"]}
     c.controller()   # the controller config, checked before any work
     check = safety.convergence_check(c.update(), cfg.learn.gain, cfg.safety.uncertainty, cfg.safety.uncertainty_hz)
     folder.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,7 @@
 """``pgnn-ff learn``: a learning campaign from the command line (README "Learn on the machine").
 
     pgnn-ff learn init CAMPAIGN --config campaign.yaml --reference ref.csv [--u-ff0 u_ff.csv] [--force]
+    pgnn-ff learn init CAMPAIGN --run RUN_ID --reference ref.csv [--config learn.yaml]  # the model of a run
     pgnn-ff learn CAMPAIGN --recording trial_<j>.csv --out u_ff_<j+1>.csv
     pgnn-ff learn run CAMPAIGN --machine sim:<module>:<function> [--trials 10]
     pgnn-ff learn refit CAMPAIGN                      # the physics refitted on the trials' recordings
@@ -37,16 +38,23 @@ def main(argv: list[str] | None = None) -> int:
         if argv[:1] == ["init"]:
             p = argparse.ArgumentParser(prog="pgnn-ff learn init")
             p.add_argument("campaign")
-            p.add_argument("--config", required=True, help="the campaign config (YAML/JSON: Ts, controller, model, "
-                           "learn, safety)")
+            p.add_argument("--config", default=None, help="the campaign config (YAML/JSON: Ts, controller, model, "
+                           "learn, safety; with --run: learn, safety)")
+            p.add_argument("--run", default=None, help="MLflow run id of a finished pipeline run of a measured "
+                           "system: Ts, controller, model and force limits from it")
             p.add_argument("--reference", required=True, help="CSV with t, r: the motion the machine repeats")
             p.add_argument("--u-ff0", default=None, help="CSV with u_ff: the first trial's feedforward (default 0)")
             p.add_argument("--force", action="store_true", help="start even if the convergence check fails")
             p.add_argument("--no-mlflow", action="store_true", help="log nothing to MLflow")
             a = p.parse_args(argv[1:])
-            c = campaign.init(a.campaign, Path(a.config), Path(a.reference), a.u_ff0 and Path(a.u_ff0), a.force,
-                              not a.no_mlflow)
+            c = campaign.init(a.campaign, a.config and Path(a.config), Path(a.reference), a.u_ff0 and Path(a.u_ff0),
+                              a.force, not a.no_mlflow, a.run)
             conv = c.state["convergence"]
+            if a.run:
+                m, src = c.config["model"], c.state["source_run"]
+                print(f"model of run {a.run}: M {m['M']:.6g} kg, F_v {m['F_v']:.6g} N s/m, K {m['K']:.6g} N/m, "
+                      f"F_c {m['F_c']:.6g} N (width {m['coulomb_width']:.3g} m/s)"
+                      + (f"; not in the campaign's model: {', '.join(src['dropped'])}" if src["dropped"] else ""))
             print(f"campaign {a.campaign}: convergence check {'passed' if conv['ok'] else 'FAILED (forced)'} "
                   f"(max ρ {conv['rho_max']:.3g} at {conv['f_at_max']:.3g} Hz); apply {c.u_ff_path(0)} in trial 0")
         elif argv[:1] == ["run"]:

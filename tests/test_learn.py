@@ -409,10 +409,28 @@ def test_init_from_a_run_takes_the_runs_model_controller_and_limits(store, cfg_o
                        (tracking.client().create_run(tracking.experiment_id("learn_axis")).info.run_id,
                         "is RUNNING, not FINISHED")):
         assert learn_main(["init", str(tmp_path / "c2"), "--run", rid, "--reference", str(tmp_path / "ref.csv")]) == 2
-        err = capsys.readouterr().err
-        assert match in err and err.count("\n") == 1, err
+        err = [x for x in capsys.readouterr().err.splitlines() if x.startswith("error")]   # not MLflow's logs
+        assert len(err) == 1 and match in err[0], err
         assert not (tmp_path / "c2").exists()
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"model": {"M": 1.0}}))
     assert learn_main(["init", str(tmp_path / "c2"), "--run", run_id, "--reference", str(tmp_path / "ref.csv"),
                        "--config", str(tmp_path / "bad.yaml")]) == 2
     assert "bad.yaml: sets ['model'], which --run takes from the run" in capsys.readouterr().err
+
+
+def test_init_from_a_run_of_a_simulated_system_is_one_clear_error(store, cfg_of, tmp_path, capsys):
+    """A finished run with a baseline of the simulated linear motor (its stored config, no run made: only the
+    check is under test) is refused before any stage runs, naming the system and the fix."""
+    from omegaconf import OmegaConf
+
+    from pipeline import tracking
+    client = tracking.client()
+    run_id = client.create_run(tracking.experiment_id("lm"), tags={"stages": "generate,baseline"}).info.run_id
+    (tmp_path / f"{run_id}.yaml").write_text(OmegaConf.to_yaml(cfg_of("system=linear_motor"), resolve=True))
+    client.log_artifact(run_id, str(tmp_path / f"{run_id}.yaml"))
+    client.set_terminated(run_id, "FINISHED")
+    pd.DataFrame({"t": np.arange(200) * TS, "r": np.zeros(200)}).to_csv(tmp_path / "ref.csv", index=False)
+    assert learn_main(["init", str(tmp_path / "camp"), "--run", run_id, "--reference", str(tmp_path / "ref.csv")]) == 2
+    err = [x for x in capsys.readouterr().err.splitlines() if x.startswith("error")]   # not MLflow's logs
+    assert len(err) == 1 and "is of system 'linear_motor', not a measured system (system=measured)" in err[0], err
+    assert not (tmp_path / "camp").exists() and not (store / "cache" / "baseline").exists()

@@ -64,13 +64,13 @@ VISIBLE_JS = r"""
 """
 
 
-#: the artifact view's preview of compare/comparison.png: an <img> (of a blob: URL) laid out in the viewport;
+#: the artifact view's preview of compare/NAME.png: an <img> (of a blob: URL) laid out in the viewport;
 #: [its natural width, its shown width] or null
 FIGURE_JS = r"""
 (() => {
-  if (!document.body.innerText.includes('compare/comparison.png')) return null;
+  if (!document.body.innerText.includes('compare/NAME.png')) return null;
   const i = [...document.images].find(i => i.complete && i.naturalWidth > 400 &&
-                                          (i.src.startsWith('blob:') || i.src.includes('comparison.png')));
+                                          (i.src.startsWith('blob:') || i.src.includes('NAME.png')));
   if (!i) return null;
   const r = i.getBoundingClientRect();
   return r.width > 400 && r.top < window.innerHeight && r.bottom > 0 ? [i.naturalWidth, Math.round(r.width)] : null;
@@ -105,6 +105,10 @@ def _wait_ready(url: str, proc: subprocess.Popen, timeout: float = 300.0) -> Non
             pass
         time.sleep(1)
     raise TimeoutError(f"mlflow server not ready within {timeout:.0f} s")
+
+
+def _zero(model_input):   # a pyfunc model (a callable): u_ff = 0
+    return model_input * 0
 
 
 def test_runs_are_told_apart_and_the_comparison_is_shown(tmp_path, monkeypatch):
@@ -166,15 +170,36 @@ def test_runs_are_told_apart_and_the_comparison_is_shown(tmp_path, monkeypatch):
                 b.screenshot(tmp_path / f"ui-runs-{exp}.png")
                 # the parent's comparison figure in the artifact view
                 exp_id = links[exp].split("/experiments/")[1].split("/")[0]
-                b.goto(f"{base}/#/experiments/{exp_id}/runs/{parent}/artifacts/compare/comparison.png"
-                       f"?{tracking.ML_VIEW.split('&')[0]}")
-                # the preview is an <img> of a blob: URL under the artifact's path, laid out in the viewport
-                size = b.wait_for(FIGURE_JS, timeout=120)
-                png = tracking.client().download_artifacts(parent, "compare/comparison.png", str(tmp_path))
-                import matplotlib.image
-                assert size[0] == matplotlib.image.imread(png).shape[1]     # the comparison figure itself
-                _close_assistant(b)
-                b.screenshot(tmp_path / f"ui-compare-{exp}.png")
+                # issue 52: the comparison (regularised twins side by side) and the sweep's loss overlay
+                for fig in ("comparison", "loss_overlay"):
+                    b.goto("about:blank")   # a new page load: the run page picks its artifact from the URL on load
+                    b.goto(f"{base}/#/experiments/{exp_id}/runs/{parent}/artifacts/compare/{fig}.png"
+                           f"?{tracking.ML_VIEW.split('&')[0]}")
+                    # the preview is an <img> of a blob: URL under the artifact's path, laid out in the viewport
+                    size = b.wait_for(FIGURE_JS.replace("NAME", fig), timeout=120)
+                    png = tracking.client().download_artifacts(parent, f"compare/{fig}.png", str(tmp_path))
+                    import matplotlib.image
+                    assert size[0] == matplotlib.image.imread(png).shape[1]     # the figure itself
+                    _close_assistant(b)
+                    b.screenshot(tmp_path / (f"ui-compare-{exp}.png" if fig == "comparison"
+                                             else f"ui-{fig}-{exp}.png"))
+            # issue 52: the champion's version states its rule (the report registers it among the runs with a
+            # logged feedforward, which the export stage logs; the tiny sweeps skip it: a model per run here)
+            import warnings
+
+            import mlflow
+            import mlflow.pyfunc
+
+            from stages.report import champion
+            for rid in tracking.search_runs("b1_linear_motor").query("`tags.sweep` == 'child'")["run_id"]:
+                with warnings.catch_warnings(), mlflow.start_run(run_id=rid):
+                    warnings.simplefilter("ignore")
+                    mlflow.pyfunc.log_model(name="ff", python_model=_zero, pip_requirements=["mlflow"])
+            name, version = champion("b1_linear_motor")
+            b.goto(f"{base}/#/models/{name}/versions/{version}")
+            b.wait_for("document.body.innerText.includes('Lowest') && "
+                       "document.body.innerText.includes('among all')", timeout=120)
+            b.screenshot(tmp_path / "ui-champion.png")
     finally:
         os.killpg(server.pid, signal.SIGTERM)       # the server and its uvicorn worker (their own group)
         try:

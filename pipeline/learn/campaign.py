@@ -383,12 +383,7 @@ def plot_check(check: dict, path: Path) -> None:
     ax.axhline(1.0, color="r", lw=0.8, label="1: divergence")
     if check["band"]:
         ax.axvspan(*check["band"], color="r", alpha=0.15)
-    ax.set_xlabel("frequency [Hz]")
-    ax.set_ylabel("ρ")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    _finish(fig, ax, "frequency [Hz]", "ρ", path)
 
 
 def plot_errors(trials: list[dict], path: Path) -> None:
@@ -403,12 +398,17 @@ def plot_errors(trials: list[dict], path: Path) -> None:
     for h in trials:
         if h["decision"] == "rollback":
             ax.axvline(h["trial"], color="r", alpha=0.3)
-    ax.set_xlabel("trial j")
-    ax.set_ylabel("error [m]")
+    _finish(fig, ax, "trial j", "error [m]", path)
+
+
+def _finish(fig, ax, xlabel: str, ylabel: str, path: Path) -> None:
+    """Label, legend and save a campaign figure, then close it."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
+    pyplot().close(fig)
 
 
 def _parent_run(folder: Path, c: Campaign) -> dict:

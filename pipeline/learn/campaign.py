@@ -64,8 +64,11 @@ class LearnLaw:
     q_order: int = spec(2, ge=1, le=8)
     w_f: float = spec(0.0, ge=0, le=1e6, unit="× max|G|²")
     w_df: float = spec(1e-4, ge=0, le=1e6, unit="× max|G|²")
-    maxiter: int = spec(100, ge=1, le=ITER_MAX)     # norm_optimal: CG iterations per trial (100: ~5 s at N = 48 000)
-    # the model's Coulomb force along r and the recorded y in L (model_ilc; needs model.F_c, coulomb_width > 0)
+    # norm_optimal: the exact solve's relative residual on its normal equations, and its refinement sweeps at most
+    # (each one O(N); the solve's stop, converged or cap, is in every trial's log)
+    rtol: float = spec(1e-10, gt=0, lt=1)
+    maxiter: int = spec(3, ge=0, le=ITER_MAX)
+    # the model's Coulomb force along r and the recorded y (both laws; needs model.F_c, coulomb_width > 0)
     along_trajectory: bool = True
 
 
@@ -154,7 +157,7 @@ class Campaign:
         model = LoopModel(self.Ts, c.model.M, c.model.F_v, c.model.K, self.controller(), c.model.F_c,
                           c.model.coulomb_width)
         weights = {} if c.learn.law == "model_ilc" else {"w_f": c.learn.w_f, "w_df": c.learn.w_df,
-                                                         "maxiter": c.learn.maxiter}
+                                                         "maxiter": c.learn.maxiter, "rtol": c.learn.rtol}
         upd = make_update(model, c.learn.law, c.learn.q_cutoff_hz, c.learn.q_order, **weights)
         return upd.along(self.reference) if c.learn.along_trajectory else upd
 
@@ -348,8 +351,11 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
         decision, gain = "slow", gain / 2.0
     best = min(history + [{"rms": err, "trial": j}], key=lambda h: h["rms"])
     kr = c.controller_term()
+    solve = None
     if decision in ("learn", "slow"):
-        u_next = c.update().next(e, rec["u_ff"], gain, kr)
+        upd = c.update()
+        u_next = upd.next(e, rec["u_ff"], gain, kr)
+        solve = getattr(upd, "solve", None)   # norm_optimal: the solve's residual and stop (converged / cap)
     elif decision == "rollback":
         gain = gain / 2.0
         u_next = c.u_ff(best["trial"])
@@ -365,7 +371,7 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
              "noise_floor": floor, "decision": decision, "gain": gain, "controller_error": rec["controller_error"],
              "limited_samples": int(np.count_nonzero(flags)), "max_abs_u": float(np.max(np.abs(rec["u"]))),
              "measured_rho": None if math.isnan(measured["rho_max"]) else measured["rho_max"],
-             "measured_band": measured["band"]}
+             "measured_band": measured["band"], "solve": solve}
     c.state["trials"].append(entry)
     c.state["gain"] = gain
     plot_errors(c.state["trials"], c.folder / "errors.png")
@@ -436,6 +442,9 @@ def _log_trial(c: Campaign, entry: dict) -> None:
     keys = ("rms", "mae", "max", "noise_floor", "gain", "controller_error", "limited_samples", "measured_rho")
     now = 0
     vals = [(k, float(entry[k])) for k in keys if entry[k] is not None and math.isfinite(float(entry[k]))]
+    if entry.get("solve"):
+        vals.append(("solve_residual", float(entry["solve"]["residual"])))
+        client.set_tag(run.info.run_id, "solve_stop", entry["solve"]["stop"])
     client.log_batch(run.info.run_id, metrics=[Metric(k, v, now, j) for k, v in vals])
     client.log_batch(m["parent"], metrics=[Metric(f"trial/{k}", v, now, j) for k, v in vals])
     client.log_artifact(run.info.run_id, str(c.u_ff_path(j + 1)))

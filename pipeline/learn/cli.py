@@ -28,8 +28,12 @@ def _line(h: dict) -> str:
         lo, hi = h["measured_band"]
         warn = (f"; WARNING: the last two trials measure |Q(1 - α L G)| = {meas:.3g} ≥ 1 on {lo:.3g}-{hi:.3g} Hz "
                 "(the plant differs from the model there: lower learn.gain or learn.q_cutoff_hz)")
+    sol = h.get("solve")
+    if sol:    # norm_optimal: how its solve stopped
+        sol = (f"; solve {sol['stop']} (residual {sol['residual']:.2g}" + ("" if sol["stop"] == "converged" else
+               f" > learn.rtol {sol['rtol']:g}: WARNING, raise learn.maxiter") + ")")
     return (f"trial {h['trial']}: rms {h['rms']:.4g} m, MAE {h['mae']:.4g} m, max {h['max']:.4g} m, noise floor "
-            f"{h['noise_floor']:.3g} m -> {h['decision']} (gain {h['gain']:g})" + warn)
+            f"{h['noise_floor']:.3g} m -> {h['decision']} (gain {h['gain']:g})" + (sol or "") + warn)
 
 
 def main(argv: list[str] | None = None) -> int:

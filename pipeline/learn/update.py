@@ -29,12 +29,19 @@ Q is a zero-phase Butterworth low-pass (:func:`scipy.signal.sosfiltfilt`, ``|Q| 
 before it makes a signal; L is non-causal, and the recording is offline: it is applied in the frequency
 domain (:func:`apply_response`, zero-padded FFT). The learning gain α ≤ 1 weighs each trial's correction.
 
-**Norm-optimal ILC** (``law: norm_optimal``; [B2] (22)-(23), :class:`pipeline.invert.ilc.MatrixFreeUpdate`
-on G as a state-space model)::
+**Norm-optimal ILC** (``law: norm_optimal``; [B2] (22)-(23); Amann, Owens, Rogers 1996)::
 
-    Δφ = argmin ‖e_j - G Δφ‖² + w ‖φ_j + Δφ‖² + w_Δ ‖Δφ‖²,   φ_{j+1} = Q (φ_j + α Δφ)
+    Δφ = argmin ‖ê_j - G Δφ‖² + w ‖φ_j + Δφ‖² + w_Δ ‖Δφ‖²,   φ_{j+1} = Q (φ_j + α Δφ)
+    ê_j = e_j + G δd,   δd = F_c (tanh(ṙ/w) - tanh(ẏ_j/w))
 
-with w = ``w_f`` max|G|², w_Δ = ``w_df`` max|G|² (max|G| over frequency ≈ σ_max of the lifted G).
+with w = ``w_f`` max|G|², w_Δ = ``w_df`` max|G|² (max|G| over frequency ≈ σ_max of the lifted G). ê_j is the
+error the model predicts for the next trial: the Coulomb force is taken along the trajectories as in model-based
+ILC (the same δd, y_j smoothed by Q; the next trial is to run along r), so e_{j+1} ≈ e_j - G (Δφ - δd); with
+w = w_Δ = 0 the minimiser is model-based ILC's G^-1 e_j + δd. The minimiser is exact:
+(GᵀG + (w + w_Δ) I) Δφ = Gᵀ ê_j - w φ_j solved as the finite-horizon LQ tracking problem of G's state space
+(:meth:`LoopModel.realisation`; a backward Riccati and adjoint sweep and a forward sweep, O(N),
+:class:`pipeline.invert.ilc_lq.RiccatiUpdate`), its residual on the normal equations measured and refined to
+``rtol`` (at most ``maxiter`` sweeps; :attr:`NormOptimalILC.solve` says converged or cap, the campaign logs it).
 
 For both laws the learned part of one trial is ``α L G`` in the frequency domain (:meth:`Update.learning`):
 L G = |Q| for model-based ILC, |G|² / (|G|² + w + w_Δ) for norm-optimal ILC (the long-trial limit of the
@@ -49,7 +56,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft, signal
 
-from pipeline.invert.ilc import MatrixFreeUpdate, process_sensitivity
+from pipeline.invert.ilc import process_sensitivity
+from pipeline.invert.ilc_lq import RiccatiUpdate
 from pipeline.systems.controller import LTIController
 
 __all__ = ["LoopModel", "Update", "ModelILC", "NormOptimalILC", "make_update", "apply_response", "LAWS"]
@@ -86,14 +94,53 @@ class LoopModel:
         v = np.diff(np.concatenate([x, np.full(D + 1, x[-1])]))[D:D + x.size] / self.Ts
         return self.F_c * np.tanh(v / self.coulomb_width)
 
-    def _plant_zpk(self):
-        """P_zoh's zeros, poles, gain (exact ZOH of 1/(M s² + F_v s + K) in state space)."""
+    def _plant_ss(self):
+        """P_zoh in state space (q, q̇): the exact ZOH of 1/(M s² + F_v s + K); its D is 0."""
         A = np.array([[0.0, 1.0], [-self.K / self.M, -self.F_v / self.M]])
-        Ad, Bd, Cd, Dd, _ = signal.cont2discrete((A, np.array([[0.0], [1.0 / self.M]]), np.array([[1.0, 0.0]]),
-                                                   np.zeros((1, 1))), self.Ts)
+        return signal.cont2discrete((A, np.array([[0.0], [1.0 / self.M]]), np.array([[1.0, 0.0]]),
+                                     np.zeros((1, 1))), self.Ts)[:4]
+
+    def _plant_zpk(self):
+        """P_zoh's zeros, poles, gain."""
         with warnings.catch_warnings():   # the leading numerator coefficient is 0 (strictly proper): not an issue
             warnings.simplefilter("ignore", signal.BadCoefficients)
-            return signal.ss2zpk(Ad, Bd, Cd, Dd)
+            return signal.ss2zpk(*self._plant_ss())
+
+    def realisation(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """G = P'/(1 + gtau C_y P') as (A, B, C, D) built from its parts (norm-optimal ILC's model; numpy only).
+
+        State [x_p (P_zoh: q, q̇), s_1 … s_D (the delay line), x_c (C_y = B_y/A in controllable form)]::
+
+            y = C_p x_p,   c(k) = φ(k) - gtau (C_c x_c + D_c y),   u = s_D (u = c when D = 0)
+            x_p⁺ = A_p x_p + B_p u,   s_1⁺ = c,  s_i⁺ = s_{i-1},   x_c⁺ = A_c x_c + B_c y
+
+        P_zoh is strictly proper, so the loop has no algebraic loop and G's D is 0."""
+        Ap, Bp, Cp, _ = (np.asarray(m, np.float64) for m in self._plant_ss())
+        Bp, Cp = Bp.ravel(), Cp.ravel()
+        b, a = self.ctrl.b_y, self.ctrl.a
+        m = max(b.size, a.size)
+        pad = lambda v: np.concatenate([v, np.zeros(m - v.size)])     # noqa: E731  z⁻¹ → z: the same coefficients
+        Ac, Bc, Cc, Dc = signal.tf2ss(pad(b), pad(a))
+        nc, D, g = Ac.shape[0], self.ctrl.delay, self.ctrl.gtau
+        n = 2 + D + nc
+        ip, ic = slice(0, 2), slice(2 + D, n)
+        Cy = np.zeros(n)
+        Cy[ip] = Cp
+        Lc = -g * float(Dc.ravel()[0]) * Cy                         # c = Lc x + φ
+        Lc[ic] -= g * Cc.ravel()
+        A, B = np.zeros((n, n)), np.zeros(n)
+        A[ip, ip] = Ap
+        if D:
+            A[ip, 2 + D - 1] += Bp
+            A[2], B[2] = Lc, 1.0
+            for i in range(1, D):
+                A[2 + i, 2 + i - 1] = 1.0
+        else:
+            A[ip] += np.outer(Bp, Lc)
+            B[ip] = Bp
+        A[ic, ic] = Ac
+        A[ic] += np.outer(Bc.ravel(), Cy)
+        return A, B, Cy, 0.0
 
     def plant(self, w) -> np.ndarray:
         """P'(e^{jωTs}) = z^-D P_zoh [m/N] at ω [rad/s] (factored: the poles near z = 1 keep their digits)."""
@@ -159,10 +206,17 @@ class Update:
         self.reference = None
 
     def along(self, r) -> "Update":
-        """Take the model's Coulomb force along the trajectories: its difference between the reference r and the
-        recorded y joins L e (model-based ILC; module docstring)."""
+        """Take the model's Coulomb force along the trajectories: its difference δd between the reference r and
+        the recorded y joins L e (model-based ILC) or the predicted error through G (norm-optimal; module
+        docstring)."""
         self.reference = np.asarray(r, np.float64) if self.model.F_c and self.model.coulomb_width else None
         return self
+
+    def coulomb_along(self, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The model's Coulomb force [N] along r (where the next trial is to go) and along the recorded y = r - e
+        smoothed by Q; their difference is δd (:meth:`along`; module docstring)."""
+        y = signal.sosfiltfilt(self.q_sos, self.reference - e)
+        return self.model.coulomb(self.reference), self.model.coulomb(y)
 
     def q(self, w) -> np.ndarray:
         """|Q(e^{jωTs})| = |H|² (filtfilt: the filter forwards and backwards, no phase)."""
@@ -197,19 +251,20 @@ class ModelILC(Update):
     def correction(self, e, f):
         inv_p = apply_response(e, lambda w: self.q(w) * self.model.plant_inverse(w), self.model.Ts, self.pad)
         fb = self.model.controller_from_rest(e)
-        if self.reference is not None:   # the Coulomb force's difference F_c (tanh(ṙ/w) - tanh(ẏ/w)), y smoothed by Q
-            y = signal.sosfiltfilt(self.q_sos, self.reference - e)
-            fb = fb + self.model.coulomb(self.reference) - self.model.coulomb(y)
+        if self.reference is not None:
+            c_r, c_y = self.coulomb_along(e)
+            fb = fb + c_r - c_y
         return inv_p + signal.sosfiltfilt(self.q_sos, fb)
 
 
 class NormOptimalILC(Update):
-    """[B2]'s norm-optimal step through :class:`pipeline.invert.ilc.MatrixFreeUpdate` (module docstring)."""
+    """[B2]'s norm-optimal step, solved exactly by :class:`pipeline.invert.ilc_lq.RiccatiUpdate` on
+    :meth:`LoopModel.realisation` (module docstring); :attr:`solve` is the last solve's report (residual, stop)."""
 
     law = "norm_optimal"
 
     def __init__(self, model, q_cutoff_hz, q_order=2, pad_seconds=0.5, w_f: float = 0.0, w_df: float = 1e-4,
-                 maxiter: int = 300, rtol: float = 1e-8):
+                 maxiter: int = 3, rtol: float = 1e-10):
         super().__init__(model, q_cutoff_hz, q_order, pad_seconds)
         w = np.linspace(0.0, math.pi / model.Ts, 20001)[1:]
         self.g2 = float(np.max(np.abs(model.response(w)))) ** 2
@@ -218,7 +273,8 @@ class NormOptimalILC(Update):
             raise ValueError("learn.w_f + learn.w_df must be > 0 for norm-optimal ILC (the model has a delay: no "
                              "exact inverse); e.g. learn.w_df=1e-4")
         self.maxiter, self.rtol = int(maxiter), float(rtol)
-        self._solver: MatrixFreeUpdate | None = None
+        self._solver: RiccatiUpdate | None = None
+        self.solve: dict | None = None
 
     def learning(self, w):
         g2 = np.abs(self.model.response(w)) ** 2
@@ -226,9 +282,18 @@ class NormOptimalILC(Update):
 
     def correction(self, e, f):
         if self._solver is None or self._solver.N != e.size:
-            self._solver = MatrixFreeUpdate(self.model.state_space(), e.size, w=self.w, w_delta=self.w_delta,
-                                            preconditioner="none", rtol=self.rtol, maxiter=self.maxiter)
-        return self._solver.step(e, f)
+            self._solver = RiccatiUpdate(self.model.realisation(), e.size, self.w, self.w_delta, self.rtol,
+                                         self.maxiter)
+        if self.reference is not None:   # the predicted error e_j - G (Δφ - δd): δd joins e through G
+            c_r, c_y = self.coulomb_along(e)
+            e = e + self._solver.apply(c_r - c_y)
+        out = self._solver.step(e, f)
+        self.solve = self._solver.reports[-1].as_dict()
+        if self.solve["stop"] != "converged":
+            warnings.warn(f"norm-optimal ILC: the solve stopped at relative residual {self.solve['residual']:.3g} > "
+                          f"learn.rtol = {self.rtol:g} after {self.solve['sweeps']} refinement sweeps (learn.maxiter)",
+                          RuntimeWarning, stacklevel=2)
+        return out
 
 
 def make_update(model: LoopModel, law: str, q_cutoff_hz: float, q_order: int = 2, **weights) -> Update:

@@ -116,7 +116,7 @@ class RiccatiUpdate(NormOptimalUpdate):
 
     method = "riccati"
 
-    def __init__(self, model, N: int, w: float = 0.0, w_delta: float = 0.0, rtol: float = 1e-10,
+    def __init__(self, model, N: int, w: float = 0.0, w_delta: float = 0.0, rtol: float = 1e-9,
                  max_sweeps: int = 3):
         self.N = _check_n(N)
         self.w, self.w_delta = _check_weights(w, w_delta)

@@ -66,7 +66,7 @@ class LearnLaw:
     w_df: float = spec(1e-4, ge=0, le=1e6, unit="× max|G|²")
     # norm_optimal: the exact solve's relative residual on its normal equations, and its refinement sweeps at most
     # (each one O(N); the solve's stop, converged or cap, is in every trial's log)
-    rtol: float = spec(1e-10, gt=0, lt=1)
+    rtol: float = spec(1e-9, gt=0, lt=1)
     maxiter: int = spec(3, ge=0, le=ITER_MAX)
     # the model's Coulomb force along r and the recorded y (both laws; needs model.F_c, coulomb_width > 0)
     along_trajectory: bool = True

@@ -264,7 +264,7 @@ class NormOptimalILC(Update):
     law = "norm_optimal"
 
     def __init__(self, model, q_cutoff_hz, q_order=2, pad_seconds=0.5, w_f: float = 0.0, w_df: float = 1e-4,
-                 maxiter: int = 3, rtol: float = 1e-10):
+                 maxiter: int = 3, rtol: float = 1e-9):
         super().__init__(model, q_cutoff_hz, q_order, pad_seconds)
         w = np.linspace(0.0, math.pi / model.Ts, 20001)[1:]
         self.g2 = float(np.max(np.abs(model.response(w)))) ** 2

@@ -1,7 +1,7 @@
 """Benchmark of one learning trial (issue 50): ``pipeline.learn.campaign.step`` on a 48 000-sample recording of
 the held-out vertical axis (tests/heldout_axis.py, its 12 s test reference at 4 kHz): reading and checking the
 recording, the update, the limits, writing the next u_ff and the plot (MLflow off), per update law; and the
-update alone. Goal: ≤ 10 s on 2 cores.
+update alone (norm_optimal: with its solve's stop and residual). Goal: ≤ 10 s on 2 cores.
 
 Usage: ``.venv/bin/python benchmarks/bench_learn.py [--repeat 3]``
 """
@@ -53,9 +53,11 @@ def main() -> None:
                 upd.next(r - rec["y"], np.zeros(r.size), 1.0, kr)
                 updates.append(time.perf_counter() - t0)
                 cpu.append(time.process_time() - c0)
-            print(f"{law}: one trial (step: read, check, update, write) {np.median(steps):.2f} s wall, the update "
-                  f"alone {np.median(updates):.2f} s wall, {np.median(cpu):.2f} s CPU (median of {a.repeat}, "
-                  f"N = {r.size})", flush=True)
+            solve = getattr(upd, "solve", None)     # norm_optimal: how the exact solve stopped
+            how = f"; solve {solve['stop']}, residual {solve['residual']:.2g}" if solve else ""
+            print(f"{law}: one trial (step: read, check, update, write) {np.median(steps):.2f} s wall "
+                  f"[{min(steps):.2f}-{max(steps):.2f}], the update alone {np.median(updates):.2f} s wall, "
+                  f"{np.median(cpu):.2f} s CPU (median of {a.repeat}, N = {r.size}{how})", flush=True)
 
 
 if __name__ == "__main__":

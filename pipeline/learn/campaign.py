@@ -62,8 +62,10 @@ class LearnLaw:
     gain: float = spec(1.0, gt=0, le=4.0)
     q_cutoff_hz: float = spec(150.0, gt=0, le=FREQ_MAX, unit="Hz")
     q_order: int = spec(2, ge=1, le=8)
-    w_f: float = spec(0.0, ge=0, le=1e6, unit="× max|G|²")
-    w_df: float = spec(1e-4, ge=0, le=1e6, unit="× max|G|²")
+    # norm_optimal's weights on φ (pulls what G cannot see, its DC, to 0) and on its change (damps noise; keeps the DC
+    # of the first φ = the controller term: a 2-DOF loop's saturates; pipeline.learn.update)
+    w_f: float = spec(1e-5, ge=0, le=1e6, unit="× max|G|²")
+    w_df: float = spec(0.0, ge=0, le=1e6, unit="× max|G|²")
     # norm_optimal: the exact solve's relative residual on its normal equations, and its refinement sweeps at most
     # (each one O(N); the solve's stop, converged or cap, is in every trial's log)
     rtol: float = spec(1e-9, gt=0, lt=1)

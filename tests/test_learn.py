@@ -269,6 +269,8 @@ def test_the_exact_norm_optimal_solve_meets_the_dense_normal_equations(k):
     G = np.column_stack([upd.apply(col) for col in np.eye(N)])
     G_ctrl = lifted_matrix(model.state_space(), N)
     assert np.max(np.abs(G - G_ctrl)) <= 1e-8 * np.max(np.abs(G_ctrl))
+    assert upd.sigma_max == pytest.approx(np.linalg.norm(G, 2), rel=1e-9)
+    assert RiccatiUpdate((A, B, C, D), 20).sigma_max == pytest.approx(np.linalg.norm(G[:20, :20], 2), rel=1e-12)
     g2 = float(np.max(np.abs(R))) ** 2
     rng = np.random.default_rng(k)
     e, f = 1e-5 * rng.standard_normal(N), 10.0 * rng.standard_normal(N)
@@ -294,6 +296,10 @@ def test_a_norm_optimal_solve_short_of_its_tolerance_says_cap():
     with pytest.warns(RuntimeWarning, match=r"stopped at relative residual .* > learn.rtol = 1e-17 after 2"):
         upd.next(1e-5 * rng.standard_normal(500), np.zeros(500), 1.0)
     assert upd.solve["stop"] == "cap" and upd.solve["sweeps"] == 2 and 0 < upd.solve["residual"] <= 1e-12
+    from pipeline.learn.cli import _line
+    line = _line({"trial": 3, "rms": 1e-6, "mae": 1e-6, "max": 2e-6, "noise_floor": 3e-8, "decision": "learn",
+                  "gain": 1.0, "solve": upd.solve})
+    assert "solve cap (residual" in line and "> learn.rtol 1e-17: WARNING" in line
     with pytest.raises(ValueError, match="needs w \\+ w_delta > 0"):
         RiccatiUpdate(model.realisation(), 10).step(np.ones(10), np.zeros(10))
     with pytest.raises(ValueError, match="rtol=2.0 must lie in"):

@@ -158,11 +158,15 @@ class RiccatiUpdate(NormOptimalUpdate):
 
     @property
     def sigma_max(self) -> float:
+        """Largest singular value of the lifted G (dense for N ≤ 50, else scipy's svds on the filters)."""
         if self._sigma_max is None:
-            op = LinearOperator((self.N, self.N), matvec=lambda x: self.apply(np.ravel(x)),
-                                rmatvec=lambda x: self.adjoint(np.ravel(x)), dtype=np.float64)
-            self._sigma_max = (float(np.max(np.abs(self.apply(np.eye(1, self.N)[0])))) if self.N <= 2 else
-                               float(svds(op, k=1, return_singular_vectors=False, random_state=0)[0]))
+            if self.N <= 50:
+                G = np.column_stack([self.apply(col) for col in np.eye(self.N)])
+                self._sigma_max = float(np.linalg.norm(G, 2))
+            else:
+                op = LinearOperator((self.N, self.N), matvec=lambda x: self.apply(np.ravel(x)),
+                                    rmatvec=lambda x: self.adjoint(np.ravel(x)), dtype=np.float64)
+                self._sigma_max = float(svds(op, k=1, return_singular_vectors=False, random_state=0)[0])
         return self._sigma_max
 
     # ---- the solve ---------------------------------------------------------------------------------

@@ -255,9 +255,9 @@ def test_the_exact_norm_optimal_solve_meets_the_dense_normal_equations(k):
     companion form at Ts = 0.25 ms) and python-control's feedback(P', gtau C_y) lifted to 1e-7 of the largest entry
     (measured ≤ 1.5e-8: that one goes through the plant's zeros and poles, whose numerator scipy's ss2zpk gets by a
     difference of O(1) polynomials, ~eps 2M/Ts² relative; the same in model.response); the Riccati sweeps solve
-    (GᵀG + λI) Δ = Gᵀe - w f of that lifted G to a dense residual ≤ 1e-12 and agree with numpy's dense solve to
-    1e-15 κ (κ ≤ 1 + 1/(w_f + w_df) ≤ 1e5 its condition number: both solves round at ~eps κ; measured ≤ 3.6e-17 κ),
-    with the stop 'converged' and no refinement needed."""
+    (GᵀG + λI) Δ = Gᵀe - w f of that lifted G to a dense residual ≤ 1e-11 (measured ≤ 6.9e-13) and agree with
+    numpy's dense solve to 1e-15 κ (κ ≤ 1 + 1/(w_f + w_df) ≤ 1e5 its condition number: both solves round at
+    ~eps κ; measured ≤ 1.4e-16 κ), with the stop 'converged' and no refinement needed."""
     from pipeline.invert.ilc import lifted_matrix
     from pipeline.invert.ilc_lq import RiccatiUpdate
     model = _loops()[k]
@@ -283,7 +283,7 @@ def test_the_exact_norm_optimal_solve_meets_the_dense_normal_equations(k):
         upd.set_weights(w_f * g2, w_df * g2)
         x = upd.step(e, f)
         Mn, b = G.T @ G + (w_f + w_df) * g2 * np.eye(N), G.T @ e - w_f * g2 * f
-        assert np.linalg.norm(Mn @ x - b) <= 1e-12 * np.linalg.norm(b), (w_f, w_df)
+        assert np.linalg.norm(Mn @ x - b) <= 1e-11 * np.linalg.norm(b), (w_f, w_df)
         x_dense = np.linalg.solve(Mn, b)
         kappa = np.linalg.cond(Mn)
         assert np.linalg.norm(x - x_dense) <= 1e-15 * kappa * np.linalg.norm(x_dense), (w_f, w_df, kappa)

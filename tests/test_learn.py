@@ -309,6 +309,14 @@ def test_a_norm_optimal_solve_short_of_its_tolerance_says_cap():
         RiccatiUpdate(model.realisation(), 10).step(np.ones(10), np.zeros(10))
     with pytest.raises(ValueError, match="rtol=2.0 must lie in"):
         RiccatiUpdate(model.realisation(), 10, rtol=2.0)
+    A, B, C, D = model.realisation()
+    with pytest.raises(ValueError, match="must be \\(A \\(n, n\\), B \\(n,\\), C \\(n,\\), D\\)"):
+        RiccatiUpdate((A, B[:-1], C, D), 10)
+    with pytest.raises(ValueError, match="matrices must be finite"):
+        RiccatiUpdate((A, B * np.nan, C, D), 10)
+    from pipeline.invert.ilc import impulse_response
+    h = RiccatiUpdate(model.state_space(), 40).apply(np.eye(1, 40)[0])     # a python-control model works too
+    assert np.allclose(h, impulse_response(model.state_space(), 40), rtol=0, atol=1e-12 * np.max(np.abs(h)))
 
 
 def test_norm_optimal_ilc_learns_on_the_machine_to_the_noise_floor(tmp_path):

@@ -49,9 +49,10 @@ gtau (C_r - C_y) r is kN-large with a DC part (a set-point weight b gives -(1 - 
 it stays in φ_1, and u_ff_1 = φ_1 - gtau (C_r - C_y) r carries it where r rests (measured on the held-out axis
 with w_df = 1e-4: -1000 N at rest, trial 1 at the ±60 N limit from sample 1; with w_f = w_df = 1e-5 still 76
 samples there). Hence the defaults w_f = 1e-5, w_df = 0: φ, the force the plant needs, is small, and the fixed
-point's bias (Gᵀ ê∞ = w φ∞) stays under that axis's noise. For an error-feedback controller (C_r = C_y: φ_0 = 0)
-a w_df = 1e-4 on top damps the noise at the fixed point (tests/test_learn.py's machine: the stop at 1.28x the
-noise floor; 1.36x and rollbacks on noise with the defaults).
+point's bias (Gᵀ ê∞ = w φ∞) stays under that axis's noise. Started from the model's own feedforward (``--u-ff0``)
+φ_0 is the model's force and w_Δ alone is safe (held-out axis, w_df = 1e-4: at the floor by trial 3). For an
+error-feedback controller (C_r = C_y: φ_0 = 0) a w_df = 1e-4 on top damps the noise at the fixed point
+(tests/test_learn.py's machine: the stop at 1.28x the noise floor; 1.36x and rollbacks on noise with the defaults).
 
 For both laws the learned part of one trial is ``α L G`` in the frequency domain (:meth:`Update.learning`):
 L G = |Q| for model-based ILC, |G|² / (|G|² + w + w_Δ) for norm-optimal ILC (the long-trial limit of the

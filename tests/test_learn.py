@@ -319,13 +319,13 @@ def test_a_norm_optimal_solve_short_of_its_tolerance_says_cap():
     assert np.allclose(h, impulse_response(model.state_space(), 40), rtol=0, atol=1e-12 * np.max(np.abs(h)))
 
 
-def test_norm_optimal_ilc_learns_on_the_machine_to_the_noise_floor(tmp_path):
+def test_norm_optimal_ilc_learns_on_the_machine_to_the_noise_floor(store, tmp_path):
     """The machine the model does not match (module docstring), law norm_optimal with w_f = 1e-5, w_df = 1e-4 (an
     error-feedback PID: no controller term, the input-change weight damps the noise): the rms error falls every
     trial to the stop at 1.3x the estimated noise floor (measured: 58.6 µm → 2.68 µm → … → 38.0 nm = 1.28x the
     29.6 nm floor at trial 7), every solve 'converged' at a residual ≤ 1e-9 (measured ≤ 1e-13)."""
     cfg = _config(tmp_path, law="norm_optimal", w_f=1e-5, w_df=1e-4)
-    campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", tracking=False)
+    c = campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv")
     log = machine.run(tmp_path / "camp", "sim:learn_machine:simulate", 12)
     rms = [h["rms"] for h in log]
     assert [h["decision"] for h in log] == ["learn"] * (len(log) - 1) + ["stop"], log
@@ -333,6 +333,14 @@ def test_norm_optimal_ilc_learns_on_the_machine_to_the_noise_floor(tmp_path):
     assert rms[-1] <= 1.3 * log[-1]["noise_floor"] and len(log) <= 9, rms
     assert all(h["solve"]["stop"] == "converged" and h["solve"]["residual"] <= 1e-9 for h in log[:-1])
     assert log[-1]["solve"] is None
+    from pipeline import tracking     # MLflow: each learning trial's child run has the solve's residual and stop
+    client = tracking.client()
+    runs = {r.info.run_name: r for r in client.search_runs(
+        [c.state["mlflow"]["experiment"]], f"tags.mlflow.parentRunId = '{c.state['mlflow']['parent']}'")}
+    assert len(runs) == len(log)
+    assert runs["trial_0"].data.metrics["solve_residual"] == log[0]["solve"]["residual"]
+    assert runs["trial_0"].data.tags["solve_stop"] == "converged"
+    assert "solve_stop" not in runs[f"trial_{len(log) - 1}"].data.tags      # the stop trial learns nothing
 
 
 def test_a_bad_machine_or_config_is_one_clear_error(tmp_path):

@@ -1,13 +1,13 @@
 """Norm-optimal ILC solved exactly in O(N): the finite-horizon LQ tracking problem (issue 50).
 
-The norm-optimal update ([B2] (22)-(23); Amann, Owens, Rogers 1996, IEE Proc. D 143(2))::
+The norm-optimal update ([B2] (22)-(23); Amann, Owens, Rogers 1996, IEE Proc. Control Theory Appl. 143(2))::
 
     Δ = argmin ‖e - G Δ‖² + w ‖f + Δ‖² + w_Δ ‖Δ‖²   ⇔   (GᵀG + λ I) Δ = Gᵀ e - w f,   λ = w + w_Δ
 
 with G the lifted (lower triangular Toeplitz) matrix of a causal SISO model x(k+1) = A x + B u,
 z = C x + D u from rest, is a linear-quadratic tracking problem over the trial's N samples: stage cost
 (e_k - C x_k - D u_k)² + λ u_k² - 2 c_k u_k (c = -w f), no terminal cost, x_0 = 0. Its minimiser is
-exact in one backward and one forward sweep (Bryson & Ho, ch. 5; the standard implementation of
+exact in one backward and one forward sweep (Bryson & Ho 1975, ch. 5; the standard implementation of
 norm-optimal ILC, e.g. Barton & Alleyne 2011, IEEE TCST 19(1)):
 
     Riccati (data-free, once per N and λ), P_N = 0, k = N-1 … 0:

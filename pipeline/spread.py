@@ -35,13 +35,15 @@ import pandas as pd
 
 from pipeline.atomic import replace_file
 from pipeline.perturbation import KEY, _is_solver_path, experiment_digests, is_timing
-from stages.report.claims import judge
+from stages.report.claims import claim_statistics, judge
 
 __all__ = ["build", "check", "judge_statistic", "ABS_TOL", "REL_TOL"]
 
 #: a value equal to the spread's end to this relative amount (or ABS_TOL absolute: residues of exact identities
 #: at 1e-15) is inside it: a deterministic value (no fit behind it, min = max) may differ in its last bits
 REL_TOL, ABS_TOL = 1e-9, 1e-12
+#: a value's identity across runs (its claim id is the report's label of it)
+_ID = [k for k in KEY if k != "claim"]
 
 
 def _read(path: str | Path) -> pd.DataFrame:
@@ -76,7 +78,7 @@ def build(summaries: list[pd.DataFrame], labels: list[str]) -> pd.DataFrame:
     base = ref[ref["experiment"].isin(covered)][KEY + ["value", "paper_value", "claim_holds"]].copy()
     vals = []
     for lab, s in zip(labels, summaries):
-        v = base[KEY].merge(s[KEY + ["value"]], on=KEY, how="left")["value"].to_numpy(np.float64)
+        v = base[_ID].merge(s[_ID + ["value"]], on=_ID, how="left")["value"].to_numpy(np.float64)
         vals.append(v)
         base[f"value_{lab}"] = v
     V = np.vstack(vals)
@@ -94,22 +96,6 @@ def build(summaries: list[pd.DataFrame], labels: list[str]) -> pd.DataFrame:
                                & (base["holds_max"] == base["holds_median"]), np.nan)
     base["rel_spread"] = (base["max"] - base["min"]) / np.maximum(np.abs(base["median"]), 1e-300)
     return base
-
-
-def claim_statistics(stat: pd.DataFrame) -> pd.DataFrame:
-    """Per (experiment, claim): rows, the verdict of seed 0 (its run's), the verdict on the medians, and the
-    rows the spread does not decide."""
-    c = stat[stat["holds_median"].notna()]
-    out = []
-    for (e, claim), g in c.groupby(["experiment", "claim"], sort=False):
-        seed0 = g["claim_holds"].astype(str).str.lower().eq("true")
-        undecided = g[g["decided"] == False]       # noqa: E712 - object column of True/False
-        out.append({"experiment": e, "claim": claim, "rows": len(g), "holds_seed0": bool(seed0.all()),
-                    "holds_median": bool(g["holds_median"].astype(bool).all()),
-                    "rows_undecided": len(undecided),
-                    "undecided": "; ".join(f"{r.variant} {r.metric}" for r in undecided.itertuples())})
-    return pd.DataFrame(out, columns=["experiment", "claim", "rows", "holds_seed0", "holds_median", "rows_undecided",
-                                      "undecided"])
 
 
 def _fmt(x: float) -> str:
@@ -154,7 +140,7 @@ def check(reference: pd.DataFrame, other: pd.DataFrame) -> pd.DataFrame:
     """Per key both: the other run's median inside the reference's spread? its claim verdict on the median
     the same?"""
     cols = KEY + ["median", "min", "max", "holds_median", "decided"]
-    m = reference[cols].merge(other[KEY + ["median", "min", "max", "holds_median"]], on=KEY,
+    m = reference[cols].merge(other[_ID + ["median", "min", "max", "holds_median"]], on=_ID,
                               suffixes=("", "_other"))
     m["inside"] = inside(m["median_other"], m["min"], m["max"])
     claimed = m["holds_median"].notna()
@@ -177,7 +163,7 @@ def check_markdown(m: pd.DataFrame, name: str, setting: str) -> str:
     if len(out):
         lines += ["", "Claim rows outside the spread or flipped:", ""]
         lines += [f"- {r.experiment} {r.claim} `{r.variant}` {r.metric}: median {_fmt(r.median_other)} against "
-                  f"[{_fmt(r.min)}, {_fmt(r.max)}]" + ("" if r.verdict_same is not False else ", verdict flipped")
+                  f"[{_fmt(r.min)}, {_fmt(r.max)}]" + (", verdict flipped" if r.verdict_same == False else "")   # noqa: E712
                   for r in out.itertuples()]
     return "\n".join(lines) + "\n"
 

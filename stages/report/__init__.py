@@ -38,7 +38,6 @@ from pipeline.perturbation import (EXPLAIN, capped_fits, capped_lines, claim_ver
                                    is_timing, kept_experiments, partial_of, status_lines, summarise, summary_digest,
                                    table_lines)
 from pipeline.runner import ROOT
-from pipeline.spread import claim_statistics
 from stages.report import claims
 from stages.report._rows import row, run_metrics
 from stages.report._runs import latest_runs, split_side
@@ -430,7 +429,7 @@ def _spread(results: Path, digests: dict[str, str]) -> tuple[dict, list[str]]:
     stat = stat[stat["experiment"].isin(valid)]
     for c in ("holds_median", "holds_min", "holds_max", "decided"):
         stat[c] = stat[c].map(lambda v: v if isinstance(v, bool) else {"True": True, "False": False}.get(str(v)))
-    per = claim_statistics(stat)
+    per = claims.claim_statistics(stat)
     lines += [f"### Claim rows over restarts (`make reproduce-spread`, init_seed {', '.join(info['seeds'])})", "",
               f"{', '.join(valid)} rerun with other initial weights and restarts (same data and noise): the claim "
               "table's *holds* is judged on each row's median over the runs; rows whose verdict differs at the "

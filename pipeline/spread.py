@@ -20,8 +20,9 @@ every summary key, and per key:
 median and whether it is decided), ``<name>.md`` and ``<name>.json`` (per experiment the sha256 of the seed-0
 rows it was built on, so the report shows it only while those rows are current). ``check`` compares another
 machine's (or a perturbed run's) statistics with these: every claim row's median must land inside the
-reference's spread and keep its verdict; it writes ``spread-check-<name>.md/.csv/.json``. Timings and
-solver-path values are left out, as in :mod:`pipeline.perturbation`.
+reference's spread and keep its verdict; it writes ``spread-check-<name>.md/.csv/.json``. Timings are left out,
+as in :mod:`pipeline.perturbation`; solver-path values (iteration counts, stop flags) stay, since claims such as
+K3 are judged on them.
 """
 from __future__ import annotations
 
@@ -34,7 +35,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.atomic import replace_file
-from pipeline.perturbation import KEY, _is_solver_path, experiment_digests, is_timing
+from pipeline.perturbation import KEY, experiment_digests, is_timing
 from stages.report.claims import claim_statistics, judge
 
 __all__ = ["build", "check", "judge_statistic", "ABS_TOL", "REL_TOL"]
@@ -49,7 +50,7 @@ _ID = [k for k in KEY if k != "claim"]
 def _read(path: str | Path) -> pd.DataFrame:
     t = pd.read_csv(path, dtype={"claim": str, "variant": str, "metric": str})
     t[["claim", "variant"]] = t[["claim", "variant"]].fillna("")
-    t = t[~t["metric"].map(is_timing) & ~t["metric"].map(_is_solver_path)]
+    t = t[~t["metric"].map(is_timing)]      # solver-path rows stay: K3 judges its fits' stop reasons on them
     return t
 
 

@@ -49,12 +49,14 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft, signal
 
+from pipeline.invert.fhofc import il_fhofc_step
 from pipeline.invert.ilc import MatrixFreeUpdate, process_sensitivity
+from pipeline.models.closed_loop import ArxPGNN, DiscreteController
 from pipeline.systems.controller import LTIController
 
-__all__ = ["LoopModel", "Update", "ModelILC", "NormOptimalILC", "make_update", "apply_response", "LAWS"]
+__all__ = ["LoopModel", "Update", "ModelILC", "NormOptimalILC", "IlFhofc", "make_update", "apply_response", "LAWS"]
 
-LAWS = ("model_ilc", "norm_optimal")
+LAWS = ("model_ilc", "norm_optimal", "il_fhofc")
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,6 +125,19 @@ class LoopModel:
         """gtau C_y e [N], causal from rest (lifted: lower triangular Toeplitz; the loop at rest before k = 0 saw
         e = 0): what the feedback made of the error."""
         return self.ctrl.gtau * signal.lfilter(self.ctrl.b_y, self.ctrl.a, np.asarray(e, np.float64))
+
+    def arx(self) -> ArxPGNN:
+        """P' = z^-D P_zoh as [B2]'s ARX model (the PGNN (30) with n1 = 0): ŷ(k) = -Σ a_i ŷ(k-i) + Σ b_i ĉ(k-D-i),
+        ĉ the controller's command before the delay (:meth:`loop_controller` closes the loop on it)."""
+        zeros, poles, k = self._plant_zpk()
+        num, den = k * np.poly(np.atleast_1d(zeros)), np.poly(poles)   # descending powers of z
+        n, m = den.size - 1, num.size - 1
+        return ArxPGNN(n, m + 1, n - m - 1 + self.ctrl.delay, np.concatenate([-den[1:], num]) / den[0])
+
+    def loop_controller(self) -> DiscreteController:
+        """gtau C_y as [B2]'s controller (no computational delay: :meth:`arx` holds it): the command is
+        ĉ = gtau C_y (r - ŷ) + φ (module docstring)."""
+        return DiscreteController.from_tf(self.ctrl.transfer_functions(self.Ts)[1] * self.ctrl.gtau)
 
     def state_space(self):
         """G as a discrete python-control state-space model (norm-optimal ILC's filters)."""
@@ -231,10 +246,60 @@ class NormOptimalILC(Update):
         return self._solver.step(e, f)
 
 
+class IlFhofc(Update):
+    """[B2]'s IL-FHOFC (22) on the recorded error (:func:`pipeline.invert.fhofc.il_fhofc_step`), then Q (module
+    docstring). ``arx``: the closed-loop model Φ̂ (an :class:`ArxPGNN`, e.g. a [B2] PGNN with its NN; its input
+    the command ĉ before the delay, its controller ``ctrl``); default the physics' :meth:`LoopModel.arx` and
+    :meth:`LoopModel.loop_controller`. The model loop runs from rest at r(0) on r - r(0) (the physics is
+    linear: the static load is the integrator's, as for the other laws)."""
+
+    law = "il_fhofc"
+
+    def __init__(self, model, q_cutoff_hz, q_order=2, pad_seconds=0.5, *, reference, gamma: float | None = None,
+                 window: int = 200, overlap: int = 50, maxiter: int = 100, arx: ArxPGNN | None = None,
+                 ctrl: DiscreteController | None = None):
+        super().__init__(model, q_cutoff_hz, q_order, pad_seconds)
+        self.arx = model.arx() if arx is None else arx
+        self.loop = model.loop_controller() if ctrl is None else ctrl
+        if gamma is None:     # |G| = γ |Δ| at Q's cutoff: L G = 1/2 there, as |Q| (learning)
+            wq = 2 * math.pi * q_cutoff_hz
+            gamma = float(np.abs(model.response(wq)) / np.abs(1.0 - np.exp(-1j * wq * model.Ts)))
+        if not (math.isfinite(gamma) and gamma >= 0):
+            raise ValueError(f"learn.gamma={gamma} must be a finite number >= 0 [m/N] (Γ = γΔ of [B2] (31))")
+        self.gamma, self.window, self.overlap = float(gamma), int(window), int(overlap)
+        # one Gauss–Newton step solves FHOFC of a linear model exactly (a linear least squares)
+        self.max_iter = 1 if self.arx.n1 == 0 else int(maxiter)
+        self.r = np.asarray(reference, np.float64)
+        self.last = None
+
+    def learning(self, w):
+        """L G = |G|² / (|G|² + γ² |1 - e^{-jωTs}|²): FHOFC's regularised inverse of G, long-trial limit (its bias
+        -γ²|Δ|² φ_j / (|G|² + γ²|Δ|²) is a contraction too: the check with it left out is conservative)."""
+        g2 = np.abs(self.model.response(w)) ** 2
+        if self.gamma == 0.0:
+            return np.where(g2 > 0, 1.0, 0.0)
+        d2 = np.abs(1.0 - np.exp(-1j * np.asarray(w) * self.model.Ts)) ** 2
+        return g2 / (g2 + self.gamma ** 2 * d2)
+
+    def next(self, e, f, gain: float, offset=None) -> np.ndarray:
+        e, f = np.asarray(e, np.float64), np.asarray(f, np.float64)
+        if e.shape != self.r.shape:
+            raise ValueError(f"the recorded error has {e.size} samples, the reference {self.r.size}")
+        k = 0.0 if offset is None else np.asarray(offset, np.float64)
+        phi = f + k
+        x = self.r - self.r[0]
+        self.last = il_fhofc_step(self.arx, self.loop, x, phi, x - e, alpha=gain, gamma=self.gamma,
+                                  window=self.window, overlap=self.overlap, max_iter=self.max_iter,
+                                  check_range=False)
+        return signal.sosfiltfilt(self.q_sos, self.last.u_ff) - k
+
+
 def make_update(model: LoopModel, law: str, q_cutoff_hz: float, q_order: int = 2, **weights) -> Update:
-    """The update law named ``law`` (:data:`LAWS`)."""
+    """The update law named ``law`` (:data:`LAWS`); il_fhofc needs ``reference=r``."""
     if law == "model_ilc":
         return ModelILC(model, q_cutoff_hz, q_order)
     if law == "norm_optimal":
         return NormOptimalILC(model, q_cutoff_hz, q_order, **weights)
+    if law == "il_fhofc":
+        return IlFhofc(model, q_cutoff_hz, q_order, **weights)
     raise ValueError(f"learn.law={law!r}; choose one of {LAWS}")

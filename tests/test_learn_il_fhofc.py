@@ -1,0 +1,203 @@
+"""[B2]'s IL-FHOFC as a campaign's update law (issue 50 item 2, ``learn.law: il_fhofc``): the existing method
+(:func:`pipeline.invert.fhofc.fhofc` on [B2]'s ARX model in its loop) fed by recordings instead of a simulator.
+
+The virtual machine is tests/test_learn.py's (a 1.25 kg carriage with a 1 ms actuator lag, a 180 Hz mode,
+30 nm noise quantised to 10 nm, a filtered PID, one sample of delay); the campaign's model a 1.0 kg mass with
+4 N s/m (20 % light, no lag, no mode). The [B2] small cases are tests/test_fhofc.py's minimum-phase ARX loop.
+"""
+from __future__ import annotations
+
+import importlib.util
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import control
+import numpy as np
+import pytest
+
+from pipeline.invert.fhofc import fhofc, fhofc_windows, il_fhofc, il_fhofc_step
+from pipeline.learn import campaign, machine, safety
+from pipeline.learn.cli import main as learn_main
+from pipeline.learn.update import IlFhofc, LoopModel, make_update
+from pipeline.models.closed_loop import ArxPGNN, DiscreteController, arx_from_tf, simulate_closed_loop
+from pipeline.systems.controller import LTIController
+from tests import test_learn as tl
+
+ROOT = Path(__file__).resolve().parent.parent
+#: the commit this law was branched from: pipeline/invert/fhofc.py as `make reproduce` ran it before the law
+BASE = "14d0301"
+
+
+def _mp_loop(n1: int = 0, seed: int = 0):
+    """tests/test_fhofc.py's minimum-phase ARX (zero at z = -0.5) with a lead controller; ``n1`` > 0 adds a tanh
+    layer (a [B2] PGNN (30), zero at rest)."""
+    G = control.tf([1.0, 0.5], [1.0, -1.5, 0.7], 0.01)
+    C = control.tf([0.3, -0.2], [1.0, -0.5], 0.01)
+    theta, orders = arx_from_tf(G)
+    lin = ArxPGNN(*orders, theta)
+    if not n1:
+        return lin, DiscreteController.from_tf(C)
+    rng = np.random.default_rng(seed)
+    W1, b1, W2 = rng.uniform(-1, 1, (n1, lin.n_phi)), rng.uniform(-0.5, 0.5, n1), rng.uniform(-1, 1, n1)
+    return (ArxPGNN(*orders, theta, W1, b1, W2, -float(W2 @ np.tanh(b1)), out_scale=0.02),
+            DiscreteController.from_tf(C))
+
+
+def _move(N: int, amp: float = 1.0) -> np.ndarray:
+    return amp * (1 - np.cos(np.pi * np.arange(N) / (N - 1))) / 2
+
+
+def _old_fhofc_module():
+    """pipeline/invert/fhofc.py as of BASE, imported from git (None when git or the commit is not there)."""
+    try:
+        src = subprocess.run(["git", "show", f"{BASE}:pipeline/invert/fhofc.py"], cwd=ROOT, capture_output=True,
+                             text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    spec = importlib.util.spec_from_loader("fhofc_at_base", loader=None)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod          # its dataclasses look their module up
+    try:
+        exec(compile(src, f"{BASE}:pipeline/invert/fhofc.py", "exec"), mod.__dict__)
+    finally:
+        del sys.modules[spec.name]
+    return mod
+
+
+@pytest.mark.parametrize("n1, gamma", [(0, 0.0), (0, 1e-3), (5, 1e-3)])
+def test_il_fhofc_in_make_reproduce_is_unchanged_to_the_bit(n1, gamma):
+    """`invert=il_fhofc` (stages/invert/il_fhofc.py → pipeline.invert.fhofc.il_fhofc) gives the same bits as the
+    module before this law: both run here on a mismatched plant (linear and PGNN model; γ = 0: the triangular
+    solve, γ > 0: the QR least squares), every trial's u_ff, ŷ and rms compared with array_equal."""
+    old = _old_fhofc_module()
+    if old is None:
+        pytest.skip(f"git or commit {BASE} not available (a shallow clone)")
+    model, ctrl = _mp_loop(n1)
+    nl = _mp_loop(3, seed=4)[0]
+    true = nl.with_theta(np.r_[nl.theta_phy * [1.0, 1.0, 1.2, 0.8], nl.theta()[4:]])   # mismatched, nonlinear
+    r = _move(120)
+
+    def plant(u):
+        return simulate_closed_loop(true, ctrl, r, u)[0]
+
+    a = il_fhofc(model, ctrl, r, plant, n_trials=4, alpha=0.8, gamma=gamma, check_range=False)
+    b = old.il_fhofc(model, ctrl, r, plant, n_trials=4, alpha=0.8, gamma=gamma, check_range=False)
+    assert np.array_equal(a.e_rms, b.e_rms)
+    for i in range(4):
+        assert np.array_equal(a.u_ff[i], b.u_ff[i]) and np.array_equal(a.y_hat[i], b.y_hat[i]), i
+    assert a.e_rms[-1] < 0.1 * a.e_rms[0]     # and it learns (not a trivially equal case)
+
+
+@pytest.mark.parametrize("n1, gamma", [(0, 0.0), (0, 1e-3), (5, 1e-3)])
+def test_one_recorded_step_is_il_fhofcs_next_trial_to_the_bit(n1, gamma):
+    """il_fhofc_step from trial i's u_ff and the plant's output (a recording) returns il_fhofc's u_ff of trial
+    i + 1 to the bit: the campaign's law is [B2]'s (22), not a copy of it."""
+    model, ctrl = _mp_loop(n1)
+    true = _mp_loop(3, seed=2)[0]
+    r = _move(150)
+    out = il_fhofc(model, ctrl, r, lambda u: simulate_closed_loop(true, ctrl, r, u)[0], n_trials=3, alpha=0.7,
+                   gamma=gamma, check_range=False)
+    for i in range(2):
+        step = il_fhofc_step(model, ctrl, r, out.u_ff[i], out.y[i], alpha=0.7, gamma=gamma, check_range=False)
+        assert np.array_equal(step.u_ff, out.u_ff[i + 1]), i
+
+
+def test_fhofc_on_windows_is_the_whole_horizon_solution():
+    """γ = 0: causal, so windows give the whole-horizon FHOFC to rounding (1e-12); γ > 0: the overlap covers the
+    regularised inverse's look-ahead (measured 4e-12 with 50 samples here). A window with less overlap than the
+    model's delay is refused in one line."""
+    model, ctrl = _mp_loop(5)
+    r = _move(700)
+    tgt = r + 0.01 * np.sin(np.arange(r.size) / 17.0)
+    for gamma, tol in ((0.0, 1e-12), (1e-3, 1e-10)):
+        whole = fhofc(model, ctrl, r, target=tgt, gamma=gamma, check_range=False)
+        win = fhofc_windows(model, ctrl, r, window=160, overlap=50, target=tgt, gamma=gamma, check_range=False)
+        rel = np.max(np.abs(win.u_ff - whole.u_ff)) / np.max(np.abs(whole.u_ff))
+        assert rel < tol, (gamma, rel)
+        assert win.converged and win.inversion_error == pytest.approx(whole.inversion_error, rel=1e-6, abs=1e-12)
+    short = fhofc_windows(model, ctrl, r[:200], window=160, overlap=50, target=tgt[:200], check_range=False)
+    assert np.array_equal(short.u_ff, fhofc(model, ctrl, r[:200], target=tgt[:200], check_range=False).u_ff)
+    with pytest.raises(ValueError, match="overlap >= n_k \\+ 1 = 1"):
+        fhofc_windows(model, ctrl, r, window=100, overlap=0)
+
+
+def test_the_physics_as_b2s_arx_loop_is_the_campaigns_loop():
+    """LoopModel.arx() in LoopModel.loop_controller()'s loop (no delay in the controller: the ARX holds it) maps
+    φ to y as the campaign's G = P'/(1 + gtau C_y P') (its frequency response, python-control on the lifted
+    impulse response), and the model's rest at r = 0 stays at rest."""
+    ctrl = LTIController.lti(num=tl.NUM, den=tl.DEN, delay=1, v_sat=tl.U_MAX)
+    m = LoopModel(tl.TS, 1.0, 4.0, 0.0, ctrl)
+    arx, loop = m.arx(), m.loop_controller()
+    assert (arx.n_a, arx.n_b, arx.n_k) == (2, 2, 1)
+    N = 4000
+    pulse = np.zeros(N)
+    pulse[0] = 1.0
+    h = simulate_closed_loop(arx, loop, np.zeros(N), pulse)[0]      # ŷ for φ = a unit pulse, r = 0
+    w = 2 * math.pi * np.array([1.0, 10.0, 25.0, 60.0, 200.0])
+    H = np.array([np.sum(h * np.exp(-1j * wk * tl.TS * np.arange(N))) for wk in w])
+    assert np.allclose(H, m.response(w), rtol=1e-6), np.abs(H / m.response(w) - 1)
+    assert np.array_equal(simulate_closed_loop(arx, loop, np.zeros(50), np.zeros(50))[0], np.zeros(50))
+
+
+def test_the_convergence_check_is_the_regularised_inverse_and_the_auto_gamma_halves_it_at_q():
+    """learning(ω) = |G|² / (|G|² + γ² |1 - e^{-jωTs}|²) (FHOFC's Tikhonov inverse, long-trial limit), with G from
+    python-control (ZOH of 1/(M s² + F_v s), the delay, feedback through gtau C_y); the default γ makes it 1/2 at
+    q_cutoff_hz; γ = 0 makes it 1 (the exact inverse)."""
+    ctrl = LTIController.lti(num=tl.NUM, den=tl.DEN, delay=1, v_sat=tl.U_MAX)
+    m = LoopModel(tl.TS, 1.0, 4.0, 0.0, ctrl)
+    P = control.c2d(control.tf([1.0], [1.0, 4.0, 0.0]), tl.TS, "zoh") * control.tf([1.0], [1.0, 0.0], tl.TS)
+    G = control.feedback(P, ctrl.transfer_functions(tl.TS)[1] * ctrl.gtau)
+    f = np.array([1.0, 30.0, 100.0, 300.0])
+    w = 2 * math.pi * f
+    g2 = np.abs(G(np.exp(1j * w * tl.TS))) ** 2
+    d2 = np.abs(1 - np.exp(-1j * w * tl.TS)) ** 2
+    upd = make_update(m, "il_fhofc", 100.0, reference=tl.reference())
+    assert upd.gamma ** 2 == pytest.approx(g2[2] / d2[2], rel=1e-6)             # L G = 1/2 at 100 Hz
+    assert np.allclose(upd.learning(w), g2 / (g2 + upd.gamma ** 2 * d2), rtol=1e-6)
+    assert upd.learning(w)[2] == pytest.approx(0.5, rel=1e-6)
+    assert np.array_equal(make_update(m, "il_fhofc", 100.0, reference=tl.reference(), gamma=0.0).learning(w),
+                          np.ones(4))
+    chk = safety.convergence_check(upd, 1.0, 0.4, n=400)
+    q = upd.q(2 * math.pi * chk["f_hz"])
+    lg = upd.learning(2 * math.pi * chk["f_hz"])
+    assert np.allclose(chk["rho"], q * (np.abs(1 - lg) + 0.4 * lg), rtol=1e-12)
+    with pytest.raises(ValueError, match="learn.gamma=-1"):
+        IlFhofc(m, 100.0, reference=tl.reference(), gamma=-1.0)
+
+
+def test_il_fhofc_campaign_falls_monotonically_to_the_noise_floor(tmp_path):
+    """`law: il_fhofc` on the machine the model does not match (20 % heavier, a 1 ms lag, a 180 Hz mode, 30 nm
+    noise, 10 nm quantisation): the rms error falls every trial, no rollback, and stops at ≤ 1.3 × the noise
+    floor estimated from the standstill samples (the true noise in y √(30² + 10²/12) = 30.1 nm); measured:
+    58.6 µm → 2.68 µm → 632 nm → 214 nm → 89 nm → 50 nm → 42 nm → 38.3 nm (stop, floor 29.8 nm), ~1 s a trial."""
+    cfg = tl._config(tmp_path, law="il_fhofc")
+    c = campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", tracking=False)
+    assert c.state["convergence"]["ok"] and c.config["learn"]["law"] == "il_fhofc"
+    log = machine.run(tmp_path / "camp", "sim:tests.test_learn:simulate", 12)
+    rms = [h["rms"] for h in log]
+    dec = [h["decision"] for h in log]
+    assert dec[-1] == "stop" and set(dec[:-1]) == {"learn"}, dec
+    assert all(b < a for a, b in zip(rms, rms[1:])), rms
+    floor = log[-1]["noise_floor"]
+    assert 27e-9 < floor < 36e-9, floor
+    assert rms[-1] <= 1.3 * floor and rms[0] / rms[-1] > 1000, (rms[0], rms[-1])
+    assert len(log) <= 8 and all(h["limited_samples"] == 0 for h in log)
+
+
+def test_a_diverging_il_fhofc_gain_is_refused_and_forced_rolls_back(tmp_path, capsys):
+    """Gain 3 (R^(i+1) = Ŷ + 3 E): ρ = |Q| (|1 - 3 L G| + 1.2 L G) ≥ 1 from the lowest frequencies: init is
+    refused naming the band; forced, the first learned trial is worse by more than 1.2x and the campaign rolls
+    back to trial 0's u_ff with α = 1.5."""
+    cfg = tl._config(tmp_path, law="il_fhofc", gain=3.0)
+    assert learn_main(["init", str(tmp_path / "camp"), "--config", str(cfg), "--reference",
+                       str(tmp_path / "ref.csv"), "--no-mlflow"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "does not converge on 0.125-" in err
+    campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", force=True, tracking=False)
+    log = machine.run(tmp_path / "camp", "sim:tests.test_learn:simulate", 3)
+    assert log[1]["decision"] == "rollback" and log[1]["rms"] > 1.2 * log[0]["rms"], log[1]
+    assert log[1]["gain"] == pytest.approx(1.5)
+    c = campaign.load(tmp_path / "camp")
+    assert np.array_equal(c.u_ff(2), c.u_ff(0))

@@ -71,7 +71,7 @@ class LearnLaw:
     # regularisation (the triangular solve: fast, but the inverse's noise gain is cut by Q alone)
     gamma: Optional[float] = spec(None, ge=0, le=1.0, unit="m/N")
     # il_fhofc: FHOFC on windows of fhofc_window samples, each looking fhofc_overlap further (the dense Jacobian)
-    fhofc_window: int = spec(200, ge=1, le=5000)
+    fhofc_window: int = spec(100, ge=1, le=5000)
     fhofc_overlap: int = spec(50, ge=1, le=5000)
     # the model's Coulomb force along r and the recorded y in L (model_ilc; needs model.F_c, coulomb_width > 0)
     along_trajectory: bool = True

@@ -127,12 +127,30 @@ class LoopModel:
         return self.ctrl.gtau * signal.lfilter(self.ctrl.b_y, self.ctrl.a, np.asarray(e, np.float64))
 
     def arx(self) -> ArxPGNN:
-        """P' = z^-D P_zoh as [B2]'s ARX model (the PGNN (30) with n1 = 0): ŷ(k) = -Σ a_i ŷ(k-i) + Σ b_i ĉ(k-D-i),
-        ĉ the controller's command before the delay (:meth:`loop_controller` closes the loop on it)."""
+        """P' = z^-D P_zoh as [B2]'s ARX model (the PGNN (30)): ŷ(k) = -Σ a_i ŷ(k-i) + Σ b_i ĉ(k-D-i), ĉ the
+        controller's command before the delay (:meth:`loop_controller` closes the loop on it). With a Coulomb
+        width the force F_c tanh(q̇/w) acting over the interval [j, j+1) is the PGNN's tanh layer, one neuron per
+        b_i: -b_i F_c tanh((ŷ(k-i) - ŷ(k-i-1))/(Ts w)), the velocity one interval earlier (explicit: ŷ(k) may
+        not depend on itself; stable while its damping F_c Ts/(w M) < 1)."""
         zeros, poles, k = self._plant_zpk()
         num, den = k * np.poly(np.atleast_1d(zeros)), np.poly(poles)   # descending powers of z
         n, m = den.size - 1, num.size - 1
-        return ArxPGNN(n, m + 1, n - m - 1 + self.ctrl.delay, np.concatenate([-den[1:], num]) / den[0])
+        theta = np.concatenate([-den[1:], num]) / den[0]
+        orders = (n, m + 1, n - m - 1 + self.ctrl.delay)
+        if not (self.F_c and self.coulomb_width):
+            return ArxPGNN(*orders, theta)
+        if self.F_c * self.Ts / (self.coulomb_width * self.M) >= 1.0:
+            raise ValueError(f"the model's Coulomb slope F_c/w = {self.F_c / self.coulomb_width:.4g} N s/m is too "
+                             f"stiff for one explicit step at Ts = {self.Ts:g} s (F_c Ts/(w M) >= 1); learn.law="
+                             "il_fhofc needs a wider model.coulomb_width or no Coulomb term")
+        nb, na = m + 1, n + 1            # ŷ(k-1 .. k-n-1): the velocity of the oldest interval needs one more lag
+        P = np.zeros((nb, na + nb))      # x_i = (ŷ(k-i) - ŷ(k-i-1)) / (Ts w), i = 1 .. n_b
+        for i in range(nb):
+            P[i, i], P[i, i + 1] = 1.0, -1.0
+        P /= self.Ts * self.coulomb_width
+        b = theta[n:]
+        return ArxPGNN(na, nb, orders[2], np.concatenate([theta[:n], [0.0], b]), np.eye(nb), np.zeros(nb),
+                       -b / abs(b[0]), 0.0, nn_P=P, out_scale=self.F_c * abs(b[0]))
 
     def loop_controller(self) -> DiscreteController:
         """gtau C_y as [B2]'s controller (no computational delay: :meth:`arx` holds it): the command is
@@ -256,7 +274,7 @@ class IlFhofc(Update):
     law = "il_fhofc"
 
     def __init__(self, model, q_cutoff_hz, q_order=2, pad_seconds=0.5, *, reference, gamma: float | None = None,
-                 window: int = 200, overlap: int = 50, maxiter: int = 100, arx: ArxPGNN | None = None,
+                 window: int = 100, overlap: int = 50, maxiter: int = 100, arx: ArxPGNN | None = None,
                  ctrl: DiscreteController | None = None):
         super().__init__(model, q_cutoff_hz, q_order, pad_seconds)
         self.arx = model.arx() if arx is None else arx

@@ -36,9 +36,21 @@ on G as a state-space model)::
 
 with w = ``w_f`` max|G|², w_Δ = ``w_df`` max|G|² (max|G| over frequency ≈ σ_max of the lifted G).
 
-For both laws the learned part of one trial is ``α L G`` in the frequency domain (:meth:`Update.learning`):
+**IL-FHOFC** (``law: il_fhofc``; [B2] (22), :func:`pipeline.invert.fhofc.il_fhofc_step`, the method of
+``invert=il_fhofc`` fed by the recording instead of a simulator)::
+
+    R_{j+1} = Ŷ_j + α e_j,   Ŷ_j = Φ̂(R, φ_j),   φ_{j+1} = Q argmin_φ ‖R_{j+1} - Φ̂(R, φ)‖² + ‖γ Δ φ‖²
+
+Φ̂ is [B2]'s closed-loop model: the ARX model (30) of P' (:meth:`LoopModel.arx`; with a Coulomb width a PGNN,
+the force in its tanh layer) in the loop of gtau C_y (:meth:`LoopModel.loop_controller`), or any
+:class:`ArxPGNN` given; FHOFC ([B2] (17)) by :func:`pipeline.invert.fhofc.fhofc` on windows
+(:func:`pipeline.invert.fhofc.fhofc_windows`: the dense Jacobian of 48 000 samples would not fit). γ defaults
+to |G|/|Δ| at ``q_cutoff_hz``.
+
+For every law the learned part of one trial is ``α L G`` in the frequency domain (:meth:`Update.learning`):
 L G = |Q| for model-based ILC, |G|² / (|G|² + w + w_Δ) for norm-optimal ILC (the long-trial limit of the
-lifted solution); the convergence check of :mod:`pipeline.learn.safety` uses it.
+lifted solution), |G|² / (|G|² + γ² |1 - e^{-jωTs}|²) for IL-FHOFC (its linearisation); the convergence check
+of :mod:`pipeline.learn.safety` uses it.
 """
 from __future__ import annotations
 

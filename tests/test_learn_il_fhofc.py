@@ -159,10 +159,13 @@ def test_the_convergence_check_is_the_regularised_inverse_and_the_auto_gamma_hal
     assert upd.learning(w)[2] == pytest.approx(0.5, rel=1e-6)
     assert np.array_equal(make_update(m, "il_fhofc", 100.0, reference=tl.reference(), gamma=0.0).learning(w),
                           np.ones(4))
-    chk = safety.convergence_check(upd, 1.0, 0.4, n=400)
-    q = upd.q(2 * math.pi * chk["f_hz"])
-    lg = upd.learning(2 * math.pi * chk["f_hz"])
-    assert np.allclose(chk["rho"], q * (np.abs(1 - lg) + 0.4 * lg), rtol=1e-12)
+    # the trial map Q L G (1 - α (1 + Δ)) (FHOFC solves for Ŷ_j + α e_j: L G φ_j + α L e_j), worst over |Δ| ≤ δ
+    for gain in (1.0, 0.5, 1.25):
+        chk = safety.convergence_check(upd, gain, 0.4, n=400)
+        q = upd.q(2 * math.pi * chk["f_hz"])
+        lg = upd.learning(2 * math.pi * chk["f_hz"])
+        assert np.allclose(chk["rho"], q * lg * (abs(1 - gain) + gain * 0.4), rtol=1e-12)
+        assert chk["ok"] and chk["rho_max"] < abs(1 - gain) + gain * 0.4
     with pytest.raises(ValueError, match="learn.gamma=-1"):
         IlFhofc(m, 100.0, reference=tl.reference(), gamma=-1.0)
 
@@ -187,15 +190,23 @@ def test_il_fhofc_campaign_falls_monotonically_to_the_noise_floor(tmp_path):
 
 
 def test_a_diverging_il_fhofc_gain_is_refused_and_forced_rolls_back(tmp_path, capsys):
-    """Gain 3 (R^(i+1) = Ŷ + 3 E): ρ = |Q| (|1 - 3 L G| + 1.2 L G) ≥ 1 from the lowest frequencies: init is
-    refused naming the band (measured 0.125-91.6 Hz); forced, the first learned trial is worse by more than 1.2x
-    (measured 1.34x) and the campaign rolls back to trial 0's u_ff with α = 1.5; the trials then measure
-    ρ̂ = 0.85 and the error falls (58.6 → 31.4 → 17.3 µm)."""
+    """Gain 3 (R^(i+1) = Ŷ + 3 E): ρ = |Q| L G (|1 - 3| + 3 · 0.4) ≥ 1 from the lowest frequencies: init is
+    refused naming the band (0.125-95.6 Hz: up to |Q| L G = 1/3.2); forced, the first learned trial is worse by
+    more than 1.2x (measured 1.34x) and the campaign rolls back to trial 0's u_ff with α = 1.5; the trials then
+    measure ρ̂ = 0.85 and the error falls (58.6 → 31.4 → 17.3 µm)."""
     cfg = tl._config(tmp_path, law="il_fhofc", gain=3.0)
     assert learn_main(["init", str(tmp_path / "camp"), "--config", str(cfg), "--reference",
                        str(tmp_path / "ref.csv"), "--no-mlflow"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "does not converge on 0.125-" in err
+    hi = float(err.split("does not converge on 0.125-")[1].split(" Hz")[0])
+    # the band's edge: |Q| L G (|1 - 3| + 3 · 0.4) = 1, found here by brentq on the law's own |Q| and L G
+    from scipy.optimize import brentq
+    upd = make_update(LoopModel(tl.TS, 1.0, 4.0, 0.0, LTIController.lti(num=tl.NUM, den=tl.DEN, delay=1)),
+                      "il_fhofc", 100.0, reference=tl.reference())
+    edge = brentq(lambda f: (upd.q(np.array([2 * math.pi * f])) * upd.learning(np.array([2 * math.pi * f])))[0]
+                  - 1 / 3.2, 1.0, 400.0)
+    assert abs(hi - edge) < 0.25, (hi, edge)                        # measured 95.6 Hz
     campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", force=True, tracking=False)
     log = machine.run(tmp_path / "camp", "sim:tests.test_learn:simulate", 5)
     assert log[1]["decision"] == "rollback" and log[1]["rms"] > 1.2 * log[0]["rms"], log[1]

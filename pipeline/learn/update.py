@@ -217,6 +217,12 @@ class Update:
         """L G at ω (module docstring)."""
         raise NotImplementedError
 
+    def rho(self, w, gain: float, delta) -> np.ndarray:
+        """The worst trial-to-trial factor |Q| (|1 - α L G| + α |L G| δ) at ω over |Δ| ≤ δ
+        (:func:`pipeline.learn.safety.convergence_check`)."""
+        lg = self.learning(w)
+        return self.q(w) * (np.abs(1.0 - gain * lg) + gain * np.abs(lg) * delta)
+
     def correction(self, e: np.ndarray, f: np.ndarray) -> np.ndarray:
         """The learned change before Q and α [N]."""
         raise NotImplementedError
@@ -303,13 +309,19 @@ class IlFhofc(Update):
         self.last = None
 
     def learning(self, w):
-        """L G = |G|² / (|G|² + γ² |1 - e^{-jωTs}|²): FHOFC's regularised inverse of G, long-trial limit (its bias
-        -γ²|Δ|² φ_j / (|G|² + γ²|Δ|²) is a contraction too: the check with it left out is conservative)."""
+        """L G = |G|² / (|G|² + γ² |1 - e^{-jωTs}|²): FHOFC's regularised inverse L = G* / (|G|² + γ²|Δ|²) of G,
+        long-trial limit."""
         g2 = np.abs(self.model.response(w)) ** 2
         if self.gamma == 0.0:
             return np.where(g2 > 0, 1.0, 0.0)
         d2 = np.abs(1.0 - np.exp(-1j * np.asarray(w) * self.model.Ts)) ** 2
         return g2 / (g2 + self.gamma ** 2 * d2)
+
+    def rho(self, w, gain, delta):
+        """The target Ŷ_j + α e_j with Ŷ_j = G φ_j + (r's part): FHOFC's solution is L G φ_j + α L e_j, so with
+        e_j = d - G (1 + Δ) φ_j the trial map is Q L G (1 - α (1 + Δ)): worst case |Q| L G (|1 - α| + α δ)
+        (L G real in [0, 1]; γ's bias 1 - L G contracts too)."""
+        return self.q(w) * self.learning(w) * (abs(1.0 - gain) + gain * delta)
 
     def next(self, e, f, gain: float, offset=None) -> np.ndarray:
         e, f = np.asarray(e, np.float64), np.asarray(f, np.float64)

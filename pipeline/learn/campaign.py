@@ -358,8 +358,11 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
         decision, gain = "slow", gain / 2.0
     best = min(history + [{"rms": err, "trial": j}], key=lambda h: h["rms"])
     kr = c.controller_term()
+    diagnostics = {}
     if decision in ("learn", "slow"):
-        u_next = c.update().next(e, rec["u_ff"], gain, kr)
+        upd = c.update()
+        u_next = upd.next(e, rec["u_ff"], gain, kr)
+        diagnostics = upd.diagnostics()
     elif decision == "rollback":
         gain = gain / 2.0
         u_next = c.u_ff(best["trial"])
@@ -375,7 +378,7 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
              "noise_floor": floor, "decision": decision, "gain": gain, "controller_error": rec["controller_error"],
              "limited_samples": int(np.count_nonzero(flags)), "max_abs_u": float(np.max(np.abs(rec["u"]))),
              "measured_rho": None if math.isnan(measured["rho_max"]) else measured["rho_max"],
-             "measured_band": measured["band"]}
+             "measured_band": measured["band"], **diagnostics}
     c.state["trials"].append(entry)
     c.state["gain"] = gain
     plot_errors(c.state["trials"], c.folder / "errors.png")

@@ -227,6 +227,10 @@ class Update:
         """The learned change before Q and α [N]."""
         raise NotImplementedError
 
+    def diagnostics(self) -> dict:
+        """What the last :meth:`next` reports for the trial's log entry (none by default)."""
+        return {}
+
     def next(self, e, f, gain: float, offset=None) -> np.ndarray:
         """f_{j+1} [N] from the error e_j [m] of the feedforward f_j [N]. ``offset``: the controller term
         (C_r - C_y) r gtau (:meth:`LTIController.reference_force`); Q then acts on the force f + offset the
@@ -334,6 +338,13 @@ class IlFhofc(Update):
                                   window=self.window, overlap=self.overlap, max_iter=self.max_iter,
                                   check_range=False)
         return signal.sosfiltfilt(self.q_sos, self.last.u_ff) - k
+
+    def diagnostics(self) -> dict:
+        """FHOFC's inversion error ‖R_{j+1} - Ŷ‖/√N [m] ([B2] (15): how far the model reaches the target) and its
+        Gauss–Newton steps, of the last :meth:`next`."""
+        if self.last is None:
+            return {}
+        return {"fhofc_inversion_error": self.last.inversion_error, "fhofc_iterations": self.last.n_iter}
 
 
 def make_update(model: LoopModel, law: str, q_cutoff_hz: float, q_order: int = 2, **weights) -> Update:

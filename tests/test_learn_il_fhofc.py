@@ -318,3 +318,38 @@ def test_the_coulomb_pgnn_learns_on_an_axis_with_other_friction_where_the_linear
                                                                 c.controller_term())
     mae_lin = float(np.mean(np.abs(ha.simulate(r, u, seed=101)["e"])))
     assert mae_lin > 2.5 * mae[1], (mae_lin, mae[1])
+
+
+def test_a_lag_the_model_check_misses_is_measured_and_slows_il_fhofc(tmp_path):
+    """The machine with a 3 ms actuator lag (48° at 60 Hz) the model lacks: the check before the campaign passes
+    (δ = 0.4 covers no phase), the first two trials measure |Q(1 - α L Ĝ)| = 1.20 on 21-27 Hz, α halves, and the
+    error then falls every trial (measured 59.1 → 6.76 → 3.21 → 2.02 → 1.49 µm rms) — as with model_ilc."""
+    cfg = tl._config(tmp_path, law="il_fhofc")
+    c = campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", tracking=False)
+    assert c.state["convergence"]["ok"]
+    log = machine.run(tmp_path / "camp", "sim:tests.test_learn:simulate_lag3", 5)
+    assert log[1]["decision"] == "slow" and log[1]["gain"] == 0.5
+    assert log[1]["measured_rho"] == pytest.approx(1.20, abs=0.03)
+    lo, hi = log[1]["measured_band"]
+    assert lo < 25 < hi
+    rms = [h["rms"] for h in log]
+    assert all(b < a for a, b in zip(rms, rms[1:])) and all(h["measured_rho"] < 1 for h in log[2:]), rms
+
+
+def test_il_fhofcs_feedforward_is_limited_and_flagged_as_the_other_laws(tmp_path):
+    """safety.u_max and safety.rate clip what IL-FHOFC learned (its u_ff after the first trial reaches 2.79 N and
+    90.5 N/s unlimited): u_ff_1 within ±2 N and 50 N/s (0.05 N per sample), the samples flagged SATURATED (32)
+    and RATE_LIMITED (64), counted in the trial's entry."""
+    import pandas as pd
+    import yaml
+    cfg = tl._config(tmp_path, law="il_fhofc")
+    node = yaml.safe_load(cfg.read_text())
+    node["safety"].update({"u_max": 2.0, "rate": 50.0})
+    cfg.write_text(yaml.safe_dump(node))
+    campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", tracking=False)
+    log = machine.run(tmp_path / "camp", "sim:tests.test_learn:simulate", 1)
+    u = pd.read_csv(tmp_path / "camp" / "u_ff_1.csv")
+    assert np.max(np.abs(u["u_ff"])) <= 2.0 and np.max(np.abs(np.diff(u["u_ff"]))) <= 0.05 + 1e-12
+    flags = u["flags"].to_numpy()
+    assert np.any(flags & 32) and np.any(flags & 64)
+    assert log[0]["limited_samples"] == int(np.count_nonzero(flags)) > 0

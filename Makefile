@@ -7,7 +7,7 @@ ROOT := $(abspath .)
 MLFLOW_DB ?= sqlite:///$(ROOT)/mlruns/mlflow.db
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help install test test-full lint reproduce reproduce-check ui server pg-uri-missing bench slurm-local clean
+.PHONY: help install test test-full lint reproduce reproduce-check reproduce-spread ui server pg-uri-missing bench slurm-local clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-10s %s\n", $$1, $$2}'
@@ -100,6 +100,41 @@ reproduce-check: install  ## rerun every experiment perturbed (CHECK=perturb), t
 	$(PY) -m pipeline.perturbation results/summary.csv $(CHECKED)/results/summary.csv --out results \
 	  --check $(CHECK) --rtol $(CHECK_RTOL) --setting "$(CHECK_ENV)"
 	$(PY) -m pipeline stages=[report] experiment_name=report run_name=report report.update=$(REPORT_UPDATE)   # REPORT.md shows the check
+
+# claim rows on a statistic over restarts (issue 52 item 2; pipeline/spread.py): the experiments whose network
+# fits decide claim rows rerun with init_seed = each of SEEDS (the same data and evaluation noise, other initial
+# weights and restarts), one store and results folder per init_seed under .spread/<SPREAD_CHECK or default>/;
+# with the default run as init_seed 0, results/spread.csv gives each key's median and [min, max], and REPORT.md
+# judges the claim rows on the median. SPREAD_CHECK=perturb|isa: the same init_seeds (0 included) under
+# PIPELINE_PERTURB=$(PERTURB) or PIPELINE_ISA=$(ISA) in their own cache, their medians checked against
+# results/spread.csv (results/spread-check-<SPREAD_CHECK>.md). Costs (SEEDS words) x the experiments' job time.
+SEEDS ?= 1 2 3 4
+SPREAD_EXPERIMENTS ?= b1_linear_motor k_two_mass b2_rot_trans
+SPREAD_CHECK ?=
+empty :=
+space := $(empty) $(empty)
+SPREAD_DIR := $(ROOT)/.spread/$(or $(SPREAD_CHECK),default)
+SPREAD_ENV = $(if $(filter isa,$(SPREAD_CHECK)),PIPELINE_ISA=$(ISA),$(if $(filter perturb,$(SPREAD_CHECK)),PIPELINE_PERTURB=$(PERTURB)))
+SPREAD_SEEDS = $(if $(SPREAD_CHECK),0 $(SEEDS),$(SEEDS))
+SPREAD_LABELS = $(subst $(space),$(comma),$(strip $(if $(SPREAD_CHECK),,0) $(SPREAD_SEEDS)))
+SPREAD_SUMMARIES = $(if $(SPREAD_CHECK),,results/summary.csv) $(foreach s,$(SPREAD_SEEDS),$(SPREAD_DIR)/seed$(s)/results/summary.csv)
+reproduce-spread: install  ## rerun the fit-decided experiments with other init_seeds (SEEDS), judge claim rows on the median
+	@$(if $(filter-out perturb isa,$(SPREAD_CHECK)),$(error SPREAD_CHECK=$(SPREAD_CHECK) is not known: leave it empty, or perturb, or isa))
+	@test -n "$(SPREAD_CHECK)" -o -f results/summary.csv || { echo "make reproduce-spread: no results/summary.csv (init_seed 0): run make reproduce first"; exit 1; }
+	@for s in $(SPREAD_SEEDS); do \
+	  d=$(SPREAD_DIR)/seed$$s; echo "== init_seed $$s: $(SPREAD_EXPERIMENTS) ($(or $(SPREAD_ENV),default code path))"; \
+	  rm -rf $$d/mlflow.db $$d/mlflow.db.open.lock $$d/artifacts $$d/results/summary.csv; \
+	  $(SPREAD_ENV) $(if $(SPREAD_CHECK),PIPELINE_CACHE=$(SPREAD_DIR)/cache) MLFLOW_TRACKING_URI=sqlite:///$$d/mlflow.db \
+	    $(PY) -m pipeline.reproduce --results $$d/results $(if $(JOBS),--jobs $(JOBS)) --override init_seed=$$s \
+	    $(SPREAD_EXPERIMENTS) || exit 1; \
+	  $(SPREAD_ENV) $(if $(SPREAD_CHECK),PIPELINE_CACHE=$(SPREAD_DIR)/cache) MLFLOW_TRACKING_URI=sqlite:///$$d/mlflow.db \
+	    $(PY) -m pipeline stages=[report] experiment_name=report run_name=report paths.results=$$d/results || exit 1; \
+	done
+	$(PY) -m pipeline.spread build $(SPREAD_SUMMARIES) --labels $(SPREAD_LABELS) --setting "$(or $(SPREAD_ENV),default)" \
+	  $(if $(SPREAD_CHECK),--out $(SPREAD_DIR) --name spread,--out results)
+	$(if $(SPREAD_CHECK),$(PY) -m pipeline.spread check results/spread.csv $(SPREAD_DIR)/spread.csv --name $(SPREAD_CHECK) \
+	  --setting "$(SPREAD_ENV)" --out results || true)
+	$(PY) -m pipeline stages=[report] experiment_name=report run_name=report report.update=$(REPORT_UPDATE)   # REPORT.md shows it
 
 ui: install  ## MLflow UI on http://127.0.0.1:5000 over the same store as the runs
 	@echo "The project's experiments (open a link for its runs table):"

@@ -3,7 +3,7 @@ the held-out vertical axis (tests/heldout_axis.py, its 12 s test reference at 4 
 recording, the update, the limits, writing the next u_ff and the plot (MLflow off), per update law; and the
 update alone (norm_optimal: with its solve's stop and residual). Goal: ≤ 10 s on 2 cores.
 
-Usage: ``.venv/bin/python benchmarks/bench_learn.py [--repeat 3]``
+Usage: ``.venv/bin/python benchmarks/bench_learn.py [--repeat 3] [--laws model_ilc norm_optimal il_fhofc]``
 """
 from __future__ import annotations
 
@@ -13,11 +13,13 @@ import tempfile
 import time
 from pathlib import Path
 
+import pipeline  # noqa: F401  (before numpy: its one BLAS thread per process, as the pgnn-ff CLI runs)
 import numpy as np
 import pandas as pd
 import yaml
 
 from pipeline.learn import campaign
+from pipeline.learn.update import LAWS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 import heldout_axis as ha  # noqa: E402  (the held-out axis lives with the tests)
@@ -26,6 +28,7 @@ import heldout_axis as ha  # noqa: E402  (the held-out axis lives with the tests
 def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--laws", nargs="+", default=list(LAWS), choices=LAWS)
     a = p.parse_args()
     b_r, b_y, den, D = ha.controller()
     r = ha.eval_reference()
@@ -35,7 +38,7 @@ def main() -> None:
         pd.DataFrame({"t": rec["t"], "r": r}).to_csv(tmp / "ref.csv", index=False, float_format="%.17g")
         pd.DataFrame({"t": rec["t"], "r": r, "u": rec["u"], "y": rec["y"], "u_ff": np.zeros(r.size)}).to_csv(
             tmp / "trial_0.csv", index=False, float_format="%.17g")
-        for law in ("model_ilc", "norm_optimal"):
+        for law in a.laws:
             cfg = {"Ts": ha.TS, "controller": {"kind": "lti", "num": b_y, "den": den, "num_r": b_r, "delay": D,
                                                "v_sat": 60.0},
                    "model": {"M": 2.67, "F_v": 10.0, "F_c": 4.0, "coulomb_width": 1e-3},
@@ -53,7 +56,7 @@ def main() -> None:
                 upd.next(r - rec["y"], np.zeros(r.size), 1.0, kr)
                 updates.append(time.perf_counter() - t0)
                 cpu.append(time.process_time() - c0)
-            solve = getattr(upd, "solve", None)     # norm_optimal: how the exact solve stopped
+            solve = upd.diagnostics().get("solve")     # norm_optimal: how the exact solve stopped
             how = f"; solve {solve['stop']}, residual {solve['residual']:.2g}" if solve else ""
             print(f"{law}: one trial (step: read, check, update, write) {np.median(steps):.2f} s wall "
                   f"[{min(steps):.2f}-{max(steps):.2f}], the update alone {np.median(updates):.2f} s wall, "

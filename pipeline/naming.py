@@ -23,7 +23,8 @@ SHORT = {"system.noise.structure": {"equation": "eq", "output": "out"},
          "invert.trial_noise": {"True": "trialnoise", "False": "noiseless"}}
 #: symbols that prefix a numeric value of a key
 PREFIX = {"system.noise.std": "σ", "regularizer.lam": "λ", "invert.gamma": "γ", "model.hidden": "n",
-          "seed": "s", "data.n_samples": "N", "identify.theta_star": "θ*", "model.nn_inputs": "nn_"}
+          "seed": "s", "init_seed": "init", "data.n_samples": "N", "identify.theta_star": "θ*",
+          "model.nn_inputs": "nn_"}
 #: inversions of a PGNN: the display name adds which identification they use ([B1]: fwd = forward PGNN (10),
 #: inv = direct-inverse PGNN (13), invt = invertible PGNN (26)), short so that the name column shows it
 PGNN_INVERSIONS = ("direct", "newton", "analytic")

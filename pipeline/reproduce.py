@@ -1,6 +1,6 @@
 """``make reproduce``'s driver: every job of the paper experiments in one queue, timed.
 
-    python -m pipeline.reproduce [--results DIR] [--jobs N] EXPERIMENT [EXPERIMENT ...]
+    python -m pipeline.reproduce [--results DIR] [--jobs N] [--override KEY=VALUE ...] EXPERIMENT [EXPERIMENT ...]
 
 One ``python -m pipeline -m hydra/sweeper=queue hydra.sweeper.experiments=[...] hydra/launcher=local
 hydra.launcher.n_jobs=N`` in a subprocess: every experiment's sweep (one job where it has none) in
@@ -60,7 +60,7 @@ def cores_available() -> int:
 
 
 def run(experiments: list[str], results: Path, python: str = sys.executable,
-        jobs: int | None = None) -> pd.DataFrame:
+        jobs: int | None = None, overrides: list[str] | None = None) -> pd.DataFrame:
     from pipeline.runner import ROOT  # lazy: saves 1.9 s of start-up (mlflow via pipeline.runner)
     from pipeline.tracking import git_sha  # lazy: saves 2.2 s of start-up (mlflow via pipeline.tracking)
     path = results / "timings.csv"
@@ -80,7 +80,7 @@ def run(experiments: list[str], results: Path, python: str = sys.executable,
     proc = subprocess.Popen([python, "-m", "pipeline", "-m", "hydra/sweeper=queue",
                              f"hydra.sweeper.experiments=[{','.join(experiments)}]",
                              f"hydra.sweeper.timings='{path}'", "hydra/launcher=local",
-                             f"hydra.launcher.n_jobs={jobs}"], stderr=subprocess.PIPE, env=env)
+                             f"hydra.launcher.n_jobs={jobs}", *(overrides or [])], stderr=subprocess.PIPE, env=env)
     _stream(proc.stderr.fileno())
     if proc.wait() != 0:
         raise SystemExit(f"make reproduce failed (exit code {proc.returncode}); see the job's error above")
@@ -106,11 +106,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--results", default=None, help="results folder (default <repo>/results)")
     ap.add_argument("--jobs", type=int, default=None,
                     help="jobs of a sweep run at once (default: the machine's cores)")
+    ap.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config override for every job, e.g. init_seed=1 (make reproduce-spread)")
     a = ap.parse_args(argv)
     if a.jobs is not None and a.jobs < 1:
         ap.error(f"--jobs {a.jobs}: give a positive number of parallel jobs, e.g. --jobs 2")
     from pipeline.runner import ROOT  # lazy: saves 1.9 s of start-up (mlflow via pipeline.runner)
-    run(a.experiments, Path(a.results) if a.results else ROOT / "results", jobs=a.jobs)
+    run(a.experiments, Path(a.results) if a.results else ROOT / "results", jobs=a.jobs, overrides=a.override)
 
 
 if __name__ == "__main__":

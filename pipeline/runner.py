@@ -226,6 +226,10 @@ def _without(node, dotted: str):
     return node
 
 
+#: DEPENDS keys added after caches were written: at this value left out of the key, so those entries stay valid
+_KEY_DEFAULTS = {"init_seed": 0}
+
+
 def stage_key(cfg: DictConfig, name: str, mod, upstream_keys: dict[str, str],
               exclude: tuple[str, ...] = ()) -> str:
     version = [getattr(mod, "VERSION", 1)]
@@ -234,6 +238,7 @@ def stage_key(cfg: DictConfig, name: str, mod, upstream_keys: dict[str, str],
         impl = implementation(name, str(OmegaConf.select(cfg, mod.KIND_KEY)))
         version.append(getattr(impl, "VERSION", 1))
     config = {k: _select(cfg, k) for k in mod.DEPENDS}
+    config = {k: v for k, v in config.items() if _KEY_DEFAULTS.get(k, object()) != v}
     for dotted in exclude:   # a part's key (StageContext.memo) leaves out keys it does not depend on
         config = _without(config, dotted)
     payload = {"stage": name, "version": version, "config": config,

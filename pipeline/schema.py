@@ -95,6 +95,9 @@ class Config:
     """The top level; each group (system, data, ...) is checked by its option's own class."""
     # seeds every random draw of the job (SPEC §0)
     seed: int = spec(0, ge=0)
+    # the networks' initial weights and restarts only (issue 52 item 2; `make reproduce-spread`): 0 draws
+    # them from `seed` (every published number); k > 0 from (seed, k): other restarts on the same data
+    init_seed: int = spec(0, ge=0)
     # MLflow experiment (one per paper experiment)
     experiment_name: str = spec("default", check=_name_rule, example="my_study")
     run_name: str = "default"

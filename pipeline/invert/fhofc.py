@@ -34,8 +34,9 @@ from pipeline.models.closed_loop import (
     simulate_closed_loop,
 )
 
-__all__ = ["FHOFCResult", "ILResult", "difference_matrix", "fhofc", "fhofc_receding", "il_fhofc",
-           "linear_ilc", "check_validity", "inverse_model_feedforward", "lemma_5_1_gap", "lemma_5_2_gap"]
+__all__ = ["FHOFCResult", "ILResult", "difference_matrix", "fhofc", "fhofc_receding", "fhofc_windows", "il_fhofc",
+           "il_fhofc_step", "linear_ilc", "check_validity", "inverse_model_feedforward", "lemma_5_1_gap",
+           "lemma_5_2_gap"]
 
 
 @dataclass
@@ -654,6 +655,75 @@ def il_fhofc(model: ArxPGNN, ctrl: DiscreteController, r, plant: Callable[[np.nd
             callback(i, out.e_rms[i])
         target = sol.y_hat + alpha * e          # [B2] (22)
     return out
+
+
+def fhofc_windows(model: ArxPGNN, ctrl: DiscreteController, r, *, window: int, overlap: int, gamma: float = 0.0,
+                  target=None, u_ff0=None, state: LoopState | None = None, u_prev: float = 0.0,
+                  **fhofc_kwargs) -> FHOFCResult:
+    """FHOFC [B2] (17) on a reference too long for one dense N_k × N_k Jacobian: :func:`fhofc` on consecutive
+    windows of ``window`` + ``overlap`` samples, each from the model's state (and Δ's u_ff(-1)) that the inputs
+    already kept reached; a window keeps its first ``window`` inputs, the ``overlap`` only looks ahead (the
+    receding horizon of [B2] (18) with a step of ``window`` samples). With γ = 0 the solution is causal (the
+    triangular solve of :func:`_gn_step`: u_ff(k) follows from the target up to k + n_k + 1), so any
+    ``overlap`` ≥ n_k + 1 gives the whole-horizon solution; with γ > 0 the overlap must cover the decay of the
+    regularised inverse. ``N_k`` ≤ ``window`` + ``overlap``: :func:`fhofc` itself (the same result to the
+    bit). Bounds must be scalars (they apply to every window). Other parameters as :func:`fhofc`."""
+    t0 = time.perf_counter()
+    model = as_arx(model)
+    r = np.asarray(r, dtype=np.float64).reshape(-1)
+    N = r.shape[0]
+    window, overlap = int(window), int(overlap)
+    if window < 1 or overlap < model.delay:
+        raise ValueError(f"fhofc_windows needs window >= 1 and overlap >= n_k + 1 = {model.delay} (the inputs a "
+                         f"window cannot move an output with); got window={window}, overlap={overlap}")
+    if N <= window + overlap:
+        return fhofc(model, ctrl, r, gamma=gamma, target=target, u_ff0=u_ff0, state=state, u_prev=u_prev,
+                     **fhofc_kwargs)
+    tgt = r if target is None else np.asarray(target, dtype=np.float64).reshape(-1)
+    if tgt.shape != r.shape:
+        raise ValueError(f"target has {tgt.shape[0]} samples but r has {N}; give both one length")
+    u = np.zeros(N) if u_ff0 is None else np.array(u_ff0, dtype=np.float64).reshape(-1)
+    if u.shape != (N,):
+        raise ValueError(f"u_ff0 has {u.shape[0]} samples but r has {N}")
+    st = LoopState.rest(model, ctrl) if state is None else state.copy()
+    prev, n_iter, converged, messages, history = u_prev, 0, True, set(), []
+    for s in range(0, N, window):
+        e, keep = min(N, s + window + overlap), min(window, N - s)
+        sol = fhofc(model, ctrl, r[s:e], gamma=gamma, target=tgt[s:e], u_ff0=u[s:e], state=st, u_prev=prev,
+                    **fhofc_kwargs)
+        u[s:s + keep] = sol.u_ff[:keep]
+        _, _, st = simulate_closed_loop(model, ctrl, r[s:s + keep], u[s:s + keep], st, return_state=True)
+        prev = u[s + keep - 1]
+        n_iter += sol.n_iter
+        converged &= sol.converged
+        messages.add(sol.message)
+        history.append(sol.cost)
+    y_hat, u_hat = simulate_closed_loop(model, ctrl, r, u, state)
+    err = tgt - y_hat
+    cost = float(err @ err + gamma ** 2 * np.sum(_diff(u, u_prev) ** 2))
+    return FHOFCResult(u, y_hat, u_hat, cost, float(np.linalg.norm(err) / math.sqrt(N)), history, n_iter,
+                       bool(converged), True, f"{len(history)} windows: " + ", ".join(sorted(messages)),
+                       time.perf_counter() - t0)
+
+
+def il_fhofc_step(model: ArxPGNN, ctrl: DiscreteController, r, u_ff, y, *, alpha: float = 1.0, gamma: float = 0.0,
+                  window: int | None = None, overlap: int = 0, **fhofc_kwargs) -> FHOFCResult:
+    """One trial of IL-FHOFC [B2] (22) from a *measured* trial: the plant ran U_ff^(i) and returned Y^(i) (a
+    recording, not :func:`il_fhofc`'s plant callable). Ŷ^(i) = Φ̂(θ̂, x0, R, U_ff^(i)), R^(i+1) = Ŷ^(i) + α (R -
+    Y^(i)), and FHOFC for R^(i+1) from U_ff^(i). With ``window`` None the whole-horizon :func:`fhofc`: the
+    U_ff^(i+1) of :func:`il_fhofc` to the bit (the same Ŷ^(i), target and start); else :func:`fhofc_windows`."""
+    r = np.asarray(r, dtype=np.float64).reshape(-1)
+    y = np.asarray(y, dtype=np.float64).reshape(-1)
+    if not alpha > 0:
+        raise ValueError(f"learning gain alpha must be > 0, got {alpha}")
+    if y.shape != r.shape or not np.all(np.isfinite(y)):
+        raise ValueError(f"the measured output must be {r.shape[0]} finite samples (one per reference sample)")
+    y_hat, _ = simulate_closed_loop(model, ctrl, r, u_ff)
+    target = y_hat + alpha * (r - y)          # [B2] (22)
+    if window is None:
+        return fhofc(model, ctrl, r, gamma=gamma, target=target, u_ff0=u_ff, **fhofc_kwargs)
+    return fhofc_windows(model, ctrl, r, window=window, overlap=overlap, gamma=gamma, target=target, u_ff0=u_ff,
+                         **fhofc_kwargs)
 
 
 def linear_ilc(model: ArxPGNN, ctrl: DiscreteController, r, plant: Callable[[np.ndarray], np.ndarray], *,

@@ -58,7 +58,7 @@ class LearnModel:
 @schema
 class LearnLaw:
     """The update law (pipeline.learn.update)."""
-    law: Literal["model_ilc", "norm_optimal"] = "model_ilc"
+    law: Literal["model_ilc", "norm_optimal", "il_fhofc"] = "model_ilc"
     gain: float = spec(1.0, gt=0, le=4.0)
     q_cutoff_hz: float = spec(150.0, gt=0, le=FREQ_MAX, unit="Hz")
     q_order: int = spec(2, ge=1, le=8)
@@ -69,8 +69,16 @@ class LearnLaw:
     # norm_optimal: the exact solve's relative residual on its normal equations, and its refinement sweeps at most
     # (each one O(N); the solve's stop, converged or cap, is in every trial's log)
     rtol: float = spec(1e-9, gt=0, lt=1)
-    maxiter: int = spec(3, ge=0, le=ITER_MAX)
-    # the model's Coulomb force along r and the recorded y (both laws; needs model.F_c, coulomb_width > 0)
+    max_sweeps: int = spec(3, ge=0, le=ITER_MAX)
+    # il_fhofc: Gauss–Newton iterations per window of a nonlinear model (a linear one takes one)
+    maxiter: int = spec(100, ge=1, le=ITER_MAX)
+    # il_fhofc: γ of Γ = γΔ ([B2] (31)); null: |G|/|Δ| at q_cutoff_hz (L G = 1/2 where |Q| = 1/2); 0: no
+    # regularisation (the triangular solve: fast, but the inverse's noise gain is cut by Q alone)
+    gamma: Optional[float] = spec(None, ge=0, le=1.0, unit="m/N")
+    # il_fhofc: FHOFC on windows of fhofc_window samples, each looking fhofc_overlap further (the dense Jacobian)
+    fhofc_window: int = spec(100, ge=1, le=5000)
+    fhofc_overlap: int = spec(50, ge=1, le=5000)
+    # the model's Coulomb force along r and the recorded y (model_ilc, norm_optimal; needs model.F_c, coulomb_width > 0)
     along_trajectory: bool = True
 
 
@@ -158,8 +166,11 @@ class Campaign:
         c = self.cfg
         model = LoopModel(self.Ts, c.model.M, c.model.F_v, c.model.K, self.controller(), c.model.F_c,
                           c.model.coulomb_width)
-        weights = {} if c.learn.law == "model_ilc" else {"w_f": c.learn.w_f, "w_df": c.learn.w_df,
-                                                         "maxiter": c.learn.maxiter, "rtol": c.learn.rtol}
+        L = c.learn
+        weights = {"model_ilc": {}, "norm_optimal": {"w_f": L.w_f, "w_df": L.w_df, "max_sweeps": L.max_sweeps,
+                                                     "rtol": L.rtol},
+                   "il_fhofc": {"reference": self.reference, "gamma": L.gamma, "window": L.fhofc_window,
+                                "overlap": L.fhofc_overlap, "maxiter": L.maxiter}}[L.law]
         upd = make_update(model, c.learn.law, c.learn.q_cutoff_hz, c.learn.q_order, **weights)
         return upd.along(self.reference) if c.learn.along_trajectory else upd
 
@@ -353,11 +364,11 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
         decision, gain = "slow", gain / 2.0
     best = min(history + [{"rms": err, "trial": j}], key=lambda h: h["rms"])
     kr = c.controller_term()
-    solve = None
+    diagnostics = {}
     if decision in ("learn", "slow"):
         upd = c.update()
         u_next = upd.next(e, rec["u_ff"], gain, kr)
-        solve = getattr(upd, "solve", None)   # norm_optimal: the solve's residual and stop (converged / cap)
+        diagnostics = upd.diagnostics()
     elif decision == "rollback":
         gain = gain / 2.0
         u_next = c.u_ff(best["trial"])
@@ -373,7 +384,7 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
              "noise_floor": floor, "decision": decision, "gain": gain, "controller_error": rec["controller_error"],
              "limited_samples": int(np.count_nonzero(flags)), "max_abs_u": float(np.max(np.abs(rec["u"]))),
              "measured_rho": None if math.isnan(measured["rho_max"]) else measured["rho_max"],
-             "measured_band": measured["band"], "solve": solve}
+             "measured_band": measured["band"], **diagnostics}
     c.state["trials"].append(entry)
     c.state["gain"] = gain
     plot_errors(c.state["trials"], c.folder / "errors.png")

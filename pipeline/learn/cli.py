@@ -31,7 +31,7 @@ def _line(h: dict) -> str:
     sol = h.get("solve")
     if sol:    # norm_optimal: how its solve stopped
         sol = (f"; solve {sol['stop']} (residual {sol['residual']:.2g}" + ("" if sol["stop"] == "converged" else
-               f" > learn.rtol {sol['rtol']:g}: WARNING, raise learn.maxiter, or learn.rtol if that is rounding")
+               f" > learn.rtol {sol['rtol']:g}: WARNING, raise learn.max_sweeps, or learn.rtol if that is rounding")
                + ")")
     return (f"trial {h['trial']}: rms {h['rms']:.4g} m, MAE {h['mae']:.4g} m, max {h['max']:.4g} m, noise floor "
             f"{h['noise_floor']:.3g} m -> {h['decision']} (gain {h['gain']:g})" + (sol or "") + warn)

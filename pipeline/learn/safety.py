@@ -8,7 +8,8 @@ of the long-trial limit). With the true plant G_true = G (1 + Δ), |Δ(ω)| ≤ 
 
     ρ(ω) = |Q(ω)| (|1 - α L G(ω)| + α |L G(ω)| δ(ω))   < 1
 
-checked on a grid up to the Nyquist frequency; a failure names the band where ρ ≥ 1.
+checked on a grid up to the Nyquist frequency; a failure names the band where ρ ≥ 1. A law whose trial map
+differs gives its own (:meth:`pipeline.learn.update.Update.rho`: IL-FHOFC's is |Q| L G (|1 - α| + α δ)).
 
 **Every trial** (:func:`limited`, :func:`decide`): the next feedforward within ±u_max and the slew rate
 (the export's default limits: 1.5 × the largest |u - (C_r - C_y) r| and its largest slew of the first
@@ -48,8 +49,7 @@ def convergence_check(update, gain: float, delta0: float, growth_hz: float | Non
     Ts = update.model.Ts
     f = np.linspace(0.0, 0.5 / Ts, n + 1)[1:]
     w = 2 * math.pi * f
-    lg = update.learning(w)
-    rho = update.q(w) * (np.abs(1.0 - gain * lg) + gain * np.abs(lg) * uncertainty(f, delta0, growth_hz))
+    rho = update.rho(w, gain, uncertainty(f, delta0, growth_hz))
     bad = rho >= 1.0
     out = {"f_hz": f, "rho": rho, "ok": not bool(bad.any()), "rho_max": float(rho.max()),
            "f_at_max": float(f[int(np.argmax(rho))]), "band": None, "message": ""}

@@ -41,7 +41,7 @@ w = w_Δ = 0 the minimiser is model-based ILC's G^-1 e_j + δd. The minimiser is
 (GᵀG + (w + w_Δ) I) Δφ = Gᵀ ê_j - w φ_j solved as the finite-horizon LQ tracking problem of G's state space
 (:meth:`LoopModel.realisation`; a backward Riccati and adjoint sweep and a forward sweep, O(N),
 :class:`pipeline.invert.ilc_lq.RiccatiUpdate`), its residual on the normal equations measured and refined to
-``rtol`` (at most ``maxiter`` sweeps; :attr:`NormOptimalILC.solve` says converged or cap, the campaign logs it).
+``rtol`` (at most ``max_sweeps``; :attr:`NormOptimalILC.solve` says converged or cap, the campaign logs it).
 
 Which weight: with an integrator in C_y, G(1) = 0 (the loop rejects a constant force), so the DC part of φ never
 shows in e and only the weights set it: w_Δ keeps φ_j's, w pulls it to 0. A 2-DOF controller's first φ_0 =
@@ -54,9 +54,21 @@ point's bias (Gᵀ ê∞ = w φ∞) stays under that axis's noise. Started from 
 error-feedback controller (C_r = C_y: φ_0 = 0) a w_df = 1e-4 on top damps the noise at the fixed point
 (tests/test_learn.py's machine: the stop at 1.28x the noise floor; 1.36x and rollbacks on noise with the defaults).
 
-For both laws the learned part of one trial is ``α L G`` in the frequency domain (:meth:`Update.learning`):
+**IL-FHOFC** (``law: il_fhofc``; [B2] (22), :func:`pipeline.invert.fhofc.il_fhofc_step`, the method of
+``invert=il_fhofc`` fed by the recording instead of a simulator)::
+
+    R_{j+1} = Ŷ_j + α e_j,   Ŷ_j = Φ̂(R, φ_j),   φ_{j+1} = Q argmin_φ ‖R_{j+1} - Φ̂(R, φ)‖² + ‖γ Δ φ‖²
+
+Φ̂ is [B2]'s closed-loop model: the ARX model (30) of P' (:meth:`LoopModel.arx`; with a Coulomb width a PGNN,
+the force in its tanh layer) in the loop of gtau C_y (:meth:`LoopModel.loop_controller`), or any
+:class:`ArxPGNN` given; FHOFC ([B2] (17)) by :func:`pipeline.invert.fhofc.fhofc` on windows
+(:func:`pipeline.invert.fhofc.fhofc_windows`: the dense Jacobian of 48 000 samples would not fit). γ defaults
+to |G|/|Δ| at ``q_cutoff_hz``.
+
+For every law the learned part of one trial is ``α L G`` in the frequency domain (:meth:`Update.learning`):
 L G = |Q| for model-based ILC, |G|² / (|G|² + w + w_Δ) for norm-optimal ILC (the long-trial limit of the
-lifted solution); the convergence check of :mod:`pipeline.learn.safety` uses it.
+lifted solution), |G|² / (|G|² + γ² |1 - e^{-jωTs}|²) for IL-FHOFC (its linearisation); the convergence check
+of :mod:`pipeline.learn.safety` uses it.
 """
 from __future__ import annotations
 
@@ -67,13 +79,15 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft, signal
 
+from pipeline.invert.fhofc import il_fhofc_step
 from pipeline.invert.ilc import process_sensitivity
 from pipeline.invert.ilc_lq import RiccatiUpdate
+from pipeline.models.closed_loop import ArxPGNN, DiscreteController
 from pipeline.systems.controller import LTIController
 
-__all__ = ["LoopModel", "Update", "ModelILC", "NormOptimalILC", "make_update", "apply_response", "LAWS"]
+__all__ = ["LoopModel", "Update", "ModelILC", "NormOptimalILC", "IlFhofc", "make_update", "apply_response", "LAWS"]
 
-LAWS = ("model_ilc", "norm_optimal")
+LAWS = ("model_ilc", "norm_optimal", "il_fhofc")
 
 
 @dataclass(frozen=True, eq=False)
@@ -182,6 +196,37 @@ class LoopModel:
         e = 0): what the feedback made of the error."""
         return self.ctrl.gtau * signal.lfilter(self.ctrl.b_y, self.ctrl.a, np.asarray(e, np.float64))
 
+    def arx(self) -> ArxPGNN:
+        """P' = z^-D P_zoh as [B2]'s ARX model (the PGNN (30)): ŷ(k) = -Σ a_i ŷ(k-i) + Σ b_i ĉ(k-D-i), ĉ the
+        controller's command before the delay (:meth:`loop_controller` closes the loop on it). With a Coulomb
+        width the force F_c tanh(q̇/w) acting over the interval [j, j+1) is the PGNN's tanh layer, one neuron per
+        b_i: -b_i F_c tanh((ŷ(k-i) - ŷ(k-i-1))/(Ts w)), the velocity one interval earlier (explicit: ŷ(k) may
+        not depend on itself; stable while its damping F_c Ts/(w M) < 1)."""
+        zeros, poles, k = self._plant_zpk()
+        num, den = k * np.poly(np.atleast_1d(zeros)), np.poly(poles)   # descending powers of z
+        n, m = den.size - 1, num.size - 1
+        theta = np.concatenate([-den[1:], num]) / den[0]
+        orders = (n, m + 1, n - m - 1 + self.ctrl.delay)
+        if not (self.F_c and self.coulomb_width):
+            return ArxPGNN(*orders, theta)
+        if self.F_c * self.Ts / (self.coulomb_width * self.M) >= 1.0:
+            raise ValueError(f"the model's Coulomb slope F_c/w = {self.F_c / self.coulomb_width:.4g} N s/m is too "
+                             f"stiff for one explicit step at Ts = {self.Ts:g} s (F_c Ts/(w M) >= 1); learn.law="
+                             "il_fhofc needs a wider model.coulomb_width or no Coulomb term")
+        nb, na = m + 1, n + 1            # ŷ(k-1 .. k-n-1): the velocity of the oldest interval needs one more lag
+        P = np.zeros((nb, na + nb))      # x_i = (ŷ(k-i) - ŷ(k-i-1)) / (Ts w), i = 1 .. n_b
+        for i in range(nb):
+            P[i, i], P[i, i + 1] = 1.0, -1.0
+        P /= self.Ts * self.coulomb_width
+        b = theta[n:]
+        return ArxPGNN(na, nb, orders[2], np.concatenate([theta[:n], [0.0], b]), np.eye(nb), np.zeros(nb),
+                       -b / abs(b[0]), 0.0, nn_P=P, out_scale=self.F_c * abs(b[0]))
+
+    def loop_controller(self) -> DiscreteController:
+        """gtau C_y as [B2]'s controller (no computational delay: :meth:`arx` holds it): the command is
+        ĉ = gtau C_y (r - ŷ) + φ (module docstring)."""
+        return DiscreteController.from_tf(self.ctrl.transfer_functions(self.Ts)[1] * self.ctrl.gtau)
+
     def state_space(self):
         """G as a discrete python-control state-space model (norm-optimal ILC's filters)."""
         import control  # lazy: saves 1.9 s of start-up (python-control)
@@ -237,9 +282,19 @@ class Update:
         """L G at ω (module docstring)."""
         raise NotImplementedError
 
+    def rho(self, w, gain: float, delta) -> np.ndarray:
+        """The worst trial-to-trial factor |Q| (|1 - α L G| + α |L G| δ) at ω over |Δ| ≤ δ
+        (:func:`pipeline.learn.safety.convergence_check`)."""
+        lg = self.learning(w)
+        return self.q(w) * (np.abs(1.0 - gain * lg) + gain * np.abs(lg) * delta)
+
     def correction(self, e: np.ndarray, f: np.ndarray) -> np.ndarray:
         """The learned change before Q and α [N]."""
         raise NotImplementedError
+
+    def diagnostics(self) -> dict:
+        """What the last :meth:`next` reports for the trial's log entry (none by default)."""
+        return {}
 
     def next(self, e, f, gain: float, offset=None) -> np.ndarray:
         """f_{j+1} [N] from the error e_j [m] of the feedforward f_j [N]. ``offset``: the controller term
@@ -275,7 +330,7 @@ class NormOptimalILC(Update):
     law = "norm_optimal"
 
     def __init__(self, model, q_cutoff_hz, q_order=2, pad_seconds=0.5, w_f: float = 1e-5, w_df: float = 0.0,
-                 maxiter: int = 3, rtol: float = 1e-9):
+                 max_sweeps: int = 3, rtol: float = 1e-9):
         super().__init__(model, q_cutoff_hz, q_order, pad_seconds)
         w = np.linspace(0.0, math.pi / model.Ts, 20001)[1:]
         self.g2 = float(np.max(np.abs(model.response(w)))) ** 2
@@ -283,7 +338,7 @@ class NormOptimalILC(Update):
         if self.w + self.w_delta <= 0:
             raise ValueError("learn.w_f + learn.w_df must be > 0 for norm-optimal ILC (the model has a delay: no "
                              "exact inverse); e.g. learn.w_f=1e-5")
-        self.maxiter, self.rtol = int(maxiter), float(rtol)
+        self.max_sweeps, self.rtol = int(max_sweeps), float(rtol)
         self._solver: RiccatiUpdate | None = None
         self.solve: dict | None = None
 
@@ -294,7 +349,7 @@ class NormOptimalILC(Update):
     def correction(self, e, f):
         if self._solver is None or self._solver.N != e.size:
             self._solver = RiccatiUpdate(self.model.realisation(), e.size, self.w, self.w_delta, self.rtol,
-                                         self.maxiter)
+                                         self.max_sweeps)
         if self.reference is not None:   # the predicted error e_j - G (Δφ - δd): δd joins e through G
             c_r, c_y = self.coulomb_along(e)
             e = e + self._solver.apply(c_r - c_y)
@@ -302,15 +357,82 @@ class NormOptimalILC(Update):
         self.solve = self._solver.reports[-1].as_dict()
         if self.solve["stop"] != "converged":
             warnings.warn(f"norm-optimal ILC: the solve stopped at relative residual {self.solve['residual']:.3g} > "
-                          f"learn.rtol = {self.rtol:g} after {self.solve['sweeps']} refinement sweeps (learn.maxiter)",
-                          RuntimeWarning, stacklevel=2)
+                          f"learn.rtol = {self.rtol:g} after {self.solve['sweeps']} refinement sweeps "
+                          "(learn.max_sweeps)", RuntimeWarning, stacklevel=2)
         return out
+
+    def diagnostics(self) -> dict:
+        """The last solve's report for the trial's log entry: ``solve`` = {method, residual, rtol, sweeps, stop}."""
+        return {} if self.solve is None else {"solve": self.solve}
+
+
+class IlFhofc(Update):
+    """[B2]'s IL-FHOFC (22) on the recorded error (:func:`pipeline.invert.fhofc.il_fhofc_step`), then Q (module
+    docstring). ``arx``: the closed-loop model Φ̂ (an :class:`ArxPGNN`, e.g. a [B2] PGNN with its NN; its input
+    the command ĉ before the delay, its controller ``ctrl``); default the physics' :meth:`LoopModel.arx` and
+    :meth:`LoopModel.loop_controller`. The model loop runs from rest at r(0) on r - r(0) (the physics is
+    linear: the static load is the integrator's, as for the other laws)."""
+
+    law = "il_fhofc"
+
+    def __init__(self, model, q_cutoff_hz, q_order=2, pad_seconds=0.5, *, reference, gamma: float | None = None,
+                 window: int = 100, overlap: int = 50, maxiter: int = 100, arx: ArxPGNN | None = None,
+                 ctrl: DiscreteController | None = None):
+        super().__init__(model, q_cutoff_hz, q_order, pad_seconds)
+        self.arx = model.arx() if arx is None else arx
+        self.loop = model.loop_controller() if ctrl is None else ctrl
+        if gamma is None:     # |G| = γ |Δ| at Q's cutoff: L G = 1/2 there, as |Q| (learning)
+            wq = 2 * math.pi * q_cutoff_hz
+            gamma = float(np.abs(model.response(wq)) / np.abs(1.0 - np.exp(-1j * wq * model.Ts)))
+        if not (math.isfinite(gamma) and gamma >= 0):
+            raise ValueError(f"learn.gamma={gamma} must be a finite number >= 0 [m/N] (Γ = γΔ of [B2] (31))")
+        self.gamma, self.window, self.overlap = float(gamma), int(window), int(overlap)
+        # one Gauss–Newton step solves FHOFC of a linear model exactly (a linear least squares)
+        self.max_iter = 1 if self.arx.n1 == 0 else int(maxiter)
+        self.r = np.asarray(reference, np.float64)
+        self.last = None
+
+    def learning(self, w):
+        """L G = |G|² / (|G|² + γ² |1 - e^{-jωTs}|²): FHOFC's regularised inverse L = G* / (|G|² + γ²|Δ|²) of G,
+        long-trial limit."""
+        g2 = np.abs(self.model.response(w)) ** 2
+        if self.gamma == 0.0:
+            return np.where(g2 > 0, 1.0, 0.0)
+        d2 = np.abs(1.0 - np.exp(-1j * np.asarray(w) * self.model.Ts)) ** 2
+        return g2 / (g2 + self.gamma ** 2 * d2)
+
+    def rho(self, w, gain, delta):
+        """The target Ŷ_j + α e_j with Ŷ_j = G φ_j + (r's part): FHOFC's solution is L G φ_j + α L e_j, so with
+        e_j = d - G (1 + Δ) φ_j the trial map is Q L G (1 - α (1 + Δ)): worst case |Q| L G (|1 - α| + α δ)
+        (L G real in [0, 1]; γ's bias 1 - L G contracts too)."""
+        return self.q(w) * self.learning(w) * (abs(1.0 - gain) + gain * delta)
+
+    def next(self, e, f, gain: float, offset=None) -> np.ndarray:
+        e, f = np.asarray(e, np.float64), np.asarray(f, np.float64)
+        if e.shape != self.r.shape:
+            raise ValueError(f"the recorded error has {e.size} samples, the reference {self.r.size}")
+        k = 0.0 if offset is None else np.asarray(offset, np.float64)
+        phi = f + k
+        x = self.r - self.r[0]
+        self.last = il_fhofc_step(self.arx, self.loop, x, phi, x - e, alpha=gain, gamma=self.gamma,
+                                  window=self.window, overlap=self.overlap, max_iter=self.max_iter,
+                                  check_range=False)
+        return signal.sosfiltfilt(self.q_sos, self.last.u_ff) - k
+
+    def diagnostics(self) -> dict:
+        """FHOFC's inversion error ‖R_{j+1} - Ŷ‖/√N [m] ([B2] (15): how far the model reaches the target) and its
+        Gauss–Newton steps, of the last :meth:`next`."""
+        if self.last is None:
+            return {}
+        return {"fhofc_inversion_error": self.last.inversion_error, "fhofc_iterations": self.last.n_iter}
 
 
 def make_update(model: LoopModel, law: str, q_cutoff_hz: float, q_order: int = 2, **weights) -> Update:
-    """The update law named ``law`` (:data:`LAWS`)."""
+    """The update law named ``law`` (:data:`LAWS`); il_fhofc needs ``reference=r``."""
     if law == "model_ilc":
         return ModelILC(model, q_cutoff_hz, q_order)
     if law == "norm_optimal":
         return NormOptimalILC(model, q_cutoff_hz, q_order, **weights)
+    if law == "il_fhofc":
+        return IlFhofc(model, q_cutoff_hz, q_order, **weights)
     raise ValueError(f"learn.law={law!r}; choose one of {LAWS}")

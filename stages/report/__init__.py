@@ -149,8 +149,10 @@ def _with_checks(text: str, results: Path, table: pd.DataFrame | None = None) ->
         verdicts[check] = {(r.experiment, r.claim): r for r in claim_verdicts(k).itertuples()}
         if check == "tighten":
             tightened = {(r.experiment, r.fit): r for r in capped_fits(k).itertuples()}
+    spread, spread_lines = _spread(results, digests)
+    out += spread_lines
     if table is not None:
-        out = _claim_table(table, tightened, verdicts) + out
+        out = _claim_table(table, tightened, verdicts, spread) + out
     if not out:
         return text
     head, rest = text.split("\n## ", 1) if "\n## " in text else (text, "")
@@ -407,7 +409,43 @@ def _stop_reasons(experiment: str, runs: pd.DataFrame):
     return rows, md + "\n"
 
 
-def _claim_table(table: pd.DataFrame, tightened: dict | None = None, verdicts: dict | None = None) -> list[str]:
+def _spread(results: Path, digests: dict[str, str]) -> tuple[dict, list[str]]:
+    """The claims' statistics over restarts (``make reproduce-spread``, :mod:`pipeline.spread`) of the experiments
+    whose init_seed-0 rows are this summary's ((experiment, claim) -> its :func:`claim_statistics` row), and the
+    report's lines on it and on its checks (another code path's medians against the spread)."""
+    meta, csv = results / "spread.json", results / "spread.csv"
+    if not (meta.exists() and csv.exists()):
+        return {}, []
+    info = json.loads(meta.read_text())
+    valid, stale = kept_experiments(info, digests)
+    lines = []
+    if stale:
+        lines += [f"`make reproduce-spread`: results/spread.md was built on other rows of {', '.join(stale)} than "
+                  "these (stale); rerun it.", ""]
+    if not valid:
+        return {}, lines
+    stat = pd.read_csv(csv, dtype={"claim": str, "variant": str, "metric": str})
+    stat[["claim", "variant"]] = stat[["claim", "variant"]].fillna("")
+    stat = stat[stat["experiment"].isin(valid)]
+    for c in ("holds_median", "holds_min", "holds_max", "decided"):
+        stat[c] = stat[c].map(lambda v: v if isinstance(v, bool) else {"True": True, "False": False}.get(str(v)))
+    per = claims.claim_statistics(stat)
+    lines += [f"### Claim rows over restarts (`make reproduce-spread`, init_seed {', '.join(info['seeds'])})", "",
+              f"{', '.join(valid)} rerun with other initial weights and restarts (same data and noise): the claim "
+              "table's *holds* is judged on each row's median over the runs; rows whose verdict differs at the "
+              "spread's min or max are not decided by these fits. Per claim row: results/spread.md.", ""]
+    for check in ("perturb", "isa"):
+        f = results / f"spread-check-{check}.json"
+        if f.exists():
+            j = json.loads(f.read_text())
+            lines += [f"- `make reproduce-spread SPREAD_CHECK={check}` (`{j.get('setting', '')}`): "
+                      f"{j['claim_rows_inside']} of {j['claim_rows']} claim-row medians inside the spread, "
+                      f"{j['claim_rows_flipped']} verdicts flipped (results/spread-check-{check}.md)."]
+    return {(r.experiment, r.claim): r for r in per.itertuples()}, lines + [""]
+
+
+def _claim_table(table: pd.DataFrame, tightened: dict | None = None, verdicts: dict | None = None,
+                 spread: dict | None = None) -> list[str]:
     """The header's claim table: a claim holds when every one of its rows holds; beside it, how many
     of the experiment's fits stopped on an iteration cap, the fits named, each with its tightening check
     (``tightened``: (experiment, fit) -> its :func:`pipeline.perturbation.capped_fits` row) where one is current,
@@ -431,7 +469,14 @@ def _claim_table(table: pd.DataFrame, tightened: dict | None = None, verdicts: d
         holds = (g["claim_holds"] == "true").all()
         checks = ("a timing: the checks do not compare it" if g["metric"].map(is_timing).all() else
                   _verdict_in_checks(holds, {k: v.get((e, c)) for k, v in (verdicts or {}).items()}))
-        out.append(f"| {c} | {e} | {'yes' if holds else 'no'} | {checks} | {cap} |")
+        st = (spread or {}).get((e, c))
+        shown = 'yes' if holds else 'no'
+        if st is not None:      # judged on the medians over restarts (issue 52 item 2)
+            shown = (f"{'yes' if st.holds_median else 'no'} (median of the restarts"
+                     + ("" if st.holds_median == holds else f"; init_seed 0 alone: {'yes' if holds else 'no'}")
+                     + (f"; {st.rows_undecided} of {st.rows} rows not decided by the spread" if st.rows_undecided
+                        else "") + ")")
+        out.append(f"| {c} | {e} | {shown} | {checks} | {cap} |")
     return out + [""]
 
 

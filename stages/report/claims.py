@@ -28,8 +28,10 @@ import operator
 import re
 from dataclasses import dataclass
 
+import pandas as pd
+
 __all__ = ["Condition", "CONDITIONS", "CLAIMS_WITHOUT_FITS", "judge", "verdicts", "rule", "threshold", "paper",
-           "conditions"]
+           "conditions", "claim_statistics"]
 
 _OPS = {"<": operator.lt, "<=": operator.le, ">": operator.gt, ">=": operator.ge}
 _SYM = {"<": "<", "<=": "≤", ">": ">", ">=": "≥"}
@@ -246,3 +248,19 @@ def rule(claim: str, metric: str) -> str:
     if t[0] == "within":
         return f"{threshold(claim, metric):g} ± {t[1]}"
     return f"{_SYM[t[0]]} {threshold(claim, metric):g}" if ":" not in t[1] else f"{_SYM[t[0]]} {t[1]}"
+
+
+def claim_statistics(stat: pd.DataFrame) -> pd.DataFrame:
+    """Per (experiment, claim): rows, the verdict of seed 0 (its run's), the verdict on the medians, and the
+    rows the spread does not decide."""
+    c = stat[stat["holds_median"].notna()]
+    out = []
+    for (e, claim), g in c.groupby(["experiment", "claim"], sort=False):
+        seed0 = g["claim_holds"].astype(str).str.lower().eq("true")
+        undecided = g[g["decided"] == False]       # noqa: E712 - object column of True/False
+        out.append({"experiment": e, "claim": claim, "rows": len(g), "holds_seed0": bool(seed0.all()),
+                    "holds_median": bool(g["holds_median"].astype(bool).all()),
+                    "rows_undecided": len(undecided),
+                    "undecided": "; ".join(f"{r.variant} {r.metric}" for r in undecided.itertuples())})
+    return pd.DataFrame(out, columns=["experiment", "claim", "rows", "holds_seed0", "holds_median", "rows_undecided",
+                                      "undecided"])

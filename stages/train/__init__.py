@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from typing import Any, Literal
 
+import numpy as np
 from omegaconf import OmegaConf
 
 from pipeline.errors import ConfigError
@@ -47,7 +48,7 @@ class Orthogonal:
 
 
 UPSTREAM = ("generate", "baseline")
-DEPENDS = ("model", "identify", "regularizer", "seed")
+DEPENDS = ("model", "identify", "regularizer", "seed", "init_seed")
 VERSION = 3   # 2: stop reasons (stop_reason tags, stopped_on_cap) in every fit's record; 3: numpy's tanh in the
               # forward passes (pipeline/models/activations.py, issue 19)
 KIND_KEY = "identify.kind"
@@ -64,6 +65,22 @@ def run(ctx) -> dict:
     ctx.tag("tanh", IMPLEMENTATION)          # numpy's or torch's on this machine (the last bits of every NN fit)
     baseline_lag(ctx)
     return implementation("train", str(ctx.cfg.identify.kind)).fit(ctx)
+
+
+def init_seed(cfg) -> int:
+    """The seed of the networks' initial weights and of their restarts (issue 52 item 2): ``seed`` itself at
+    ``init_seed: 0`` (the default: every published number), else one drawn from (seed, init_seed), so
+    ``make reproduce-spread`` fits the same data, scored under the same noise, from other starting points."""
+    k = int(cfg.init_seed)
+    if k == 0:
+        return int(cfg.seed)
+    return int(np.random.SeedSequence([int(cfg.seed), k]).generate_state(1)[0] % (2**31 - 1))
+
+
+def init_purpose(cfg, purpose: str) -> str:
+    """``ctx.rng``'s purpose of an initial draw: itself at ``init_seed: 0``, else tagged with it."""
+    k = int(cfg.init_seed)
+    return purpose if k == 0 else f"{purpose}/init{k}"
 
 
 def check_rows(model, n_samples: int, val_fraction: float) -> None:

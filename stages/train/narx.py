@@ -29,7 +29,7 @@ from pipeline.models.pgnn import PGNN
 from pipeline.models.physics_maps import physics_features_for
 from pipeline.params import COUNT_MAX, ITER_MAX, schema, spec
 from pipeline.plots import pyplot
-from stages.train import check_rows, l2_lam, lm_progress, log_restarts, restart_memo, restart_options
+from stages.train import check_rows, init_seed, l2_lam, lm_progress, log_restarts, restart_memo, restart_options
 
 
 @schema
@@ -103,7 +103,7 @@ def build_model(cfg, system) -> PGNN:
         phys = physics_features_for(system.physics, structure, m["n_a"], m["n_b"], m["n_k"],
                                     input_is_model_input=uses_model_input(system))
     m["hidden"] = tuple(m["hidden"])
-    return PGNN(structure=structure, physics=phys, seed=int(cfg.seed), **m)
+    return PGNN(structure=structure, physics=phys, seed=init_seed(cfg), **m)
 
 
 def fit(ctx) -> dict:
@@ -120,7 +120,7 @@ def fit(ctx) -> dict:
     ident = cfg.identify
     check_rows(model, sum(len(y) for y in ys), float(ident.val_fraction))
     lam = l2_lam(cfg)
-    fit_ = identify_pgnn(model, ys, us, lam=lam, seed=int(cfg.seed), val_fraction=float(ident.val_fraction),
+    fit_ = identify_pgnn(model, ys, us, lam=lam, seed=init_seed(cfg), val_fraction=float(ident.val_fraction),
                          patience=int(ident.patience), **restart_options(ident, system.measured),
                          **lm_progress(ctx), theta_star=ctx.inputs["baseline"]["theta"] if system.measured else None,
                          memo=restart_memo(ctx))

@@ -35,7 +35,7 @@ from pipeline.models.physics_maps import LinearFeatures
 from pipeline.params import COUNT_MAX, ITER_MAX, schema, spec
 from pipeline.plots import pyplot
 from pipeline.systems.arx_bias import ARXPhysics
-from stages.train import check_rows, l2_lam, lm_progress, log_restarts, restart_memo, restart_options
+from stages.train import check_rows, init_seed, l2_lam, lm_progress, log_restarts, restart_memo, restart_options
 from stages.train.narx import build_model as build_narx_model
 
 
@@ -132,7 +132,7 @@ def build_model(cfg, system) -> PGNN:
                 physics=LinearFeatures(int(m.n_a) + int(m.n_b), system.physics.param_names),
                 hidden=hidden, activation="tanh", use_nn=bool(hidden) and bool(m.use_nn),
                 input_transform=str(m.input_transform), out_init_scale=float(m.out_init_scale),
-                out_init=str(m.out_init), nn_inputs=str(m.nn_inputs), seed=int(cfg.seed),
+                out_init=str(m.out_init), nn_inputs=str(m.nn_inputs), seed=init_seed(cfg),
                 mirror_jitter=float(m.mirror_jitter))
 
 
@@ -154,7 +154,7 @@ def fit(ctx) -> dict:
     check_rows(model, len(y), float(ident.val_fraction))
     lam = l2_lam(cfg)
     theta_star = system.linear_theta() if ident.theta_star == "oracle" else str(ident.theta_star)
-    fit_ = identify_sim_error(model, ctrl, r, u_ex, y, u, lam=lam, theta_star=theta_star, seed=int(cfg.seed),
+    fit_ = identify_sim_error(model, ctrl, r, u_ex, y, u, lam=lam, theta_star=theta_star, seed=init_seed(cfg),
                               val_fraction=float(ident.val_fraction), patience=int(ident.patience),
                               linear_max_iter=int(ident.linear_max_iter), memo=restart_memo(ctx),
                               **restart_options(ident, system.measured), **lm_progress(ctx))
@@ -259,7 +259,7 @@ def _fit_measured(ctx) -> dict:
     n_trains = [int(round((1.0 - float(ident.val_fraction)) * len(g))) for g in segs]   # each record's head
     lam = float(l2_lam(cfg))
     fit_ = identify_loop_sim_error(model, bool(system.physics.averaged_input), system.ctrl, sigs,
-                                   [col(g, "u") for g in segs], lam=lam, n_train=n_trains, seed=int(cfg.seed),
+                                   [col(g, "u") for g in segs], lam=lam, n_train=n_trains, seed=init_seed(cfg),
                                    memo=restart_memo(ctx), n_data=sum(n_trains) - N_INIT * len(segs),
                                    **restart_options(ident, system.measured), **lm_progress(ctx))
     log_restarts(ctx, fit_.restarts, fit_.best)

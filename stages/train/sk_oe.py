@@ -42,6 +42,7 @@ from pipeline.models.shared_ar import ReferenceWindow, SharedARPGNN, make_approx
 from pipeline.params import COUNT_MAX, ITER_MAX, schema, spec
 from pipeline.plots import pyplot
 from pipeline.resources import job_cores
+from stages.train import init_purpose
 
 
 # Stops on convergence, not on a cap (issue 11, SPEC §8 K3): the outer loop stops when a step's relative
@@ -210,7 +211,7 @@ def fit(ctx) -> dict:
               stall_window=int(ident.stall_window), stall_tol=float(ident.stall_tol),
               output_tol=float(ident.output_tol))
     n_restarts = int(ident.n_restarts) if is_pgnn else 1
-    seeds = [int(ctx.rng(f"train/restart{i}").integers(2**31 - 1)) for i in range(n_restarts)]
+    seeds = [int(ctx.rng(init_purpose(ctx.cfg, f"train/restart{i}")).integers(2**31 - 1)) for i in range(n_restarts)]
     models = [build_model(m, ds.Ts, rs, s) for s in seeds]
     if not is_pgnn and reg != "none":
         ctx.tag("regularizer_ignored", "the rational model has no approximator")

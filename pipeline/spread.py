@@ -1,0 +1,228 @@
+"""Claim rows judged on a statistic over restarts, not on the rounding (issue 52 item 2).
+
+A nonconvex fit (a PGNN from random initial weights, best of its restarts) has several minima of about the
+same training cost; which one a machine reaches can be decided by the last bit of a sum, so a value computed
+from it is *ill-determined* (``make reproduce-check``: other minimum, equal fits) and a claim row judged on it
+can flip on another CPU. ``make reproduce-spread`` reruns the experiments whose fits decide claim rows with
+``init_seed = 1..S``: the same data, scored under the same noise, each fit from other initial weights and
+restarts (:func:`stages.train.init_seed`). With the default run as ``init_seed = 0`` that gives S + 1 values of
+every summary key, and per key:
+
+- the statistic: the **median** of the S + 1 values; the **spread**: their range [min, max];
+- every claim row judged again on the medians (:func:`stages.report.claims.judge`, the same thresholds), and
+  *decided* when the verdict is the same at the minimum, the median and the maximum: a row whose threshold lies
+  inside its spread is not decided by these fits, whatever one machine's rounding says.
+
+    python -m pipeline.spread build SEED0.csv SEED1.csv ... [--out results] [--name spread] [--setting TEXT]
+    python -m pipeline.spread check results/spread.csv OTHER_SPREAD.csv --name perturb|isa [--out results]
+
+``build`` writes ``<name>.csv`` (per key: n, median, min, max, the values; for claim rows the verdict on the
+median and whether it is decided), ``<name>.md`` and ``<name>.json`` (per experiment the sha256 of the seed-0
+rows it was built on, so the report shows it only while those rows are current). ``check`` compares another
+machine's (or a perturbed run's) statistics with these: every claim row's median must land inside the
+reference's spread and keep its verdict; it writes ``spread-check-<name>.md/.csv/.json``. Timings are left out,
+as in :mod:`pipeline.perturbation`; solver-path values (iteration counts, stop flags) stay, since claims such as
+K3 are judged on them.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from pipeline.atomic import replace_file
+from pipeline.perturbation import KEY, experiment_digests, is_timing
+from stages.report.claims import claim_statistics, judge
+
+__all__ = ["build", "check", "judge_statistic", "ABS_TOL", "REL_TOL"]
+
+#: a value equal to the spread's end to this relative amount (or ABS_TOL absolute: residues of exact identities
+#: at 1e-15) is inside it: a deterministic value (no fit behind it, min = max) may differ in its last bits
+REL_TOL, ABS_TOL = 1e-9, 1e-12
+#: a value's identity across runs (its claim id is the report's label of it)
+_ID = [k for k in KEY if k != "claim"]
+
+
+def _read(path: str | Path) -> pd.DataFrame:
+    t = pd.read_csv(path, dtype={"claim": str, "variant": str, "metric": str})
+    t[["claim", "variant"]] = t[["claim", "variant"]].fillna("")
+    t = t[~t["metric"].map(is_timing)]      # solver-path rows stay: K3 judges its fits' stop reasons on them
+    return t
+
+
+def judge_statistic(stat: pd.DataFrame, column: str) -> pd.Series:
+    """Each row's claim verdict with ``column``'s values in place of the run's (claim table of the report,
+    per experiment, as the report judges), indexed as ``stat``; NaN where no condition names the row."""
+    out = pd.Series(np.nan, index=stat.index, dtype=object)
+    for _, g in stat.groupby("experiment", sort=False):
+        rows = [{"experiment": r.experiment, "claim": "", "variant": r.variant, "metric": r.metric,
+                 "value": float(getattr(r, column)), "paper_value": r.paper_value, "claim_holds": None}
+                for r in g.itertuples()]
+        judge(rows)
+        for i, r in zip(g.index, rows):
+            if r["claim"]:
+                out[i] = bool(r["claim_holds"])
+    return out
+
+
+def build(summaries: list[pd.DataFrame], labels: list[str]) -> pd.DataFrame:
+    """Per key of the first summary (seed 0) that every other summary has too: the values, n, median, min and
+    max; claim rows judged on the median and, to say whether that verdict is decided, on the min and max."""
+    if len(summaries) < 2:
+        raise ValueError("a spread needs at least two runs (init_seed 0 and one more): give more summaries")
+    ref = summaries[0]
+    covered = set.intersection(*(set(s["experiment"]) for s in summaries[1:]))
+    base = ref[ref["experiment"].isin(covered)][KEY + ["value", "paper_value", "claim_holds"]].copy()
+    vals = []
+    for lab, s in zip(labels, summaries):
+        v = base[_ID].merge(s[_ID + ["value"]], on=_ID, how="left")["value"].to_numpy(np.float64)
+        vals.append(v)
+        base[f"value_{lab}"] = v
+    V = np.vstack(vals)
+    finite = np.isfinite(V)
+    base["n"] = finite.sum(axis=0)
+    with np.errstate(all="ignore"):
+        base["median"] = np.nanmedian(np.where(finite, V, np.nan), axis=0) if V.size else []
+        base["min"] = np.nanmin(np.where(finite, V, np.nan), axis=0)
+        base["max"] = np.nanmax(np.where(finite, V, np.nan), axis=0)
+    base = base[base["n"] == len(summaries)].reset_index(drop=True)   # a key every run has, finite in every one
+    for col in ("median", "min", "max"):
+        base[f"holds_{col}"] = judge_statistic(base, col)
+    claimed = base["holds_median"].notna()
+    base["decided"] = np.where(claimed, (base["holds_min"] == base["holds_median"])
+                               & (base["holds_max"] == base["holds_median"]), np.nan)
+    base["rel_spread"] = (base["max"] - base["min"]) / np.maximum(np.abs(base["median"]), 1e-300)
+    return base
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.3g}"
+
+
+def markdown(stat: pd.DataFrame, labels: list[str], setting: str) -> str:
+    """The spread's report: per claim the verdict on the medians, then every claim row with its statistic."""
+    seeds = ", ".join(labels)
+    lines = [f"# Claim rows over restarts (`make reproduce-spread`, init_seed {seeds})", "",
+             f"Each experiment below rerun with `init_seed` = {seeds} (`{setting}`): the same data and evaluation "
+             "noise, every network fit from other initial weights and restarts. Per summary key the **median** of "
+             f"the {len(labels)} values is the statistic and their range [min, max] the **spread**; a claim row is "
+             "judged on the median and is *decided* when its verdict is the same at the min, the median and the max. "
+             "Per key: results/spread.csv.", "",
+             "| experiment | keys | keys spread > 2 % | claim | rows | holds (init_seed 0) | holds (median) "
+             "| rows not decided by the spread |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    per = claim_statistics(stat)
+    for e, g in stat.groupby("experiment", sort=False):
+        wide = int((g["rel_spread"] > 0.02).sum())
+        for r in per[per["experiment"] == e].itertuples():
+            lines.append(f"| {e} | {len(g)} | {wide} | {r.claim} | {r.rows} | {'yes' if r.holds_seed0 else 'no'} | "
+                         f"{'yes' if r.holds_median else 'no'} | {r.rows_undecided} |")
+    lines += ["", "| experiment | claim | variant | metric | init_seed 0 | median | [min, max] | holds on median "
+              "| decided |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in stat[stat["holds_median"].notna()].itertuples():
+        lines.append(f"| {r.experiment} | {r.claim} | `{r.variant}` | {r.metric} | {_fmt(r.value)} | "
+                     f"{_fmt(r.median)} | "
+                     f"[{_fmt(r.min)}, {_fmt(r.max)}] | {'yes' if r.holds_median else 'no'} | "
+                     f"{'yes' if r.decided else '**no**'} |")
+    return "\n".join(lines) + "\n"
+
+
+def inside(x, lo, hi) -> np.ndarray:
+    """x within [lo, hi] up to REL_TOL relative or ABS_TOL absolute (last bits of deterministic values)."""
+    x, lo, hi = (np.asarray(a, np.float64) for a in (x, lo, hi))
+    tol = np.maximum(REL_TOL * np.maximum(np.abs(lo), np.abs(hi)), ABS_TOL)
+    return (x >= lo - tol) & (x <= hi + tol)
+
+
+def check(reference: pd.DataFrame, other: pd.DataFrame) -> pd.DataFrame:
+    """Per key both: the other run's median inside the reference's spread? its claim verdict on the median
+    the same?"""
+    cols = KEY + ["median", "min", "max", "holds_median", "decided"]
+    m = reference[cols].merge(other[_ID + ["median", "min", "max", "holds_median"]], on=_ID,
+                              suffixes=("", "_other"))
+    m["inside"] = inside(m["median_other"], m["min"], m["max"])
+    claimed = m["holds_median"].notna()
+    m["verdict_same"] = np.where(claimed, m["holds_median"] == m["holds_median_other"], np.nan)
+    return m
+
+
+def check_markdown(m: pd.DataFrame, name: str, setting: str) -> str:
+    lines = [f"# Claim-row statistics on another code path (`{name}`: `{setting}`)", "",
+             "Both runs made with the same init_seeds; per key the other run's median against this run's spread "
+             "[min, max] (results/spread.csv), and each claim row's verdict on the median. Per key: "
+             f"results/spread-check-{name}.csv.", "",
+             "| experiment | keys | medians inside the spread | claim rows | claim-row medians inside | claim-row "
+             "verdicts flipped |", "| --- | --- | --- | --- | --- | --- |"]
+    for e, g in m.groupby("experiment", sort=False):
+        c = g[g["holds_median"].notna()]
+        lines.append(f"| {e} | {len(g)} | {int(g['inside'].sum())} | {len(c)} | {int(c['inside'].sum())} | "
+                     f"{int((c['verdict_same'] == False).sum())} |")            # noqa: E712
+    out = m[m["holds_median"].notna() & (~m["inside"] | (m["verdict_same"] == False))]   # noqa: E712
+    if len(out):
+        lines += ["", "Claim rows outside the spread or flipped:", ""]
+        lines += [f"- {r.experiment} {r.claim} `{r.variant}` {r.metric}: median {_fmt(r.median_other)} against "
+                  f"[{_fmt(r.min)}, {_fmt(r.max)}]" + (", verdict flipped" if r.verdict_same == False else "")   # noqa: E712
+                  for r in out.itertuples()]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    b = sub.add_parser("build", help="the statistic of several runs' summary.csv (the first: init_seed 0)")
+    b.add_argument("summaries", nargs="+")
+    b.add_argument("--labels", default="", help="comma-separated init_seed of each summary (default 0,1,...)")
+    c = sub.add_parser("check", help="another code path's spread.csv against this one's")
+    c.add_argument("reference")
+    c.add_argument("other")
+    for p in (b, c):
+        p.add_argument("--out", default="results")
+        p.add_argument("--name", default="spread")
+        p.add_argument("--setting", default="")
+    a = ap.parse_args(argv)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if a.cmd == "build":
+        missing = [s for s in a.summaries if not Path(s).is_file()]
+        if missing:
+            raise SystemExit(f"error: no summary {missing[0]}: run `make reproduce-spread` (one per init_seed)")
+        labels = a.labels.split(",") if a.labels else [str(i) for i in range(len(a.summaries))]
+        if len(labels) != len(a.summaries):
+            raise SystemExit(f"error: --labels gives {len(labels)} init_seeds for {len(a.summaries)} summaries")
+        stat = build([_read(s) for s in a.summaries], labels)
+        if stat.empty:
+            raise SystemExit("error: the summaries share no experiment; run the same EXPERIMENTS for every init_seed")
+        digests = experiment_digests(Path(a.summaries[0]))
+        meta = {"seeds": labels, "setting": a.setting, "made": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                "experiments": {e: {"reference_sha256": digests.get(e)} for e in sorted(set(stat["experiment"]))}}
+        replace_file(out / f"{a.name}.csv", stat.to_csv(index=False).encode())
+        replace_file(out / f"{a.name}.md", markdown(stat, labels, a.setting).encode())
+        replace_file(out / f"{a.name}.json", json.dumps(meta, indent=1).encode())
+        per = claim_statistics(stat)
+        print(f"{a.name}: {len(stat)} keys of {stat['experiment'].nunique()} experiments over {len(labels)} runs; "
+              f"claims on the median: " + ", ".join(f"{r.claim} {'holds' if r.holds_median else 'does not hold'}"
+                                                   + (f" ({r.rows_undecided} rows undecided)" if r.rows_undecided
+                                                      else "") for r in per.itertuples()))
+        return 0
+    ref, oth = (pd.read_csv(p, dtype={"claim": str, "variant": str, "metric": str}) for p in (a.reference, a.other))
+    for t in (ref, oth):
+        t[["claim", "variant"]] = t[["claim", "variant"]].fillna("")
+    m = check(ref, oth)
+    replace_file(out / f"spread-check-{a.name}.csv", m.to_csv(index=False).encode())
+    replace_file(out / f"spread-check-{a.name}.md", check_markdown(m, a.name, a.setting).encode())
+    c = m[m["holds_median"].notna()]
+    summary = {"setting": a.setting, "keys": len(m), "inside": int(m["inside"].sum()), "claim_rows": len(c),
+               "claim_rows_inside": int(c["inside"].sum()),
+               "claim_rows_flipped": int((c["verdict_same"] == False).sum())}    # noqa: E712
+    replace_file(out / f"spread-check-{a.name}.json", json.dumps(summary, indent=1).encode())
+    print(f"spread check {a.name}: {summary['claim_rows_inside']} of {summary['claim_rows']} claim-row medians inside "
+          f"the spread, {summary['claim_rows_flipped']} verdicts flipped; all keys {summary['inside']} of {len(m)}")
+    ok = summary["claim_rows_inside"] == summary["claim_rows"] and not summary["claim_rows_flipped"]
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

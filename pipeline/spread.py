@@ -93,8 +93,8 @@ def build(summaries: list[pd.DataFrame], labels: list[str]) -> pd.DataFrame:
     for col in ("median", "min", "max"):
         base[f"holds_{col}"] = judge_statistic(base, col)
     claimed = base["holds_median"].notna()
-    base["decided"] = np.where(claimed, (base["holds_min"] == base["holds_median"])
-                               & (base["holds_max"] == base["holds_median"]), np.nan)
+    same = (base["holds_min"] == base["holds_median"]) & (base["holds_max"] == base["holds_median"])
+    base["decided"] = pd.Series([bool(x) if c else None for x, c in zip(same, claimed)], dtype=object)
     base["rel_spread"] = (base["max"] - base["min"]) / np.maximum(np.abs(base["median"]), 1e-300)
     return base
 

@@ -71,14 +71,16 @@ def main(argv: list[str] | None = None) -> int:
             p = argparse.ArgumentParser(prog="pgnn-ff learn refit")
             p.add_argument("campaign")
             p.add_argument("--physics-only", action="store_true", help="refit the physics only, not the run's PGNN")
-            p.add_argument("--trials", default=None, help="the PGNN's refit data: trials j,k,… (default: every trial)")
+            p.add_argument("--trials", default=None, help="the PGNN's refit data: trials j,k,… or all (default: the "
+                           "first and the best)")
             p.add_argument("--campaign-only", action="store_true", help="the PGNN on the trials' recordings only, "
                            "not with the run's training files")
             a = p.parse_args(argv[1:])
             try:
-                trials = None if a.trials is None else [int(x) for x in a.trials.split(",")]
+                trials = a.trials if a.trials in (None, "all") else [int(x) for x in a.trials.split(",")]
             except ValueError:
-                raise ConfigError(f"--trials {a.trials!r}: give trial numbers separated by commas, e.g. 0,3") from None
+                raise ConfigError(f"--trials {a.trials!r}: give trial numbers separated by commas, e.g. 0,3, "
+                                  "or all") from None
             f = campaign.refit_model(a.campaign, not a.physics_only, trials, not a.campaign_only)
             print(f"refit on {f['recordings']} recordings: M {f['M']:.6g} kg, F_v {f['F_v']:.6g} N s/m, K {f['K']:.6g} "
                   f"N/m, F_c {f['F_c']:.6g} N (force residual {100 * f['residual']:.3g} %); "

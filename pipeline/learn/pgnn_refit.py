@@ -64,14 +64,22 @@ def _write_trial(c, j: int, folder: Path) -> str:
     return name
 
 
-def refit(c, trials: list[int] | None = None, training: bool = True) -> dict:
-    """Refit the source run's PGNN on the campaign ``c``'s recordings (``trials``: their indices, default every
-    trial) plus, with ``training``, the run's own training files; returns the state's ``refit_pgnn`` entry."""
+def default_trials(c) -> list[int]:
+    """The first trial and the best (lowest rms error): the same motion with the force all feedback, then all
+    feedforward; the trials between repeat it (the refit's time grows with its samples, not its information)."""
+    best = min(c.state["trials"], key=lambda h: h["rms"])["trial"]
+    return sorted({c.state["trials"][0]["trial"], best})
+
+
+def refit(c, trials: list[int] | str | None = None, training: bool = True) -> dict:
+    """Refit the source run's PGNN on the campaign ``c``'s recordings (``trials``: their indices, 'all', or None:
+    :func:`default_trials`) plus, with ``training``, the run's own training files; returns the state's
+    ``refit_pgnn`` entry."""
     src = c.state["source_run"]["run_id"]
     run = stored_run(src)
     cfg = run_config(run)
     done = [h["trial"] for h in c.state["trials"]]
-    trials = done if trials is None else list(trials)
+    trials = done if trials == "all" else default_trials(c) if trials is None else list(trials)
     bad = [j for j in trials if j not in done]
     if bad or not trials:
         raise ConfigError(f"--trials {trials}: the campaign has recorded trials {done}; give some of them")

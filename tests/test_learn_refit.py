@@ -106,3 +106,39 @@ def test_the_pgnn_refitted_on_the_campaign_tracks_a_new_reference_better(store, 
     # has the spring K q, the PGNN's physics not); the PGNN's mass 2.24 -> 3.39 kg (true 3.4)
     assert mae["before"] / mae["after"] >= 5.0 and mae["physics before"] / mae["physics after"] >= 5.0, mae
     assert g["physical"]["M"] == pytest.approx(ha.M, rel=0.03) and g["physical_before"]["M"] < 0.8 * ha.M, g
+
+
+def test_the_applied_feedforward_is_the_recordings_disturbance_column():
+    """d(k) = u_ff(k - D)/gtau (u_ff(0) before the trial): u = gtau (sat(v + u_ff/gtau)(k - D)) off the limit."""
+    from pipeline.learn.campaign import applied_disturbance
+    from pipeline.systems.controller import LTIController
+    ctrl = LTIController.lti(num=[1.0], den=[1.0], delay=2, gtau=4.0)
+    d = applied_disturbance(ctrl, np.array([8.0, 12.0, -4.0, 20.0]))
+    assert d.tolist() == [2.0, 2.0, 2.0, 3.0]
+
+
+def test_a_campaign_without_a_pgnn_keeps_the_physics_refit(tmp_path, capsys):
+    """A campaign from a config file (no run, so no PGNN): `learn refit` refits the physics only, `learn export
+    --model` and a bad --trials are one-line errors, `learn feedforward` gives the physics law's."""
+    from tests import test_learn as tl
+    cfg = tl._config(tmp_path)
+    campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", tracking=False)
+    from pipeline.learn import machine
+    machine.run(tmp_path / "camp", "sim:learn_machine:simulate", 2)
+    camp = str(tmp_path / "camp")
+    capsys.readouterr()
+    assert learn_main(["refit", camp, "--trials", "first"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "--trials 'first': give trial numbers separated by commas" in err
+    assert learn_main(["refit", camp]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("refit on 2 recordings: M ") and "PGNN" not in out
+    c = campaign.load(camp)
+    assert "refit_pgnn" not in c.state and c.state["refit"]["M"] == pytest.approx(tl.M_TRUE, rel=0.25)
+    assert learn_main(["export", camp, "--out", str(tmp_path / "x"), "--model"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "no PGNN refit to export" in err
+    assert learn_main(["feedforward", camp, "--reference", str(tmp_path / "ref.csv"), "--out",
+                       str(tmp_path / "u.csv")]) == 0
+    u = pd.read_csv(tmp_path / "u.csv")["u_ff"].to_numpy()
+    assert u.size == c.reference.size and np.all(np.isfinite(u)) and np.max(np.abs(u)) > 1.0

@@ -110,7 +110,7 @@ def test_the_pgnn_refitted_on_the_campaign_tracks_a_new_reference_better(store, 
 
 def test_the_applied_feedforward_is_the_recordings_disturbance_column():
     """d(k) = u_ff(k - D)/gtau (u_ff(0) before the trial): u = gtau (sat(v + u_ff/gtau)(k - D)) off the limit."""
-    from pipeline.learn.campaign import applied_disturbance
+    from pipeline.learn.update import applied_disturbance
     from pipeline.systems.controller import LTIController
     ctrl = LTIController.lti(num=[1.0], den=[1.0], delay=2, gtau=4.0)
     d = applied_disturbance(ctrl, np.array([8.0, 12.0, -4.0, 20.0]))

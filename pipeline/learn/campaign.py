@@ -30,7 +30,7 @@ import pandas as pd
 from pipeline import data
 from pipeline.errors import ConfigError
 from pipeline.learn import safety
-from pipeline.learn.update import LoopModel, make_update
+from pipeline.learn.update import LoopModel, applied_disturbance, make_update
 from pipeline.plots import pyplot
 from pipeline.params import DAMP_MAX, FORCE_MAX, FREQ_MAX, ITER_MAX, MASS_MAX, SPEED_MAX, STIFF_MAX, TS_MAX, \
     schema, spec
@@ -272,13 +272,6 @@ def init(folder, config: Path | None, reference: Path, u_ff0: Path | None = None
         c.state["mlflow"] = _parent_run(folder, c)
     c.save()
     return c
-
-
-def applied_disturbance(ctrl: LTIController, u_ff: np.ndarray) -> np.ndarray:
-    """The applied u_ff as the measured format's disturbance column d [controller units]: u = gtau (sat(v + u_ff/gtau)
-    (k - D)) is u = gtau (v(k - D) + d) with d(k) = u_ff(k - D)/gtau off the limit (u_ff(0) before the trial)."""
-    u_ff = np.asarray(u_ff, np.float64)
-    return np.concatenate([np.full(ctrl.delay, u_ff[0]), u_ff[:u_ff.size - ctrl.delay]]) / ctrl.gtau
 
 
 def check_recording(c: Campaign, path: Path, j: int) -> dict:

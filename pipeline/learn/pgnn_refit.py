@@ -13,7 +13,7 @@ reported as not converged), then the run's inversion and its exported law.
 
 A trial's recording enters as the measured-data format the pipeline reads: t, r, u, y and the feedforward the
 campaign applied as the disturbance column d = u_ff(k - D)/gtau (the loop u = gtau (sat(v + u_ff/gtau)(k - D)),
-no sample of a learned trial at the limit: :func:`pipeline.learn.campaign.applied_disturbance`), written to
+no sample of a learned trial at the limit: :func:`pipeline.learn.update.applied_disturbance`), written to
 ``<campaign>/refit/data/trial_<j>.csv``.
 
 The feedforward for a reference the machine never ran is the exported law's (``pipeline.export.law.guarded``:
@@ -33,7 +33,7 @@ from pipeline import runner, tracking
 from pipeline.errors import ConfigError
 from pipeline.export.cli import export_run, run_config, stored_run
 from pipeline.export.law import Law, guarded
-from pipeline.learn.campaign import applied_disturbance
+from pipeline.learn.update import applied_disturbance
 from stages.generate.measured import DisturbanceShareWarning, _target, training_files
 from stages.train import CAPS
 

@@ -106,6 +106,10 @@ def test_the_pgnn_refitted_on_the_campaign_tracks_a_new_reference_better(store, 
     # has the spring K q, the PGNN's physics not); the PGNN's mass 2.24 -> 3.39 kg (true 3.4)
     assert mae["before"] / mae["after"] >= 5.0 and mae["physics before"] / mae["physics after"] >= 5.0, mae
     assert g["physical"]["M"] == pytest.approx(ha.M, rel=0.03) and g["physical_before"]["M"] < 0.8 * ha.M, g
+    # shipped: `learn export --model` is `pgnn-ff export` of the refit's run, whose law gave the u_ff above
+    assert learn_main(["export", camp, "--out", str(tmp_path / "export"), "--model"]) == 0, capsys.readouterr().err
+    man = json.loads((tmp_path / "export" / "ff_analytic" / "manifest.json").read_text())
+    assert man["python_max_rel_diff"] <= 1e-12 and (not man["compiled"] or man["c_max_rel_diff"] <= 1e-9), man
 
 
 def test_the_applied_feedforward_is_the_recordings_disturbance_column():

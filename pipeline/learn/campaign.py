@@ -443,12 +443,14 @@ def _log_trial(c: Campaign, entry: dict) -> None:
 
 
 # ---- the model learns (pipeline.learn.refit) ----------------------------------------------------------------
-def refit_model(folder, pgnn: bool = True, trials: list[int] | str | None = None, training: bool = True) -> dict:
+def refit_model(folder, pgnn: bool = True, trials: list[int] | str | None = None, training: bool = True,
+                restarts: int | None = None) -> dict:
     """Refit the campaign's physics on every trial's recording (:func:`pipeline.learn.refit.refit`); stored in
     the state and written as ``model_refit.yaml`` (the ``model`` section of a next campaign). A campaign from a
     run with a PGNN (``learn init --run``) also refits that PGNN (:func:`pipeline.learn.pgnn_refit.refit`, on
     ``trials``: indices, 'all', default the first and the best; plus with ``training`` the run's training files)
-    unless ``pgnn`` is off; its entry is the state's ``refit_pgnn``, returned under the key ``pgnn``."""
+    unless ``pgnn`` is off, with ``restarts`` LM restarts (default the run's); its entry is the state's
+    ``refit_pgnn``, returned under the key ``pgnn``."""
     import yaml  # lazy: saves 0.1 s of start-up (only learn init and refit write YAML)
     from pipeline.learn import refit  # lazy: saves 0.4 s of start-up (the measured-system physics)
     c = load(folder)
@@ -466,7 +468,7 @@ def refit_model(folder, pgnn: bool = True, trials: list[int] | str | None = None
     result = dict(c.state["refit"])
     if pgnn and has_pgnn(c):
         from pipeline.learn import pgnn_refit  # lazy: saves 3.0 s of start-up (mlflow, hydra, torch, the stages)
-        c.state["refit_pgnn"] = result["pgnn"] = pgnn_refit.refit(c, trials, training)
+        c.state["refit_pgnn"] = result["pgnn"] = pgnn_refit.refit(c, trials, training, restarts)
         c.save()
     return result
 

@@ -71,10 +71,11 @@ def default_trials(c) -> list[int]:
     return sorted({c.state["trials"][0]["trial"], best})
 
 
-def refit(c, trials: list[int] | str | None = None, training: bool = True) -> dict:
+def refit(c, trials: list[int] | str | None = None, training: bool = True, restarts: int | None = None) -> dict:
     """Refit the source run's PGNN on the campaign ``c``'s recordings (``trials``: their indices, 'all', or None:
-    :func:`default_trials`) plus, with ``training``, the run's own training files; returns the state's
-    ``refit_pgnn`` entry."""
+    :func:`default_trials`) plus, with ``training``, the run's own training files, with ``restarts`` LM restarts
+    (None: the run's ``identify.n_restarts``; each costs its screening steps); returns the state's ``refit_pgnn``
+    entry."""
     src = c.state["source_run"]["run_id"]
     run = stored_run(src)
     cfg = run_config(run)
@@ -96,6 +97,10 @@ def refit(c, trials: list[int] | str | None = None, training: bool = True) -> di
     cfg.data.files = files
     cfg.evaluate.references = [{"name": "campaign", "kind": "measured", "file": files[0]}]
     cfg.stages = STAGES
+    if restarts is not None:
+        if restarts < 1:
+            raise ConfigError(f"--restarts {restarts}: give at least 1 (the LM fits from that many initialisations)")
+        cfg.identify.n_restarts = int(restarts)
     name = f"{run.data.tags.get('run_key', src)}-refit-{c.folder.resolve().name}"
     cfg.run_name = name
     with warnings.catch_warnings():   # d is the campaign's own feedforward, not a controller hidden in d
@@ -113,6 +118,7 @@ def refit(c, trials: list[int] | str | None = None, training: bool = True) -> di
     after = export_run(refit_id, c.folder / "refit" / "after")
     loop = results["train"].get("loop")
     entry = {"run_id": refit_id, "source_run": src, "trials": trials, "training_files": len(files) - len(trials),
+             "restarts": int(cfg.identify.n_restarts),
              "stop_reason": stop, "converged": stop not in CAPS, "iterations": metrics.get("train/iterations"),
              "seconds": metrics.get("train/seconds"), "val_force_rel_error": metrics.get("train/val_force_rel_error"),
              "physical": {k: float(v) for k, v in results["train"]["physical"].items()},

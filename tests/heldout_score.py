@@ -184,12 +184,14 @@ def run_pipeline(name: str, overrides: list[str], work: Path) -> Step:
 
 # ---- the run's artifacts ---------------------------------------------------------------------------------
 def find_run(work: Path, identify: str):
-    """(run, local artifact folder) of the newest run of EXPERIMENT with tag identify=<identify>."""
+    """(run, local artifact folder) of the newest run of EXPERIMENT with tag identify=<identify>, not a campaign's
+    refit (``pgnn-ff learn refit`` adds its runs to the source run's experiment)."""
     import mlflow  # lazy: the generator and the table need no MLflow
     client = mlflow.MlflowClient(tracking_uri=f"sqlite:///{work / 'mlflow.db'}")
     exp = client.get_experiment_by_name(EXPERIMENT)
     runs = client.search_runs([exp.experiment_id], f"tags.identify = '{identify}'",
-                              order_by=["attributes.start_time DESC"], max_results=1) if exp else []
+                              order_by=["attributes.start_time DESC"]) if exp else []
+    runs = [x for x in runs if "learn_source_run" not in x.data.tags]
     if not runs:
         raise LookupError(f"no run with identify={identify} in experiment {EXPERIMENT} of {work}")
     uri = urlparse(runs[0].info.artifact_uri)

@@ -123,7 +123,8 @@ def test_the_applied_feedforward_is_the_recordings_disturbance_column():
 
 def test_a_campaign_without_a_pgnn_keeps_the_physics_refit(tmp_path, capsys):
     """A campaign from a config file (no run, so no PGNN): `learn refit` refits the physics only, `learn export
-    --model` and a bad --trials are one-line errors, `learn feedforward` gives the physics law's."""
+    --model`, a bad --trials and the PGNN's options are one-line errors, `learn feedforward` gives the physics
+    law's."""
     from tests import test_learn as tl
     cfg = tl._config(tmp_path)
     campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", tracking=False)
@@ -134,6 +135,9 @@ def test_a_campaign_without_a_pgnn_keeps_the_physics_refit(tmp_path, capsys):
     assert learn_main(["refit", camp, "--trials", "first"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "--trials 'first': give trial numbers separated by commas" in err
+    assert learn_main(["refit", camp, "--restarts", "2"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "this campaign refits no PGNN" in err
     assert learn_main(["refit", camp]) == 0
     out = capsys.readouterr().out
     assert out.startswith("refit on 2 recordings: M ") and "PGNN" not in out

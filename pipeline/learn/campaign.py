@@ -456,6 +456,11 @@ def refit_model(folder, pgnn: bool = True, trials: list[int] | str | None = None
     c = load(folder)
     if not c.state["trials"]:
         raise ConfigError(f"{folder}: no trial recorded yet; the refit needs the trials' recordings")
+    with_pgnn = pgnn and has_pgnn(c)
+    if not with_pgnn and (trials is not None or not training or restarts is not None):
+        raise ConfigError(f"{folder}: --trials, --campaign-only and --restarts choose the PGNN's refit, and this "
+                          "campaign refits no PGNN (started from a config file or a physics run, or --physics-only); "
+                          "drop them: the physics refits on every trial")
     recs = []
     for h in c.state["trials"]:
         frame = pd.read_csv(c.folder / "recordings" / f"trial_{h['trial']}.csv")
@@ -466,7 +471,7 @@ def refit_model(folder, pgnn: bool = True, trials: list[int] | str | None = None
     _atomic(c.folder / "model_refit.yaml", lambda p: Path(p).write_text(yaml.safe_dump({"model": out})))
     c.save()
     result = dict(c.state["refit"])
-    if pgnn and has_pgnn(c):
+    if with_pgnn:
         from pipeline.learn import pgnn_refit  # lazy: saves 3.0 s of start-up (mlflow, hydra, torch, the stages)
         c.state["refit_pgnn"] = result["pgnn"] = pgnn_refit.refit(c, trials, training, restarts)
         c.save()

@@ -444,23 +444,23 @@ def _log_trial(c: Campaign, entry: dict) -> None:
 
 # ---- the model learns (pipeline.learn.refit) ----------------------------------------------------------------
 def refit_model(folder, pgnn: bool = True, trials: list[int] | str | None = None, training: bool = True,
-                restarts: int | None = None) -> dict:
+                restarts: int | None = None, terms: list[str] | None = None) -> dict:
     """Refit the campaign's physics on every trial's recording (:func:`pipeline.learn.refit.refit`); stored in
     the state and written as ``model_refit.yaml`` (the ``model`` section of a next campaign). A campaign from a
     run with a PGNN (``learn init --run``) also refits that PGNN (:func:`pipeline.learn.pgnn_refit.refit`, on
     ``trials``: indices, 'all', default the first and the best; plus with ``training`` the run's training files)
-    unless ``pgnn`` is off, with ``restarts`` LM restarts (default the run's); its entry is the state's
-    ``refit_pgnn``, returned under the key ``pgnn``."""
+    unless ``pgnn`` is off, with ``restarts`` LM restarts and the force ``terms`` (default the run's); its entry is
+    the state's ``refit_pgnn``, returned under the key ``pgnn``."""
     import yaml  # lazy: saves 0.1 s of start-up (only learn init and refit write YAML)
     from pipeline.learn import refit  # lazy: saves 0.4 s of start-up (the measured-system physics)
     c = load(folder)
     if not c.state["trials"]:
         raise ConfigError(f"{folder}: no trial recorded yet; the refit needs the trials' recordings")
     with_pgnn = pgnn and has_pgnn(c)
-    if not with_pgnn and (trials is not None or not training or restarts is not None):
-        raise ConfigError(f"{folder}: --trials, --campaign-only and --restarts choose the PGNN's refit, and this "
-                          "campaign refits no PGNN (started from a config file or a physics run, or --physics-only); "
-                          "drop them: the physics refits on every trial")
+    if not with_pgnn and (trials is not None or not training or restarts is not None or terms is not None):
+        raise ConfigError(f"{folder}: --trials, --campaign-only, --restarts and --terms choose the PGNN's refit, and "
+                          "this campaign refits no PGNN (started from a config file or a physics run, or "
+                          "--physics-only); drop them: the physics refits on every trial")
     recs = []
     for h in c.state["trials"]:
         frame = pd.read_csv(c.folder / "recordings" / f"trial_{h['trial']}.csv")
@@ -473,7 +473,7 @@ def refit_model(folder, pgnn: bool = True, trials: list[int] | str | None = None
     result = dict(c.state["refit"])
     if with_pgnn:
         from pipeline.learn import pgnn_refit  # lazy: saves 3.0 s of start-up (mlflow, hydra, torch, the stages)
-        c.state["refit_pgnn"] = result["pgnn"] = pgnn_refit.refit(c, trials, training, restarts)
+        c.state["refit_pgnn"] = result["pgnn"] = pgnn_refit.refit(c, trials, training, restarts, terms)
         c.save()
     return result
 

@@ -4,8 +4,8 @@
     pgnn-ff learn init CAMPAIGN --run RUN_ID --reference ref.csv [--config learn.yaml]  # the model of a run
     pgnn-ff learn CAMPAIGN --recording trial_<j>.csv --out u_ff_<j+1>.csv
     pgnn-ff learn run CAMPAIGN --machine sim:<module>:<function> [--trials 10]
-    pgnn-ff learn refit CAMPAIGN [--physics-only] [--trials j,k] [--campaign-only] [--restarts N]  # refitted on the
-                                                      # trials' recordings: the physics, and the run's PGNN
+    pgnn-ff learn refit CAMPAIGN [--physics-only] [--trials j,k] [--campaign-only] [--restarts N] [--terms a,b]
+                                                      # the physics, and the run's PGNN, on the trials
     pgnn-ff learn feedforward CAMPAIGN --reference new.csv --out u_ff.csv [--campaign-model] [--physics]
     pgnn-ff learn export CAMPAIGN --out DIR [--trial j] [--cc CC]   # the u_ff as C99 (the table family)
     pgnn-ff learn export CAMPAIGN --out DIR --model   # the refitted PGNN's law (pgnn-ff export of the refit run)
@@ -77,13 +77,16 @@ def main(argv: list[str] | None = None) -> int:
                            "not with the run's training files")
             p.add_argument("--restarts", type=int, default=None, help="the PGNN's LM restarts (default: the run's "
                            "identify.n_restarts)")
+            p.add_argument("--terms", default=None, help="the PGNN's physics force terms, e.g. viscous,coulomb,offset,"
+                           "spring (default: the run's)")
             a = p.parse_args(argv[1:])
             try:
                 trials = a.trials if a.trials in (None, "all") else [int(x) for x in a.trials.split(",")]
             except ValueError:
                 raise ConfigError(f"--trials {a.trials!r}: give trial numbers separated by commas, e.g. 0,3, "
                                   "or all") from None
-            f = campaign.refit_model(a.campaign, not a.physics_only, trials, not a.campaign_only, a.restarts)
+            f = campaign.refit_model(a.campaign, not a.physics_only, trials, not a.campaign_only, a.restarts,
+                                     a.terms and a.terms.split(","))
             print(f"refit on {f['recordings']} recordings: M {f['M']:.6g} kg, F_v {f['F_v']:.6g} N s/m, K {f['K']:.6g} "
                   f"N/m, F_c {f['F_c']:.6g} N (force residual {100 * f['residual']:.3g} %); "
                   f"{Path(a.campaign) / 'model_refit.yaml'}")
@@ -92,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
                 phys = ", ".join(f"{k} {v:.5g}" for k, v in g["physical"].items())
                 val = g["val_force_rel_error"]
                 print(f"PGNN refit (run {g['run_id']}) on trials {g['trials']} + {g['training_files']} training files, "
-                      f"{g['restarts']} restarts: "
+                      f"{g['restarts']} restarts, terms {','.join(g['terms'])}: "
                       f"stop {g['stop_reason']} ({'converged' if g['converged'] else 'NOT converged: on its cap'}) "
                       f"after {g['iterations']:g} LM steps, {g['seconds']:.0f} s; validation force error "
                       f"{'-' if val is None else format(val, '.4g')} %; "

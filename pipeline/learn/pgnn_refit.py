@@ -71,11 +71,13 @@ def default_trials(c) -> list[int]:
     return sorted({c.state["trials"][0]["trial"], best})
 
 
-def refit(c, trials: list[int] | str | None = None, training: bool = True, restarts: int | None = None) -> dict:
+def refit(c, trials: list[int] | str | None = None, training: bool = True, restarts: int | None = None,
+          terms: list[str] | None = None) -> dict:
     """Refit the source run's PGNN on the campaign ``c``'s recordings (``trials``: their indices, 'all', or None:
     :func:`default_trials`) plus, with ``training``, the run's own training files, with ``restarts`` LM restarts
-    (None: the run's ``identify.n_restarts``; each costs its screening steps); returns the state's ``refit_pgnn``
-    entry."""
+    (None: the run's ``identify.n_restarts``; each costs its screening steps) and the physics' force ``terms``
+    (None: the run's ``system.force_terms.terms``; e.g. a spring the physics refit found); returns the state's
+    ``refit_pgnn`` entry."""
     src = c.state["source_run"]["run_id"]
     run = stored_run(src)
     cfg = run_config(run)
@@ -101,6 +103,8 @@ def refit(c, trials: list[int] | str | None = None, training: bool = True, resta
         if restarts < 1:
             raise ConfigError(f"--restarts {restarts}: give at least 1 (the LM fits from that many initialisations)")
         cfg.identify.n_restarts = int(restarts)
+    if terms is not None:
+        cfg.system.force_terms.terms = list(terms)      # checked by the job's schema before any work
     name = f"{run.data.tags.get('run_key', src)}-refit-{c.folder.resolve().name}"
     cfg.run_name = name
     with warnings.catch_warnings():   # d is the campaign's own feedforward, not a controller hidden in d
@@ -118,7 +122,7 @@ def refit(c, trials: list[int] | str | None = None, training: bool = True, resta
     after = export_run(refit_id, c.folder / "refit" / "after")
     loop = results["train"].get("loop")
     entry = {"run_id": refit_id, "source_run": src, "trials": trials, "training_files": len(files) - len(trials),
-             "restarts": int(cfg.identify.n_restarts),
+             "restarts": int(cfg.identify.n_restarts), "terms": list(cfg.system.force_terms.terms),
              "stop_reason": stop, "converged": stop not in CAPS, "iterations": metrics.get("train/iterations"),
              "seconds": metrics.get("train/seconds"), "val_force_rel_error": metrics.get("train/val_force_rel_error"),
              "physical": {k: float(v) for k, v in results["train"]["physical"].items()},

@@ -66,7 +66,7 @@ def test_the_pgnn_refitted_on_the_campaign_tracks_a_new_reference_better(store, 
     """A PGNN trained on slow motions (its mass 2.24 kg against 3.4), a campaign of 3 trials at 20x the
     acceleration (MAE 307 µm -> 0.43 µm -> 0.079 µm), the PGNN refitted on the first and the best trial and its
     training recording (the LM stops on its statistical rule after 19 steps): on a new reference the exported law of
-    the refit tracks >= 5x better than the law before (measured 14.2x), neither clipped by its guard; ~100 s."""
+    the refit tracks >= 5x better than the law before (measured 14.2x), neither clipped by its guard; 0.5-2.5 min."""
     run_id = _pgnn_run(tmp_path, cfg_of)
     _csv(tmp_path / "ref.csv", ha.reference(*CAMPAIGN))
     r_new = ha.reference(*NEW)

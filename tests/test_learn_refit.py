@@ -63,7 +63,7 @@ def _pgnn_run(folder, cfg_of) -> str:
 
 @pytest.mark.slow
 def test_the_pgnn_refitted_on_the_campaign_tracks_a_new_reference_better(store, cfg_of, tmp_path, capsys):
-    """A PGNN trained on slow motions (its mass 2.24 kg against 3.4), a campaign of 3 trials at 20x the
+    """A PGNN trained on slow motions (its physics part's mass 2.28 kg against 3.4), a campaign of 3 trials at 20x the
     acceleration (MAE 307 µm -> 0.43 µm -> 0.079 µm), the PGNN refitted on the first and the best trial and its
     training recording (the LM stops on its statistical rule after 19 steps): on a new reference the exported law of
     the refit tracks >= 5x better than the law before (measured 14.2x), neither clipped by its guard; 0.5-2.5 min."""
@@ -103,7 +103,7 @@ def test_the_pgnn_refitted_on_the_campaign_tracks_a_new_reference_better(store, 
         mae[tag] = float(np.mean(np.abs(rec["e"])))
     print(json.dumps({k: 1e6 * v for k, v in mae.items()}))
     # measured: none 250.7 µm; the PGNN 1.129 -> 0.0795 µm (14.2x), the physics 1.035 -> 0.0621 µm (16.7x; its refit
-    # has the spring K q, the PGNN's physics not); the PGNN's mass 2.24 -> 3.39 kg (true 3.4)
+    # has the spring K q, the PGNN's physics not); the PGNN's physics part: its mass 2.28 -> 3.39 kg (true 3.4)
     assert mae["before"] / mae["after"] >= 5.0 and mae["physics before"] / mae["physics after"] >= 5.0, mae
     assert g["physical"]["M"] == pytest.approx(ha.M, rel=0.03) and g["physical_before"]["M"] < 0.8 * ha.M, g
     # shipped: `learn export --model` is `pgnn-ff export` of the refit's run, whose law gave the u_ff above

@@ -126,12 +126,19 @@ def refit(c, trials: list[int] | str | None = None, training: bool = True, resta
              "stop_reason": stop, "converged": stop not in CAPS, "iterations": metrics.get("train/iterations"),
              "seconds": metrics.get("train/seconds"), "val_force_rel_error": metrics.get("train/val_force_rel_error"),
              "physical": {k: float(v) for k, v in results["train"]["physical"].items()},
-             "physical_before": {k: float(v) for k, v in c.state["source_run"]["physical"].items()},
+             "physical_before": physics_of(src),
              "n1": None if loop is None else int(loop.n1), "before": sorted(before), "after": sorted(after)}
     if not entry["converged"]:
         warnings.warn(f"the PGNN refit stopped on its cap ({stop}) after {entry['iterations']:g} LM steps, not on a "
                       "tolerance: raise identify.max_iter in the source run's config", stacklevel=2)
     return entry
+
+
+def physics_of(run_id: str) -> dict:
+    """The physics part θ_phy of a run's PGNN as physical parameters (its metrics ``train/theta_phy/<name>``)."""
+    pre = "train/theta_phy/"
+    return {k[len(pre):]: float(v) for k, v in sorted(tracking.client().get_run(run_id).data.metrics.items())
+            if k.startswith(pre)}
 
 
 def law_folder(c, which: str) -> Path:

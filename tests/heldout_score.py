@@ -19,6 +19,12 @@ the actuator limit and reaches an MAE within ``MAE_FACTOR`` × the better hand-s
 
     .venv/bin/python tests/heldout_score.py [--axis a|b] [--work DIR] [--hidden 16] [--lam 0.01] [--skip-pgnn]
         [--digits N] [--physics basic|engineer]
+    .venv/bin/python tests/heldout_score.py --axis a|b --work DIR --learn [--refit-args '--trials 0,5']
+
+``--learn`` (issue 50), on the runs a scoring left in ``--work``: a learning campaign on the axis started from the
+PGNN run (``pgnn-ff learn init --run``, ``learn run --machine sim:tests.heldout_axis[_b]:simulate``, ``learn refit``),
+then the physics and PGNN feedforward before and after the model update (``learn feedforward``) on references the
+machine never ran (:data:`NEW_SEGMENTS`), each scored on the true plant.
 
 ``--axis b`` scores the second held-out axis (:mod:`tests.heldout_axis_b`: a flexure spring, a current-loop lag,
 C_r and C_y each with its own denominator, 8 kHz) the same way. The PGNN run ships its feedforward too (issue 49:
@@ -178,12 +184,14 @@ def run_pipeline(name: str, overrides: list[str], work: Path) -> Step:
 
 # ---- the run's artifacts ---------------------------------------------------------------------------------
 def find_run(work: Path, identify: str):
-    """(run, local artifact folder) of the newest run of EXPERIMENT with tag identify=<identify>."""
+    """(run, local artifact folder) of the newest run of EXPERIMENT with tag identify=<identify>, not a campaign's
+    refit (``pgnn-ff learn refit`` adds its runs to the source run's experiment)."""
     import mlflow  # lazy: the generator and the table need no MLflow
     client = mlflow.MlflowClient(tracking_uri=f"sqlite:///{work / 'mlflow.db'}")
     exp = client.get_experiment_by_name(EXPERIMENT)
     runs = client.search_runs([exp.experiment_id], f"tags.identify = '{identify}'",
-                              order_by=["attributes.start_time DESC"], max_results=1) if exp else []
+                              order_by=["attributes.start_time DESC"]) if exp else []
+    runs = [x for x in runs if "learn_source_run" not in x.data.tags]
     if not runs:
         raise LookupError(f"no run with identify={identify} in experiment {EXPERIMENT} of {work}")
     uri = urlparse(runs[0].info.artifact_uri)
@@ -366,6 +374,122 @@ def run(work: Path, hidden: int = 16, lam: float = 0.01, pgnn: bool = True, digi
             "improvement": improvement(rows), "acceptance_49": acceptance_49(rows) if pgnn else []}
 
 
+# ---- issue 50: a learning campaign on the axis, then the model update on references never run ----------------
+#: references the machine never ran (not in training, test or the campaign), inside the training envelope: the
+#: model update's check (issue 50: ≥ LEARN_RATIO better than the model before the campaign)
+NEW_SEGMENTS = {
+    "a": {"new1": (0.08, [("dwell", 0.5), ("move", 0.03, 0.7), ("dwell", 0.4), ("move", 0.11, 0.6), ("dwell", 0.4),
+                          ("sine", 0.025, 1.2, 2.5), ("dwell", 0.4), ("move", 0.055, 0.5), ("dwell", 0.4),
+                          ("move", 0.095, 0.8), ("dwell", 0.8)]),
+          "new2": (0.04, [("dwell", 0.4), ("move", 0.07, 0.35), ("dwell", 0.3), ("move", 0.02, 0.5), ("dwell", 0.3),
+                          ("move", 0.10, 0.75), ("dwell", 0.3), ("sine", 0.015, 0.7, 3.0), ("dwell", 0.3),
+                          ("move", 0.045, 0.55), ("dwell", 0.6)])},
+    "b": {"new1": (0.004, [("dwell", 0.4), ("move", -0.016, 0.3), ("dwell", 0.3), ("move", 0.02, 0.4), ("dwell", 0.3),
+                           ("chirp", 0.008, 0.8, 10.0, 2.0), ("dwell", 0.3), ("move", -0.005, 0.2), ("dwell", 0.4)]),
+          "new2": (-0.008, [("dwell", 0.3), ("move", 0.012, 0.22), ("dwell", 0.25), ("move", -0.02, 0.45),
+                            ("dwell", 0.25), ("chirp", 0.005, 1.5, 6.0, 1.5), ("dwell", 0.25), ("move", 0.0, 0.3),
+                            ("dwell", 0.4)])},
+}
+#: the campaign's learn section per axis (Q's cutoff ≈ 2.5× the loop's crossover: 60 Hz, 90 Hz)
+LEARN_CONFIG = {"a": {"learn": {"q_cutoff_hz": 150.0}}, "b": {"learn": {"q_cutoff_hz": 225.0}}}
+LEARN_TRIALS = 10
+LEARN_RATIO = 2.0
+#: the feedforward variants of ``pgnn-ff learn feedforward`` scored on the new references
+VARIANTS = {"physics before": ["--campaign-model", "--physics"], "physics refit": ["--physics"],
+            "pgnn before": ["--campaign-model"], "pgnn refit": []}
+
+
+def learn_cli(name: str, args: list[str], work: Path) -> Step:
+    """``python -m pipeline learn <args>`` from the repo, as a user types ``pgnn-ff learn``."""
+    cmd = [PYTHON, "-m", "pipeline", "learn", *args]
+    t0 = time.perf_counter()
+    p = subprocess.run(cmd, cwd=ROOT, env=environment(work), capture_output=True, text=True)
+    log = p.stdout + p.stderr
+    (work / f"{name}.log").write_text(log)
+    return Step(name, cmd, time.perf_counter() - t0, p.returncode, log,
+                [ln.strip() for ln in log.splitlines() if WARNING.search(ln) and not PROGRESS.match(ln)])
+
+
+def _write_reference(path: Path, r: np.ndarray) -> None:
+    np.savetxt(path, np.column_stack([np.arange(r.size) * axis.TS, r]), delimiter=",", header="t,r", comments="",
+               fmt="%.17g")
+
+
+def learn_check(work: Path, run_id: str, axis_name: str, refit_args: tuple = ()) -> dict:
+    """The campaign on the axis from the PGNN run ``run_id`` (learn init --run, learn run on the true plant
+    ``sim:<axis module>:simulate``, learn refit), then every :data:`VARIANTS` feedforward on the references of
+    :data:`NEW_SEGMENTS` scored on the true plant; returns {steps, trials, new, ratios, acceptance}."""
+    import yaml  # lazy: the scorer's other paths write no YAML
+    work = Path(work)
+    lw = work / "learn"
+    lw.mkdir(parents=True, exist_ok=True)
+    camp = lw / "campaign"
+    shutil.rmtree(camp, ignore_errors=True)
+    _write_reference(lw / "ref.csv", axis.eval_reference())
+    (lw / "learn.yaml").write_text(yaml.safe_dump(LEARN_CONFIG[axis_name]))
+    machine = f"sim:tests.{axis.__name__.rsplit('.', 1)[-1]}:simulate"
+    steps = [learn_cli("learn_init", ["init", str(camp), "--run", run_id, "--reference", str(lw / "ref.csv"),
+                                      "--config", str(lw / "learn.yaml")], work)]
+    steps.append(learn_cli("learn_run", ["run", str(camp), "--machine", machine, "--trials", str(LEARN_TRIALS)], work))
+    steps.append(learn_cli("learn_refit", ["refit", str(camp), *refit_args], work))
+    state = json.loads((camp / "campaign.json").read_text())["state"] if (camp / "campaign.json").exists() else {}
+    trials = [{k: h[k] for k in ("trial", "mae", "max", "rms", "noise_floor", "decision", "gain", "max_abs_u")}
+              for h in state.get("trials", [])]
+    new, ratios = {}, {}
+    for ref, segs in NEW_SEGMENTS[axis_name].items():
+        r = axis.reference(*segs)
+        _write_reference(lw / f"{ref}.csv", r)
+        new[ref] = {"none": asdict(score("none", "as written", "-", r, None))}
+        for variant, extra in VARIANTS.items():
+            out = lw / f"u_ff_{ref}_{variant.replace(' ', '_')}.csv"
+            st = learn_cli(f"ff_{ref}_{variant.replace(' ', '_')}", ["feedforward", str(camp), "--reference",
+                                                                    str(lw / f"{ref}.csv"), "--out", str(out), *extra],
+                           work)
+            steps.append(st)
+            if st.returncode == 0:
+                u = np.loadtxt(out, delimiter=",", skiprows=1, usecols=2)
+                new[ref][variant] = asdict(score(variant, "as written", f"learn feedforward {' '.join(extra)}", r, u))
+        m = {k: v["mae_um"] for k, v in new[ref].items()}
+        ratios[ref] = {k: m[a] / m[b] for k, a, b in (("physics refit", "physics before", "physics refit"),
+                                                      ("pgnn refit", "pgnn before", "pgnn refit"),
+                                                      ("pgnn refit vs physics before", "physics before", "pgnn refit"))
+                       if a in m and b in m}
+    fails = [f"{s.name}: exit {s.returncode}" for s in steps if s.returncode]
+    if trials:
+        none = trials[0]["mae"]
+        best = min(h["mae"] for h in trials)
+        fails += [f"trial {h['trial']}: max |u| {h['max_abs_u']:.4g} N at the ±{axis.U_MAX:g} N limit"
+                  for h in trials if h["max_abs_u"] >= axis.U_MAX]
+        for k, h in enumerate(trials[1:], 1):
+            b = min(g["rms"] for g in trials[:k])
+            if h["rms"] > 1.2 * b and h["decision"] != "rollback":
+                fails.append(f"trial {k}: rms {h['rms']:.4g} m > 1.2 × the best before it without a rollback")
+        summary = {"mae_none_um": 1e6 * none, "mae_best_um": 1e6 * best, "improvement": none / best,
+                   "rollbacks": sum(h["decision"] == "rollback" for h in trials)}
+    else:
+        summary = {}
+    for ref, rr in ratios.items():
+        fails += [f"{ref}: {k} only {v:.3g}× better than before the campaign (< {LEARN_RATIO:g}×)"
+                  for k, v in rr.items() if k != "pgnn refit vs physics before" and not v >= LEARN_RATIO]
+    return {"steps": [asdict(s) | {"shell": s.shell} for s in steps], "trials": trials, "summary": summary,
+            "refit": state.get("refit"), "refit_pgnn": state.get("refit_pgnn"), "new": new, "ratios": ratios,
+            "acceptance": fails}
+
+
+def learn_table(rep: dict) -> str:
+    out = ["| trial | MAE [µm] | max abs e [µm] | max abs u [N] | decision | gain |", "|---|---|---|---|---|---|"]
+    out += [f"| {h['trial']} | {1e6 * h['mae']:.4g} | {1e6 * h['max']:.4g} | {h['max_abs_u']:.4g} | {h['decision']} | "
+            f"{h['gain']:g} |" for h in rep["trials"]]
+    out += ["", "| new reference | " + " | ".join(["none", *VARIANTS]) + " |", "|---" * (len(VARIANTS) + 2) + "|"]
+    for ref, rows in rep["new"].items():
+        out.append(f"| {ref} MAE [µm] | " + " | ".join(f"{rows[k]['mae_um']:.4g}" if k in rows else "-"
+                                                        for k in ["none", *VARIANTS]) + " |")
+    out.append("")
+    for ref, rr in rep["ratios"].items():
+        out.append(f"{ref}: " + ", ".join(f"{k} {v:.3g}×" for k, v in rr.items()))
+    return "\n".join(out)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--axis", choices=sorted(AXES), default="a", help="the held-out axis (b: tests/heldout_axis_b.py)")
@@ -378,10 +502,27 @@ def main(argv=None) -> int:
     ap.add_argument("--physics", choices=sorted(PHYSICS), default="basic",
                     help="basic: viscous, coulomb (the generator's width), offset; engineer: + spring, "
                          "coulomb_width=auto, actuator lag_tau=auto (issue 49)")
+    ap.add_argument("--learn", action="store_true", help="instead: a learning campaign from the PGNN run already in "
+                    "--work (score it first) and the model update scored on references never run (issue 50)")
+    ap.add_argument("--refit-args", default="", help="extra arguments of `learn refit`, e.g. '--trials 0,5'")
     a = ap.parse_args(argv)
     global physics
     physics = a.physics
     work = a.work or Path(tempfile.mkdtemp(prefix="heldout_axis_"))
+    if a.learn:
+        use_axis(a.axis)
+        rep = learn_check(work, find_run(work, "sim_error")[0].info.run_id, a.axis, tuple(a.refit_args.split()))
+        for s in rep["steps"]:
+            print(f"$ {s['shell']}\n  exit {s['returncode']}, {s['seconds']:.1f} s")
+            for w in s["warnings"]:
+                print(f"  | {w}")
+        print("\n" + learn_table(rep))
+        print("\nacceptance (issue 50): " + ("met" if not rep["acceptance"] else "NOT met:\n  "
+                                              + "\n  ".join(rep["acceptance"])))
+        if a.json:
+            a.json.write_text(json.dumps({k: v for k, v in rep.items() if k != "steps"} | {"steps": [
+                {k: v for k, v in s.items() if k != "log"} for s in rep["steps"]]}, indent=1, default=float))
+        return 0 if not rep["acceptance"] else 1
     rep = run(work, a.hidden, a.lam, not a.skip_pgnn, a.digits, a.axis)
     print(f"work folder: {rep['work']}")
     for s in rep["steps"]:

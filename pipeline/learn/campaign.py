@@ -30,7 +30,7 @@ import pandas as pd
 from pipeline import data
 from pipeline.errors import ConfigError
 from pipeline.learn import safety
-from pipeline.learn.update import LoopModel, make_update
+from pipeline.learn.update import LoopModel, applied_disturbance, make_update
 from pipeline.plots import pyplot
 from pipeline.params import DAMP_MAX, FORCE_MAX, FREQ_MAX, ITER_MAX, MASS_MAX, SPEED_MAX, STIFF_MAX, TS_MAX, \
     schema, spec
@@ -321,8 +321,7 @@ def check_recording(c: Campaign, path: Path, j: int) -> dict:
         raise ConfigError(f"{name}: {int(at_limit.sum())} samples at the actuator limit ±{ctrl.v_sat * ctrl.gtau:g} N "
                           f"(first at sample {int(np.flatnonzero(at_limit)[0])}): not learned from; lower "
                           "learn.gain or the limits (safety.u_max, safety.rate) and rerun the best trial's u_ff")
-    d = np.concatenate([np.full(ctrl.delay, rec["u_ff"][0]), rec["u_ff"][:rec["u_ff"].size - ctrl.delay]]) / ctrl.gtau
-    rel = ctrl.check(rec["r"], rec["y"], rec["u"], d)
+    rel = ctrl.check(rec["r"], rec["y"], rec["u"], applied_disturbance(ctrl, rec["u_ff"]))
     if not rel < CONTROLLER_RTOL:
         raise ConfigError(f"{name}: the recorded u is not {ctrl.describe()} plus the applied u_ff (relative equation "
                           f"error {100 * rel:.3g} % > {100 * CONTROLLER_RTOL:.0f} %); record u as the force applied "
@@ -466,14 +465,24 @@ def _log_trial(c: Campaign, entry: dict) -> None:
 
 
 # ---- the model learns (pipeline.learn.refit) ----------------------------------------------------------------
-def refit_model(folder) -> dict:
+def refit_model(folder, pgnn: bool = True, trials: list[int] | str | None = None, training: bool = True,
+                restarts: int | None = None, terms: list[str] | None = None) -> dict:
     """Refit the campaign's physics on every trial's recording (:func:`pipeline.learn.refit.refit`); stored in
-    the state and written as ``model_refit.yaml`` (the ``model`` section of a next campaign)."""
+    the state and written as ``model_refit.yaml`` (the ``model`` section of a next campaign). A campaign from a
+    run with a PGNN (``learn init --run``) also refits that PGNN (:func:`pipeline.learn.pgnn_refit.refit`, on
+    ``trials``: indices, 'all', default the first and the best; plus with ``training`` the run's training files)
+    unless ``pgnn`` is off, with ``restarts`` LM restarts and the force ``terms`` (default the run's); its entry is
+    the state's ``refit_pgnn``, returned under the key ``pgnn``."""
     import yaml  # lazy: saves 0.1 s of start-up (only learn init and refit write YAML)
     from pipeline.learn import refit  # lazy: saves 0.4 s of start-up (the measured-system physics)
     c = load(folder)
     if not c.state["trials"]:
         raise ConfigError(f"{folder}: no trial recorded yet; the refit needs the trials' recordings")
+    with_pgnn = pgnn and has_pgnn(c)
+    if not with_pgnn and (trials is not None or not training or restarts is not None or terms is not None):
+        raise ConfigError(f"{folder}: --trials, --campaign-only, --restarts and --terms choose the PGNN's refit, and "
+                          "this campaign refits no PGNN (started from a config file or a physics run, or "
+                          "--physics-only); drop them: the physics refits on every trial")
     recs = []
     for h in c.state["trials"]:
         frame = pd.read_csv(c.folder / "recordings" / f"trial_{h['trial']}.csv")
@@ -483,30 +492,49 @@ def refit_model(folder) -> dict:
     c.state["refit"] = {**out, "residual": res, "recordings": len(recs)}
     _atomic(c.folder / "model_refit.yaml", lambda p: Path(p).write_text(yaml.safe_dump({"model": out})))
     c.save()
-    return c.state["refit"]
+    result = dict(c.state["refit"])
+    if with_pgnn:
+        from pipeline.learn import pgnn_refit  # lazy: saves 3.0 s of start-up (mlflow, hydra, torch, the stages)
+        c.state["refit_pgnn"] = result["pgnn"] = pgnn_refit.refit(c, trials, training, restarts, terms)
+        c.save()
+    return result
 
 
-def feedforward_for(folder, reference: Path, out: Path, refitted: bool = True) -> Path:
+def has_pgnn(c: Campaign) -> bool:
+    """Whether the campaign came from a run whose model is a PGNN it inverted (pipeline.learn.pgnn_refit)."""
+    if "source_run" not in c.state:
+        return False
+    from pipeline.learn import pgnn_refit  # lazy: saves 3.0 s of start-up (mlflow, hydra, torch, the stages)
+    return pgnn_refit.has_pgnn(c.state["source_run"]["run_id"])
+
+
+def feedforward_for(folder, reference: Path, out: Path, refitted: bool = True, physics: bool = False) -> Path:
     """The model's feedforward for a reference the campaign never ran (t, r, u_ff, flags), from the refitted
-    model (or the campaign's own), within the campaign's limits."""
+    model (or, ``refitted`` off, the one before the campaign): the PGNN's exported law when the campaign refitted
+    one (pipeline.learn.pgnn_refit; ``physics`` on: the physics instead), else the physics within the limits the
+    config states."""
     from pipeline.learn import refit  # lazy: saves 0.4 s of start-up (the measured-system physics)
     c = load(folder)
     cfg = c.cfg
-    m = cfg.model
-    if refitted:
-        if "refit" not in c.state:
-            raise ConfigError(f"{folder}: not refitted yet; run `pgnn-ff learn refit {folder}` first")
-        m = LearnModel(**{k: c.state["refit"][k] for k in ("M", "F_v", "K", "F_c", "coulomb_width")})
     frame = pd.read_csv(reference)
     if "r" not in frame or "t" not in frame:
         raise ConfigError(f"{reference}: a reference needs columns t, r; found {list(frame.columns)[:8]}")
     r = frame["r"].to_numpy(np.float64)
-    model = LoopModel(c.Ts, m.M, m.F_v, m.K, c.controller(), m.F_c, m.coulomb_width)
-    u = refit.feedforward(make_update(model, "model_ilc", cfg.learn.q_cutoff_hz, cfg.learn.q_order), r)
-    # only the limits the config states: the ones from the campaign's recordings are its reference's, and a
-    # new reference may need more (a faster move); beyond them is a warning
-    s = cfg.safety
-    u, flags = safety.limited(u, s.u_max or math.inf, s.rate or math.inf, c.Ts)
+    if not physics and "refit_pgnn" in c.state:
+        from pipeline.learn import pgnn_refit  # lazy: saves 3.0 s of start-up (mlflow, hydra, torch, the stages)
+        u, flags = pgnn_refit.feedforward(c, "after" if refitted else "before", r)
+    else:
+        m = cfg.model
+        if refitted:
+            if "refit" not in c.state:
+                raise ConfigError(f"{folder}: not refitted yet; run `pgnn-ff learn refit {folder}` first")
+            m = LearnModel(**{k: c.state["refit"][k] for k in ("M", "F_v", "K", "F_c", "coulomb_width")})
+        model = LoopModel(c.Ts, m.M, m.F_v, m.K, c.controller(), m.F_c, m.coulomb_width)
+        u = refit.feedforward(make_update(model, "model_ilc", cfg.learn.q_cutoff_hz, cfg.learn.q_order), r)
+        # only the limits the config states: the ones from the campaign's recordings are its reference's, and a
+        # new reference may need more (a faster move); beyond them is a warning
+        s = cfg.safety
+        u, flags = safety.limited(u, s.u_max or math.inf, s.rate or math.inf, c.Ts)
     lim = c.state["limits"]
     peak, slew = float(np.max(np.abs(u))), float(np.max(np.abs(np.diff(u)))) / c.Ts
     if lim and (peak > lim["u_max"] or slew > lim["rate"]):
@@ -519,13 +547,20 @@ def feedforward_for(folder, reference: Path, out: Path, refitted: bool = True) -
     return Path(out)
 
 
-def export(folder, out: Path, trial: int | None = None, cc: str | None = "cc") -> dict:
+def export(folder, out: Path, trial: int | None = None, cc: str | None = "cc", model: bool = False) -> dict:
     """The u_ff of ``trial`` (default: the latest the campaign wrote) as a C99 package (pipeline.export): the
     table family, the law IL-FHOFC's tables use (a signal learned by trials for one reference; the manifest's law
-    reads il_fhofc), verified against the CSV and compiled with ``cc`` when one is found."""
+    reads il_fhofc), verified against the CSV and compiled with ``cc`` when one is found. ``model``: instead the
+    refitted PGNN's law for any reference (``pgnn-ff export`` of the refit's run: {package: manifest})."""
     from pipeline.export.law import from_table  # lazy: saves 0.5 s of start-up (the exporter)
     from pipeline.export.package import write_package  # lazy: saves 0.5 s of start-up (the exporter)
     c = load(folder)
+    if model:
+        if "refit_pgnn" not in c.state:
+            raise ConfigError(f"{folder}: no PGNN refit to export; `pgnn-ff learn refit {folder}` refits the PGNN of "
+                              "a campaign started with --run RUN_ID of a PGNN run")
+        from pipeline.export.cli import export_run  # lazy: saves 3.0 s of start-up (mlflow, hydra, the stages)
+        return export_run(c.state["refit_pgnn"]["run_id"], Path(out), cc=cc)
     j = len(c.state["trials"]) if trial is None else int(trial)
     if not c.u_ff_path(j).exists():
         raise ConfigError(f"{folder}: no u_ff_{j}.csv; the campaign has u_ff_0 .. u_ff_{len(c.state['trials'])}")

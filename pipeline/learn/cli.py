@@ -4,9 +4,11 @@
     pgnn-ff learn init CAMPAIGN --run RUN_ID --reference ref.csv [--config learn.yaml]  # the model of a run
     pgnn-ff learn CAMPAIGN --recording trial_<j>.csv --out u_ff_<j+1>.csv
     pgnn-ff learn run CAMPAIGN --machine sim:<module>:<function> [--trials 10]
-    pgnn-ff learn refit CAMPAIGN                      # the physics refitted on the trials' recordings
-    pgnn-ff learn feedforward CAMPAIGN --reference new.csv --out u_ff.csv [--campaign-model]
+    pgnn-ff learn refit CAMPAIGN [--physics-only] [--trials j,k] [--campaign-only] [--restarts N] [--terms a,b]
+                                                      # the physics, and the run's PGNN, on the trials
+    pgnn-ff learn feedforward CAMPAIGN --reference new.csv --out u_ff.csv [--campaign-model] [--physics]
     pgnn-ff learn export CAMPAIGN --out DIR [--trial j] [--cc CC]   # the u_ff as C99 (the table family)
+    pgnn-ff learn export CAMPAIGN --out DIR --model   # the refitted PGNN's law (pgnn-ff export of the refit run)
 
 Bad input (a recording of another reference or feedforward, a diverging gain, …) is one line on stderr and
 exit code 2.
@@ -73,18 +75,47 @@ def main(argv: list[str] | None = None) -> int:
         elif argv[:1] == ["refit"]:
             p = argparse.ArgumentParser(prog="pgnn-ff learn refit")
             p.add_argument("campaign")
+            p.add_argument("--physics-only", action="store_true", help="refit the physics only, not the run's PGNN")
+            p.add_argument("--trials", default=None, help="the PGNN's refit data: trials j,k,… or all (default: the "
+                           "first and the best)")
+            p.add_argument("--campaign-only", action="store_true", help="the PGNN on the trials' recordings only, "
+                           "not with the run's training files")
+            p.add_argument("--restarts", type=int, default=None, help="the PGNN's LM restarts (default: the run's "
+                           "identify.n_restarts)")
+            p.add_argument("--terms", default=None, help="the PGNN's physics force terms, e.g. viscous,coulomb,offset,"
+                           "spring (default: the run's)")
             a = p.parse_args(argv[1:])
-            f = campaign.refit_model(a.campaign)
+            try:
+                trials = a.trials if a.trials in (None, "all") else [int(x) for x in a.trials.split(",")]
+            except ValueError:
+                raise ConfigError(f"--trials {a.trials!r}: give trial numbers separated by commas, e.g. 0,3, "
+                                  "or all") from None
+            f = campaign.refit_model(a.campaign, not a.physics_only, trials, not a.campaign_only, a.restarts,
+                                     a.terms and a.terms.split(","))
             print(f"refit on {f['recordings']} recordings: M {f['M']:.6g} kg, F_v {f['F_v']:.6g} N s/m, K {f['K']:.6g} "
                   f"N/m, F_c {f['F_c']:.6g} N (force residual {100 * f['residual']:.3g} %); "
                   f"{Path(a.campaign) / 'model_refit.yaml'}")
+            g = f.get("pgnn")
+            if g:
+                phys = ", ".join(f"{k} {v:.5g}" for k, v in g["physical"].items())
+                val = g["val_force_rel_error"]
+                print(f"PGNN refit (run {g['run_id']}) on trials {g['trials']} + {g['training_files']} training files, "
+                      f"{g['restarts']} restarts, terms {','.join(g['terms'])}: "
+                      f"stop {g['stop_reason']} ({'converged' if g['converged'] else 'NOT converged: on its cap'}) "
+                      f"after {g['iterations']:g} LM steps, {g['seconds']:.0f} s; validation force error "
+                      f"{'-' if val is None else format(val, '.4g')} %; "
+                      f"physics {phys}; its law {Path(a.campaign) / 'refit' / 'after'}")
         elif argv[:1] == ["export"]:
             p = argparse.ArgumentParser(prog="pgnn-ff learn export")
             p.add_argument("campaign")
             p.add_argument("--out", required=True)
             p.add_argument("--trial", type=int, default=None, help="default: the latest u_ff of the campaign")
             p.add_argument("--cc", default="cc")
+            p.add_argument("--model", action="store_true", help="the refitted PGNN's law (any reference) instead")
             a = p.parse_args(argv[1:])
+            if a.model:
+                campaign.export(a.campaign, Path(a.out), cc=a.cc, model=True)   # export_run prints each package
+                return 0
             man = campaign.export(a.campaign, Path(a.out), a.trial, a.cc)
             print(f"{Path(a.out) / man['name']}: {man['law']} table of {len(campaign.load(a.campaign).reference)} "
                   f"samples ({'compiled and checked' if man.get('compiled') else 'not compiled'})")
@@ -93,9 +124,11 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("campaign")
             p.add_argument("--reference", required=True, help="CSV with t, r (a motion the campaign never ran)")
             p.add_argument("--out", required=True)
-            p.add_argument("--campaign-model", action="store_true", help="the campaign's model, not the refit")
+            p.add_argument("--campaign-model", action="store_true", help="the model before the campaign, not the refit")
+            p.add_argument("--physics", action="store_true", help="the physics, also where a PGNN was refitted")
             a = p.parse_args(argv[1:])
-            print(campaign.feedforward_for(a.campaign, Path(a.reference), Path(a.out), not a.campaign_model))
+            print(campaign.feedforward_for(a.campaign, Path(a.reference), Path(a.out), not a.campaign_model,
+                                           a.physics))
         else:
             p = argparse.ArgumentParser(prog="pgnn-ff learn", description="One trial of a learning campaign "
                                         "(README \"Learn on the machine\"); also: learn init, learn run")

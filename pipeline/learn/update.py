@@ -85,7 +85,8 @@ from pipeline.invert.ilc_lq import RiccatiUpdate
 from pipeline.models.closed_loop import ArxPGNN, DiscreteController
 from pipeline.systems.controller import LTIController
 
-__all__ = ["LoopModel", "Update", "ModelILC", "NormOptimalILC", "IlFhofc", "make_update", "apply_response", "LAWS"]
+__all__ = ["LoopModel", "Update", "ModelILC", "NormOptimalILC", "IlFhofc", "make_update", "apply_response",
+           "applied_disturbance", "LAWS"]
 
 LAWS = ("model_ilc", "norm_optimal", "il_fhofc")
 
@@ -237,6 +238,13 @@ class LoopModel:
             p = p * control.tf([1.0], [1.0] + [0.0] * self.ctrl.delay, self.Ts)
         c = self.ctrl.transfer_functions(self.Ts)[1] * self.ctrl.gtau
         return process_sensitivity(p, c)
+
+
+def applied_disturbance(ctrl: LTIController, u_ff: np.ndarray) -> np.ndarray:
+    """The applied u_ff as the measured format's disturbance column d [controller units]: u = gtau (sat(v + u_ff/gtau)
+    (k - D)) is u = gtau (v(k - D) + d) with d(k) = u_ff(k - D)/gtau off the limit (u_ff(0) before the trial)."""
+    u_ff = np.asarray(u_ff, np.float64)
+    return np.concatenate([np.full(ctrl.delay, u_ff[0]), u_ff[:u_ff.size - ctrl.delay]]) / ctrl.gtau
 
 
 def apply_response(x: np.ndarray, response, Ts: float, pad: int) -> np.ndarray:

@@ -88,6 +88,8 @@ def run(ctx) -> dict:
         _write(results / "summary.csv", table.to_csv(index=False))
         text = _with_checks(text, results, table)
         text = _with_champions(text, [(e, _champion_or_warn(e)) for e in built])
+        if update and not built:    # nothing rerun (make reproduce-spread): the registry's champions are as they were
+            text = _in_head(text, _registry_paragraph(results / "REPORT.md"))
         old = Path(tempfile.mkdtemp(prefix=".figures-old-", dir=results))
         if (results / "figures").exists():
             os.replace(results / "figures", old / "figures")
@@ -304,8 +306,22 @@ def _with_champions(text: str, champions: list) -> str:
              "as version tags: " + "; ".join(f"`models:/{n}@champion` (version {v})" for _, (n, v) in got) + "."
              + (" No logged feedforward model (no `export` stage), so none registered: "
                 + ", ".join(f"`{e}`" for e, c in champions if not c) + "." if len(got) < len(champions) else ""), ""]
+    return _in_head(text, lines)
+
+
+def _in_head(text: str, lines: list[str]) -> str:
+    """``text`` with ``lines`` at the end of its header (before the first ``## `` section)."""
+    if not lines:
+        return text
     head, rest = text.split("\n## ", 1) if "\n## " in text else (text, "")
     return head.rstrip("\n") + "\n\n" + "\n".join(lines) + ("\n## " + rest if rest else "")
+
+
+def _registry_paragraph(report: Path) -> list[str]:
+    """The header's Model Registry paragraph of an existing REPORT.md (as :func:`_with_champions` wrote it)."""
+    md = report.read_text() if report.exists() else ""
+    head = md.split("\n## ", 1)[0]
+    return [p + "\n" for p in head.split("\n\n") if p.startswith("Model Registry: ")][:1]
 
 
 def _champion_or_warn(experiment: str):

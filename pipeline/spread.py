@@ -83,13 +83,10 @@ def build(summaries: list[pd.DataFrame], labels: list[str]) -> pd.DataFrame:
         vals.append(v)
         base[f"value_{lab}"] = v
     V = np.vstack(vals)
-    finite = np.isfinite(V)
-    base["n"] = finite.sum(axis=0)
-    with np.errstate(all="ignore"):
-        base["median"] = np.nanmedian(np.where(finite, V, np.nan), axis=0) if V.size else []
-        base["min"] = np.nanmin(np.where(finite, V, np.nan), axis=0)
-        base["max"] = np.nanmax(np.where(finite, V, np.nan), axis=0)
-    base = base[base["n"] == len(summaries)].reset_index(drop=True)   # a key every run has, finite in every one
+    keep = np.isfinite(V).all(axis=0)            # a key every run has, finite in every one
+    base, V = base[keep].reset_index(drop=True), V[:, keep]
+    base["n"] = V.shape[0]
+    base["median"], base["min"], base["max"] = np.median(V, axis=0), V.min(axis=0), V.max(axis=0)
     for col in ("median", "min", "max"):
         base[f"holds_{col}"] = judge_statistic(base, col)
     claimed = base["holds_median"].notna()

@@ -53,6 +53,8 @@ class LearnModel:
     K: float = spec(0.0, ge=0, le=STIFF_MAX, unit="N/m")
     F_c: float = spec(0.0, ge=0, le=FORCE_MAX, unit="N")
     coulomb_width: float = spec(0.0, ge=0, le=SPEED_MAX, unit="m/s")
+    # the drive's current-loop lag τ Ḟ + F = u (pipeline.systems.actuator_lag); 0: none
+    lag_tau: float = spec(0.0, ge=0, le=1.0, unit="s")
 
 
 @schema
@@ -105,6 +107,8 @@ class CampaignConfig:
     safety: LearnSafety = field(default_factory=LearnSafety)
 
 
+#: the model section's keys a refit writes (model_refit.yaml; pipeline.learn.refit)
+REFIT_KEYS = tuple(f.name for f in fields(LearnModel))
 _SECTIONS = {"model": LearnModel, "learn": LearnLaw, "safety": LearnSafety}
 
 
@@ -164,8 +168,7 @@ class Campaign:
 
     def update(self):
         c = self.cfg
-        model = LoopModel(self.Ts, c.model.M, c.model.F_v, c.model.K, self.controller(), c.model.F_c,
-                          c.model.coulomb_width)
+        model = self.loop_model(c.model)
         L = c.learn
         weights = {"model_ilc": {}, "norm_optimal": {"w_f": L.w_f, "w_df": L.w_df, "max_sweeps": L.max_sweeps,
                                                      "rtol": L.rtol},
@@ -173,6 +176,10 @@ class Campaign:
                                 "overlap": L.fhofc_overlap, "maxiter": L.maxiter}}[L.law]
         upd = make_update(model, c.learn.law, c.learn.q_cutoff_hz, c.learn.q_order, **weights)
         return upd.along(self.reference) if c.learn.along_trajectory else upd
+
+    def loop_model(self, m: LearnModel) -> LoopModel:
+        """The update's :class:`LoopModel` of a ``model`` section (the config's, or the refit's)."""
+        return LoopModel(self.Ts, m.M, m.F_v, m.K, self.controller(), m.F_c, m.coulomb_width, m.lag_tau)
 
     def controller_term(self) -> np.ndarray:
         """gtau (C_r - C_y) r from rest at r(0) (LTIController.reference_force)."""
@@ -487,9 +494,9 @@ def refit_model(folder, pgnn: bool = True, trials: list[int] | str | None = None
     for h in c.state["trials"]:
         frame = pd.read_csv(c.folder / "recordings" / f"trial_{h['trial']}.csv")
         recs.append({"u": frame["u"].to_numpy(np.float64), "y": frame["y"].to_numpy(np.float64)})
-    model, res = refit.refit(c.update().model, recs)
-    out = {"M": model.M, "F_v": model.F_v, "K": model.K, "F_c": model.F_c, "coulomb_width": model.coulomb_width}
-    c.state["refit"] = {**out, "residual": res, "recordings": len(recs)}
+    model, res, lag = refit.refit(c.update().model, recs)
+    out = {k: float(getattr(model, k)) for k in REFIT_KEYS}
+    c.state["refit"] = {**out, "residual": res, "recordings": len(recs), **({"lag_fit": lag} if lag else {})}
     _atomic(c.folder / "model_refit.yaml", lambda p: Path(p).write_text(yaml.safe_dump({"model": out})))
     c.save()
     result = dict(c.state["refit"])
@@ -528,8 +535,8 @@ def feedforward_for(folder, reference: Path, out: Path, refitted: bool = True, p
         if refitted:
             if "refit" not in c.state:
                 raise ConfigError(f"{folder}: not refitted yet; run `pgnn-ff learn refit {folder}` first")
-            m = LearnModel(**{k: c.state["refit"][k] for k in ("M", "F_v", "K", "F_c", "coulomb_width")})
-        model = LoopModel(c.Ts, m.M, m.F_v, m.K, c.controller(), m.F_c, m.coulomb_width)
+            m = LearnModel(**{k: c.state["refit"][k] for k in REFIT_KEYS if k in c.state["refit"]})
+        model = c.loop_model(m)
         u = refit.feedforward(make_update(model, "model_ilc", cfg.learn.q_cutoff_hz, cfg.learn.q_order), r)
         # only the limits the config states: the ones from the campaign's recordings are its reference's, and a
         # new reference may need more (a faster move); beyond them is a warning

@@ -8,7 +8,8 @@ the campaign's sections are what that run identified and would ship:
 - ``Ts``, ``controller``: ``system.Ts`` and ``system.controller`` (gtau, v_sat, delay included);
 - ``model``: the baseline's physics θ as physical parameters (M, F_v, F_c, K; the rigid-body model
   M q̈ = τ - F_v q̇ - F_c tanh(q̇/w) - K q of pipeline.learn.update.LoopModel) and the Coulomb width w
-  (``system.force_terms.coulomb_width``, or the baseline's choice for ``auto``; none: 0, sign(q̇));
+  (``system.force_terms.coulomb_width``, or the baseline's choice for ``auto``; none: 0, sign(q̇)), and the
+  drive's lag τ (``system.actuator.lag_tau``, or the baseline's for ``auto``; none: 0);
 - ``safety.u_max``, ``safety.rate``: the export's guard limits (stages.export.guard_of, rest start).
 
 Terms the campaign's loop model has no place for (offset OF, cogging, gravity, …) are kept in the
@@ -60,6 +61,8 @@ def model_of(run_id: str) -> dict:
     width = system.physics.terms.coulomb_width       # None: sign(q̇), the campaign's width 0
     model = {k: physical[k] for k in MODEL_KEYS if k in physical}
     model["coulomb_width"] = float(width or 0.0) if "F_c" in physical else 0.0
+    if base.get("lag"):                 # the drive's lag the physics has (system.actuator.lag_tau, or auto's τ)
+        model["lag_tau"] = float(base["lag"]["tau"])
     ctx = SimpleNamespace(cfg=cfg, system=system, inputs={"generate": results["generate"], "baseline": base})
     guard, _ = guard_of(ctx, "rest")    # the export's limits; the campaign's loop starts from rest at r(0)
     u_max = min(-guard["u_min"], guard["u_max"])

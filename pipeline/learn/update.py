@@ -5,10 +5,11 @@ trial's recorded error.
 ``A v = B_r r - B_y y``, ``u(k) = gtau sat(v + u_ff/gtau)(k - D)``, the feedforward u_ff [N] reaches the
 position through the process sensitivity
 
-    G = P' / (1 + gtau C_y P'),   P' = z^-D P_zoh,   P(s) = 1 / (M s² + F_v s + K)
+    G = P' / (1 + gtau C_y P'),   P' = z^-D P_zoh,   P(s) = 1 / ((τ s + 1)(M s² + F_v s + K))
 
-(:class:`LoopModel`): the linear part of the identified physics (mass, viscous friction, a position spring)
-with the controller's measurement path C_y = B_y/A. A smooth Coulomb force F_c tanh(q̇/w) of the model is
+(:class:`LoopModel`): the linear part of the identified physics (mass, viscous friction, a position spring; the
+drive's current-loop lag τ where the physics has one, else τ = 0) with the controller's measurement path
+C_y = B_y/A. A smooth Coulomb force F_c tanh(q̇/w) of the model is
 taken along the trajectories instead (:meth:`Update.along`): near standstill its slope F_c/w is a damping
 hundreds of times the viscous one, which turns P from a mass (-180°) into a damper (-90°) for a while, and
 an LTI L then pushes a stop's creep later and later in every trial (measured on tests/heldout_axis.py: the
@@ -93,7 +94,8 @@ LAWS = ("model_ilc", "norm_optimal", "il_fhofc")
 
 @dataclass(frozen=True, eq=False)
 class LoopModel:
-    """The identified loop: linear physics (M [kg], F_v [N s/m], K [N/m]) under the controller ``ctrl``."""
+    """The identified loop: linear physics (M [kg], F_v [N s/m], K [N/m]) under the controller ``ctrl``, the force
+    behind the drive's current-loop lag τ Ḟ + F = u (``lag_tau`` [s], :mod:`pipeline.systems.actuator_lag`; 0: none)."""
 
     Ts: float
     M: float
@@ -102,13 +104,26 @@ class LoopModel:
     ctrl: LTIController
     F_c: float = 0.0              # smooth Coulomb friction F_c tanh(q̇/w) [N] ...
     coulomb_width: float = 0.0    # ... its width w [m/s] (0: not in the linearisation)
+    lag_tau: float = 0.0          # the actuator lag τ [s] between the command u and the force F (0: none)
 
     def __post_init__(self):
         if not (self.M > 0 and self.F_v >= 0 and self.K >= 0 and self.Ts > 0 and self.F_c >= 0
-                and self.coulomb_width >= 0):
-            raise ValueError(f"the learning model needs M > 0, F_v, K, F_c, coulomb_width >= 0 and Ts > 0; got "
-                             f"M={self.M}, F_v={self.F_v}, K={self.K}, F_c={self.F_c}, "
-                             f"coulomb_width={self.coulomb_width}, Ts={self.Ts}")
+                and self.coulomb_width >= 0 and self.lag_tau >= 0):
+            raise ValueError(f"the learning model needs M > 0, F_v, K, F_c, coulomb_width, lag_tau >= 0 and Ts > 0; "
+                             f"got M={self.M}, F_v={self.F_v}, K={self.K}, F_c={self.F_c}, "
+                             f"coulomb_width={self.coulomb_width}, lag_tau={self.lag_tau}, Ts={self.Ts}")
+
+    def command_for(self, force: np.ndarray) -> np.ndarray:
+        """The command u [N] that makes the lagged force F follow ``force`` at the samples: the exact sampled lag
+        F(k+1) = a F(k) + (1 - a) u(k), a = exp(-Ts/τ), inverted, u(k) = (F(k+1) - a F(k))/(1 - a) (one sample of
+        preview: offline, the recording's). Without a lag u = F. What a force of the model that acts on the mass
+        (the Coulomb force) asks of the command."""
+        f = np.asarray(force, np.float64)
+        if not self.lag_tau or f.size < 2:
+            return f
+        a = math.exp(-self.Ts / self.lag_tau)
+        nxt = np.concatenate([f[1:], f[-1:]])
+        return (nxt - a * f) / (1.0 - a)
 
     def coulomb(self, x: np.ndarray) -> np.ndarray:
         """F_c tanh(ẋ/w) [N] with ẋ(k) = (x(k+D+1) - x(k+D))/Ts: the velocity over the ZOH interval the force of
@@ -121,10 +136,16 @@ class LoopModel:
         return self.F_c * np.tanh(v / self.coulomb_width)
 
     def _plant_ss(self):
-        """P_zoh in state space (q, q̇): the exact ZOH of 1/(M s² + F_v s + K); its D is 0."""
-        A = np.array([[0.0, 1.0], [-self.K / self.M, -self.F_v / self.M]])
-        return signal.cont2discrete((A, np.array([[0.0], [1.0 / self.M]]), np.array([[1.0, 0.0]]),
-                                     np.zeros((1, 1))), self.Ts)[:4]
+        """P_zoh in state space (q, q̇[, F]): the exact ZOH of 1/(M s² + F_v s + K), with a lag of
+        1/((τ s + 1)(M s² + F_v s + K)) (the force F a third state); its D is 0."""
+        if not self.lag_tau:
+            A = np.array([[0.0, 1.0], [-self.K / self.M, -self.F_v / self.M]])
+            B, C = np.array([[0.0], [1.0 / self.M]]), np.array([[1.0, 0.0]])
+        else:
+            A = np.array([[0.0, 1.0, 0.0], [-self.K / self.M, -self.F_v / self.M, 1.0 / self.M],
+                          [0.0, 0.0, -1.0 / self.lag_tau]])
+            B, C = np.array([[0.0], [0.0], [1.0 / self.lag_tau]]), np.array([[1.0, 0.0, 0.0]])
+        return signal.cont2discrete((A, B, C, np.zeros((1, 1))), self.Ts)[:4]
 
     def _plant_zpk(self):
         """P_zoh's zeros, poles, gain."""
@@ -135,7 +156,7 @@ class LoopModel:
     def realisation(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """G = P'/(1 + gtau C_y P') as (A, B, C, D) built from its parts (norm-optimal ILC's model; numpy only).
 
-        State [x_p (P_zoh: q, q̇), s_1 … s_D (the delay line), x_c (C_y = B_y/A in controllable form)]::
+        State [x_p (P_zoh: q, q̇[, F]), s_1 … s_D (the delay line), x_c (C_y = B_y/A in controllable form)]::
 
             y = C_p x_p,   c(k) = φ(k) - gtau (C_c x_c + D_c y),   u = s_D (u = c when D = 0)
             x_p⁺ = A_p x_p + B_p u,   s_1⁺ = c,  s_i⁺ = s_{i-1},   x_c⁺ = A_c x_c + B_c y
@@ -147,9 +168,9 @@ class LoopModel:
         m = max(b.size, a.size)
         pad = lambda v: np.concatenate([v, np.zeros(m - v.size)])     # noqa: E731  z⁻¹ → z: the same coefficients
         Ac, Bc, Cc, Dc = signal.tf2ss(pad(b), pad(a))
-        nc, D, g = Ac.shape[0], self.ctrl.delay, self.ctrl.gtau
-        n = 2 + D + nc
-        ip, ic = slice(0, 2), slice(2 + D, n)
+        nc, D, g, npl = Ac.shape[0], self.ctrl.delay, self.ctrl.gtau, Ap.shape[0]
+        n = npl + D + nc
+        ip, ic = slice(0, npl), slice(npl + D, n)
         Cy = np.zeros(n)
         Cy[ip] = Cp
         Lc = -g * float(Dc.ravel()[0]) * Cy                         # c = Lc x + φ
@@ -157,10 +178,10 @@ class LoopModel:
         A, B = np.zeros((n, n)), np.zeros(n)
         A[ip, ip] = Ap
         if D:
-            A[ip, 2 + D - 1] += Bp
-            A[2], B[2] = Lc, 1.0
+            A[ip, npl + D - 1] += Bp
+            A[npl], B[npl] = Lc, 1.0
             for i in range(1, D):
-                A[2 + i, 2 + i - 1] = 1.0
+                A[npl + i, npl + i - 1] = 1.0
         else:
             A[ip] += np.outer(Bp, Lc)
             B[ip] = Bp
@@ -202,7 +223,9 @@ class LoopModel:
         controller's command before the delay (:meth:`loop_controller` closes the loop on it). With a Coulomb
         width the force F_c tanh(q̇/w) acting over the interval [j, j+1) is the PGNN's tanh layer, one neuron per
         b_i: -b_i F_c tanh((ŷ(k-i) - ŷ(k-i-1))/(Ts w)), the velocity one interval earlier (explicit: ŷ(k) may
-        not depend on itself; stable while its damping F_c Ts/(w M) < 1)."""
+        not depend on itself; stable while its damping F_c Ts/(w M) < 1). With an actuator lag the Coulomb force
+        goes through the lag with the command here (it acts on the mass itself): a lag of τ on a force that
+        changes sign once per stop."""
         zeros, poles, k = self._plant_zpk()
         num, den = k * np.poly(np.atleast_1d(zeros)), np.poly(poles)   # descending powers of z
         n, m = den.size - 1, num.size - 1
@@ -279,9 +302,11 @@ class Update:
 
     def coulomb_along(self, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The model's Coulomb force [N] along r (where the next trial is to go) and along the recorded y = r - e
-        smoothed by Q; their difference is δd (:meth:`along`; module docstring)."""
+        smoothed by Q, as the commands that make them through the lag (:meth:`LoopModel.command_for`); their
+        difference is δd (:meth:`along`; module docstring)."""
         y = signal.sosfiltfilt(self.q_sos, self.reference - e)
-        return self.model.coulomb(self.reference), self.model.coulomb(y)
+        m = self.model
+        return m.command_for(m.coulomb(self.reference)), m.command_for(m.coulomb(y))
 
     def q(self, w) -> np.ndarray:
         """|Q(e^{jωTs})| = |H|² (filtfilt: the filter forwards and backwards, no phase)."""

@@ -14,13 +14,16 @@ every summary key, and per key:
   inside its spread is not decided by these fits, whatever one machine's rounding says.
 
     python -m pipeline.spread build SEED0.csv SEED1.csv ... [--out results] [--name spread] [--setting TEXT]
+        [--keep results/spread.csv]
     python -m pipeline.spread check results/spread.csv OTHER_SPREAD.csv --name perturb|isa [--out results]
 
 ``build`` writes ``<name>.csv`` (per key: n, median, min, max, the values; for claim rows the verdict on the
 median and whether it is decided), ``<name>.md`` and ``<name>.json`` (per experiment the sha256 of the seed-0
 rows it was built on, so the report shows it only while those rows are current). ``check`` compares another
 machine's (or a perturbed run's) statistics with these: every claim row's median must land inside the
-reference's spread and keep its verdict; it writes ``spread-check-<name>.md/.csv/.json``. Timings are left out,
+reference's spread and keep its verdict; it writes ``spread-check-<name>.md/.csv/.json``. ``--keep`` adds the rows of
+an earlier spread for the experiments these summaries do not rerun (the same init_seeds), so the experiments can
+be spread one at a time (``make reproduce-spread SPREAD_EXPERIMENTS=b2_rot_trans``). Timings are left out,
 as in :mod:`pipeline.perturbation`; solver-path values (iteration counts, stop flags) stay, since claims such as
 K3 are judged on them.
 """
@@ -94,6 +97,22 @@ def build(summaries: list[pd.DataFrame], labels: list[str]) -> pd.DataFrame:
     base["decided"] = pd.Series([bool(x) if c else None for x, c in zip(same, claimed)], dtype=object)
     base["rel_spread"] = (base["max"] - base["min"]) / np.maximum(np.abs(base["median"]), 1e-300)
     return base
+
+
+def keep_earlier(stat: pd.DataFrame, experiments: dict, labels: list[str], path: Path) -> tuple[pd.DataFrame, dict]:
+    """``stat`` with the rows of the earlier spread ``path`` (and its ``.json``'s digests) for the experiments
+    ``stat`` lacks; refused in one line where that spread was built over other init_seeds."""
+    meta_path = path.with_suffix(".json")
+    meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+    if meta.get("seeds") != labels:
+        raise SystemExit(f"error: {path} is over init_seeds {meta.get('seeds')}, these summaries over {labels}: rerun "
+                         "its experiments with the same SEEDS, or drop --keep")
+    old = pd.read_csv(path, dtype={"claim": str, "variant": str, "metric": str})
+    old[["claim", "variant"]] = old[["claim", "variant"]].fillna("")
+    old = old[~old["experiment"].isin(set(stat["experiment"]))]
+    kept = {e: v for e, v in meta.get("experiments", {}).items() if e in set(old["experiment"])}
+    both = pd.concat([old, stat], ignore_index=True)[stat.columns]
+    return both, dict(sorted({**kept, **experiments}.items()))
 
 
 def _fmt(x: float) -> str:
@@ -172,6 +191,8 @@ def main(argv=None) -> int:
     b = sub.add_parser("build", help="the statistic of several runs' summary.csv (the first: init_seed 0)")
     b.add_argument("summaries", nargs="+")
     b.add_argument("--labels", default="", help="comma-separated init_seed of each summary (default 0,1,...)")
+    b.add_argument("--keep", default=None, help="an earlier spread.csv: its experiments these summaries do not rerun "
+                                                "stay (same init_seeds)")
     c = sub.add_parser("check", help="another code path's spread.csv against this one's")
     c.add_argument("reference")
     c.add_argument("other")
@@ -193,8 +214,11 @@ def main(argv=None) -> int:
         if stat.empty:
             raise SystemExit("error: the summaries share no experiment; run the same EXPERIMENTS for every init_seed")
         digests = experiment_digests(Path(a.summaries[0]))
+        experiments = {e: {"reference_sha256": digests.get(e)} for e in sorted(set(stat["experiment"]))}
+        if a.keep and Path(a.keep).is_file():
+            stat, experiments = keep_earlier(stat, experiments, labels, Path(a.keep))
         meta = {"seeds": labels, "setting": a.setting, "made": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-                "experiments": {e: {"reference_sha256": digests.get(e)} for e in sorted(set(stat["experiment"]))}}
+                "experiments": experiments}
         replace_file(out / f"{a.name}.csv", stat.to_csv(index=False).encode())
         replace_file(out / f"{a.name}.md", markdown(stat, labels, a.setting).encode())
         replace_file(out / f"{a.name}.json", json.dumps(meta, indent=1).encode())

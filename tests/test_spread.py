@@ -177,3 +177,39 @@ def test_report_on_an_empty_store_keeps_results_and_judges_claims_on_the_medians
     md = (results / "REPORT.md").read_text()
     assert "results/spread.md was built on other rows of b1_linear_motor than these (stale)" in md
     assert "| B1b | b1_linear_motor | no |" in md
+
+
+def test_build_keep_adds_an_earlier_spreads_other_experiments_and_refuses_other_seeds(tmp_path):
+    """Experiments spread one at a time: a b2-like experiment built with --keep over the b1 spread holds both (b1's
+    rows and digest unchanged), a rerun of b1 replaces b1's rows, and a keep over other init_seeds is one line."""
+    def write(runs, tag):
+        paths = []
+        for i, r in enumerate(runs):
+            paths.append(tmp_path / f"{tag}{i}.csv")
+            r.to_csv(paths[-1], index=False)
+        return [str(p) for p in paths]
+
+    res = tmp_path / "res"
+    assert spread.main(["build", *write(_runs([0.829, 0.774, 0.761], [0.55, 0.56, 0.54]), "b1_"),
+                        "--out", str(res)]) == 0
+    b1 = pd.read_csv(res / "spread.csv")
+    b1_digest = json.loads((res / "spread.json").read_text())["experiments"]["b1_linear_motor"]
+    other = _runs([0.7, 0.71, 0.69], [0.5, 0.5, 0.5])
+    for t in other:
+        t["experiment"] = "b2_like"
+    assert spread.main(["build", *write(other, "b2_"), "--out", str(res), "--keep", str(res / "spread.csv")]) == 0
+    both = pd.read_csv(res / "spread.csv")
+    assert sorted(both["experiment"].unique()) == ["b1_linear_motor", "b2_like"] and len(both) == 2 * len(b1)
+    pd.testing.assert_frame_equal(both[both["experiment"] == "b1_linear_motor"].reset_index(drop=True), b1)
+    meta = json.loads((res / "spread.json").read_text())
+    assert meta["experiments"]["b1_linear_motor"] == b1_digest and "b2_like" in meta["experiments"]
+    assert "| b1_linear_motor |" in (res / "spread.md").read_text()    # (b2_like names no claim: no row of its own)
+    # b1 rerun over the same seeds: its rows are the new ones, b2_like's stay
+    assert spread.main(["build", *write(_runs([0.9, 0.91, 0.92], [0.5] * 3), "b1r_"), "--out", str(res),
+                        "--keep", str(res / "spread.csv")]) == 0
+    again = pd.read_csv(res / "spread.csv")
+    row = again[(again["experiment"] == "b1_linear_motor") & (again["metric"] == _ROW[1])]
+    assert len(again) == len(both) and row["max"].tolist() == [0.92]
+    with pytest.raises(SystemExit, match=r"over init_seeds \['0', '1', '2'\], these summaries over \['0', '5'\]"):
+        spread.main(["build", *write(other[:2], "b2s_"), "--labels", "0,5", "--out", str(res),
+                     "--keep", str(res / "spread.csv")])

@@ -533,9 +533,10 @@ def test_a_phase_error_the_model_check_misses_is_measured_from_two_trials_and_sl
 
 
 # ---- the campaign's model from a finished run of a measured system (learn init --run) ----------------------
-def _axis_run(folder: Path, cfg_of) -> tuple[str, np.ndarray]:
+def _axis_run(folder: Path, cfg_of, *extra: str) -> tuple[str, np.ndarray]:
     """The pipeline's baseline on one short recording of tests/heldout_axis.py (gravity, cable spring, viscous and
-    smooth Coulomb friction, 2-DOF PID); returns (its run id, a reference for the campaign)."""
+    smooth Coulomb friction, 2-DOF PID), with the overrides ``extra``; returns (its run id, a reference for the
+    campaign)."""
     from pipeline import runner, tracking
     from tests import heldout_axis as ax
     train = ax.reference(0.04, [("dwell", 0.2), ("move", 0.08, 0.45), ("dwell", 0.2), ("move", 0.05, 0.5),
@@ -549,7 +550,7 @@ def _axis_run(folder: Path, cfg_of) -> tuple[str, np.ndarray]:
                           "system.force_terms.terms=[viscous,coulomb,offset,spring]",
                           f"system.force_terms.coulomb_width={ax.W_C!r}", "data=measured", f"data.path={folder}",
                           "data.file=train.csv", "model=physics", "identify=none", "invert=physics",
-                          "experiment_name=learn_axis", "stages=[generate,baseline]"))
+                          "experiment_name=learn_axis", "stages=[generate,baseline]", *extra))
     return tracking.search_runs("learn_axis").iloc[0]["run_id"], train
 
 
@@ -574,7 +575,7 @@ def test_init_from_a_run_takes_the_runs_model_controller_and_limits(store, cfg_o
     metrics = tracking.client().get_run(run_id).data.metrics
     for k in ("M", "F_v", "F_c", "K"):
         assert c.config["model"][k] == metrics[f"baseline/{k}"], k
-    assert c.config["model"]["coulomb_width"] == ax.W_C
+    assert c.config["model"]["coulomb_width"] == ax.W_C and c.config["model"].get("lag_tau", 0.0) == 0.0   # no lag
     assert c.config["model"]["M"] == pytest.approx(ax.M, rel=0.05) and c.config["model"]["K"] > 0
     assert c.state["source_run"]["physical"]["OF"] == metrics["baseline/OF"]
     b_r, b_y, a, delay = ax.controller()
@@ -598,6 +599,14 @@ def test_init_from_a_run_takes_the_runs_model_controller_and_limits(store, cfg_o
     assert learn_main(["init", str(tmp_path / "c2"), "--run", run_id, "--reference", str(tmp_path / "ref.csv"),
                        "--config", str(tmp_path / "bad.yaml")]) == 2
     assert "bad.yaml: sets ['model'], which --run takes from the run" in capsys.readouterr().err
+    # a run whose physics has the drive's lag hands it on: the campaign's loop model has it as a third state
+    lag_run, _ = _axis_run(tmp_path, cfg_of, "system.actuator.lag_tau=0.0005")
+    assert lag_run != run_id
+    assert learn_main(["init", str(tmp_path / "c3"), "--run", lag_run, "--reference", str(tmp_path / "ref.csv"),
+                       "--no-mlflow"]) == 0, capsys.readouterr().err
+    c3 = campaign.load(tmp_path / "c3")
+    assert c3.config["model"]["lag_tau"] == 0.0005 == tracking.client().get_run(lag_run).data.metrics["baseline/lag_tau"]
+    assert c3.update().model.lag_tau == 0.0005 and c3.update().model._plant_ss()[0].shape == (3, 3)
 
 
 def test_init_from_a_run_of_a_simulated_system_is_one_clear_error(store, cfg_of, tmp_path, capsys):

@@ -494,9 +494,10 @@ def refit_model(folder, pgnn: bool = True, trials: list[int] | str | None = None
     for h in c.state["trials"]:
         frame = pd.read_csv(c.folder / "recordings" / f"trial_{h['trial']}.csv")
         recs.append({"u": frame["u"].to_numpy(np.float64), "y": frame["y"].to_numpy(np.float64)})
-    model, res, lag = refit.refit(c.update().model, recs)
+    floors = [h["noise_floor"] for h in c.state["trials"] if math.isfinite(h["noise_floor"])]
+    model, fit = refit.refit(c.update().model, recs, noise=float(np.median(floors)) if floors else None)
     out = {k: float(getattr(model, k)) for k in REFIT_KEYS}
-    c.state["refit"] = {**out, "residual": res, "recordings": len(recs), **({"lag_fit": lag} if lag else {})}
+    c.state["refit"] = {**out, **fit, "recordings": len(recs)}
     _atomic(c.folder / "model_refit.yaml", lambda p: Path(p).write_text(yaml.safe_dump({"model": out})))
     c.save()
     result = dict(c.state["refit"])

@@ -93,7 +93,8 @@ def main(argv: list[str] | None = None) -> int:
             f = campaign.refit_model(a.campaign, not a.physics_only, trials, not a.campaign_only, a.restarts,
                                      a.terms and a.terms.split(","))
             print(f"refit on {f['recordings']} recordings: M {f['M']:.6g} kg, F_v {f['F_v']:.6g} N s/m, K {f['K']:.6g} "
-                  f"N/m, F_c {f['F_c']:.6g} N (force residual {100 * f['residual']:.3g} %); "
+                  f"N/m, F_c {f['F_c']:.6g} N" + (f", lag τ {1e3 * f['lag_tau']:.4g} ms kept" if f["lag_tau"] else "")
+                  + f" (filter {f['cutoff_hz']:.4g} Hz, force residual {100 * f['residual']:.3g} %); "
                   f"{Path(a.campaign) / 'model_refit.yaml'}")
             g = f.get("pgnn")
             if g:

@@ -94,7 +94,7 @@ def refit(model: LoopModel, recordings: list[dict], cutoff_hz: float | None = No
     if cutoff_hz is None:
         cutoff_hz = choose_cutoff(phys, ys, noise)
     filt = {"cutoff_hz": cutoff_hz, "decimation": _decimation(cutoff_hz, model.Ts)}
-    fit = {"cutoff_hz": float(cutoff_hz),
+    fit = {"cutoff_hz": float(cutoff_hz), "decimation": filt["decimation"],
            "noise_share": noise_share(phys, ys, noise, cutoff_hz) if noise and math.isfinite(noise) else math.nan}
     if model.lag_tau:            # the model's τ, kept (module docstring): the force rows are the lagged force
         phys = phys.with_lag(ActuatorLag(model.lag_tau, model.Ts))

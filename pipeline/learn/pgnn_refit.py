@@ -28,7 +28,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from omegaconf import OmegaConf
 
 from pipeline import runner, tracking
 from pipeline.errors import ConfigError
@@ -77,9 +76,8 @@ def refit(c, trials: list[int] | str | None = None, training: bool = True, resta
     """Refit the source run's PGNN on the campaign ``c``'s recordings (``trials``: their indices, 'all', or None:
     :func:`default_trials`) plus, with ``training``, the run's own training files, with ``restarts`` LM restarts
     (None: the run's ``identify.n_restarts``; each costs its screening steps) and the physics' force ``terms``
-    (None: the run's ``system.force_terms.terms``; e.g. a spring the physics refit found); the baseline's filter
-    cutoff ``system.idim.cutoff_hz`` is the physics refit's (the noise's choice) where that ran first; returns the
-    state's ``refit_pgnn`` entry."""
+    (None: the run's ``system.force_terms.terms``; e.g. a spring the physics refit found); returns the state's
+    ``refit_pgnn`` entry."""
     src = c.state["source_run"]["run_id"]
     run = stored_run(src)
     cfg = run_config(run)
@@ -107,10 +105,6 @@ def refit(c, trials: list[int] | str | None = None, training: bool = True, resta
         cfg.identify.n_restarts = int(restarts)
     if terms is not None:
         cfg.system.force_terms.terms = list(terms)      # checked by the job's schema before any work
-    phys_fit = c.state.get("refit", {})
-    if "cutoff_hz" in phys_fit:      # the physics refit's filter (pipeline.learn.refit.choose_cutoff) and decimation
-        for k in ("cutoff_hz", "decimation"):
-            OmegaConf.update(cfg, f"system.idim.{k}", phys_fit[k], force_add=True)
     name = f"{run.data.tags.get('run_key', src)}-refit-{c.folder.resolve().name}"
     cfg.run_name = name
     with warnings.catch_warnings():   # d is the campaign's own feedforward, not a controller hidden in d
@@ -129,7 +123,6 @@ def refit(c, trials: list[int] | str | None = None, training: bool = True, resta
     loop = results["train"].get("loop")
     entry = {"run_id": refit_id, "source_run": src, "trials": trials, "training_files": len(files) - len(trials),
              "restarts": int(cfg.identify.n_restarts), "terms": list(cfg.system.force_terms.terms),
-             "cutoff_hz": OmegaConf.select(cfg, "system.idim.cutoff_hz"),
              "stop_reason": stop, "converged": stop not in CAPS, "iterations": metrics.get("train/iterations"),
              "seconds": metrics.get("train/seconds"), "val_force_rel_error": metrics.get("train/val_force_rel_error"),
              "physical": {k: float(v) for k, v in results["train"]["physical"].items()},

@@ -15,7 +15,7 @@ baseline's 50 Hz: F_v 6.56 N s/m for 6.0; the refit tracked new references 1.5x 
 Where the model has the drive's lag (``lag_tau`` > 0) the force rows are the lagged force of u, with the model's τ
 kept: the run identified it from recordings made for identification, and the campaign's repeat one reference
 (held-out axis B, τ = 0.35 ms: the run's τ 0.351 ms; identified again from the 10 trials 0.42 ms at 50 Hz and
-0.32 ms at 566 Hz, each with a jackknife σ of ~1 µs: biased, not uncertain; kept, the new references track 2.45x
+0.32 ms at 566 Hz, each with a jackknife σ of ~1 µs: biased, not uncertain; kept, the new references track 2.46x
 and 2.09x better than the model before the campaign, re-identified 2.24x and 2.02x). A model without a lag
 regresses u itself. Dropping a lag the model had throws its structure away: on axis B the lag-free refit tracked
 a new reference only 1.1-1.2x better than the model before.

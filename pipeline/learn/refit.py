@@ -67,18 +67,20 @@ def noise_share(phys: RigidBodyPhysics, ys: list[np.ndarray], noise: float, cuto
     return noise ** 2 * gain / float(np.mean(acc ** 2))
 
 
-def choose_cutoff(phys: RigidBodyPhysics, ys: list[np.ndarray], noise: float | None) -> float:
-    """The filtered least squares' cutoff [Hz]: the highest of 25 Hz · √2^k (≤ 0.4 × Nyquist) whose noise share
+def choose_cutoff(phys: RigidBodyPhysics, ys: list[np.ndarray], noise: float | None) -> tuple[float, float]:
+    """(the filtered least squares' cutoff [Hz], its noise share: NaN where the noise is unknown): the highest of
+    25 Hz · √2^k (≤ 0.4 × Nyquist) whose noise share
     (:func:`noise_share`) stays ≤ :data:`NOISE_SHARE`; :data:`DEFAULT_CUTOFF_HZ` (the baseline's) where the noise is
     unknown. Why as high as the noise allows: the Coulomb column tanh(q̇/w) of a velocity filtered below the motion's
     stops is biased (held-out axis B, 10 trials, τ kept: F_v 6.56, 6.21, 6.06 N s/m at 50, 100, 200 Hz, truth 6.0);
     why not higher: the noise in q̈ biases M low (held-out axis A, 50 nm at 4 kHz: M -4.5 % at 450 Hz)."""
     if noise is None or not math.isfinite(noise) or noise <= 0:
-        return DEFAULT_CUTOFF_HZ
+        return DEFAULT_CUTOFF_HZ, math.nan
     top = 0.4 * 0.5 / phys.Ts
     grid = CUTOFF_MIN * CUTOFF_STEP ** np.arange(int(math.log(top / CUTOFF_MIN) / math.log(CUTOFF_STEP)) + 1)
-    ok = [float(f) for f in grid if noise_share(phys, ys, noise, float(f)) <= NOISE_SHARE]
-    return max(ok) if ok else float(grid[0])
+    shares = [(float(f), noise_share(phys, ys, noise, float(f))) for f in grid]
+    ok = [fs for fs in shares if fs[1] <= NOISE_SHARE]
+    return max(ok) if ok else shares[0]
 
 
 def refit(model: LoopModel, recordings: list[dict], cutoff_hz: float | None = None,
@@ -92,10 +94,11 @@ def refit(model: LoopModel, recordings: list[dict], cutoff_hz: float | None = No
     ys = [np.asarray(r["y"], np.float64) for r in recordings]
     us = [np.asarray(r["u"], np.float64) for r in recordings]
     if cutoff_hz is None:
-        cutoff_hz = choose_cutoff(phys, ys, noise)
+        cutoff_hz, share = choose_cutoff(phys, ys, noise)
+    else:
+        share = noise_share(phys, ys, noise, cutoff_hz) if noise and math.isfinite(noise) else math.nan
     filt = {"cutoff_hz": cutoff_hz, "decimation": _decimation(cutoff_hz, model.Ts)}
-    fit = {"cutoff_hz": float(cutoff_hz), "decimation": filt["decimation"],
-           "noise_share": noise_share(phys, ys, noise, cutoff_hz) if noise and math.isfinite(noise) else math.nan}
+    fit = {"cutoff_hz": float(cutoff_hz), "decimation": filt["decimation"], "noise_share": share}
     if model.lag_tau:            # the model's τ, kept (module docstring): the force rows are the lagged force
         phys = phys.with_lag(ActuatorLag(model.lag_tau, model.Ts))
     X, z, _, _ = phys.stacked_regression(ys, us, **filt)      # [q̈, q̇, tanh(q̇/w), 1, q]

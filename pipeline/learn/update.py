@@ -84,6 +84,7 @@ from pipeline.invert.fhofc import il_fhofc_step
 from pipeline.invert.ilc import process_sensitivity
 from pipeline.invert.ilc_lq import RiccatiUpdate
 from pipeline.models.closed_loop import ArxPGNN, DiscreteController
+from pipeline.systems.actuator_lag import ActuatorLag
 from pipeline.systems.controller import LTIController
 
 __all__ = ["LoopModel", "Update", "ModelILC", "NormOptimalILC", "IlFhofc", "make_update", "apply_response",
@@ -121,7 +122,7 @@ class LoopModel:
         f = np.asarray(force, np.float64)
         if not self.lag_tau or f.size < 2:
             return f
-        a = math.exp(-self.Ts / self.lag_tau)
+        a = ActuatorLag(self.lag_tau, self.Ts).a
         nxt = np.concatenate([f[1:], f[-1:]])
         return (nxt - a * f) / (1.0 - a)
 

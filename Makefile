@@ -133,7 +133,7 @@ reproduce-spread: install  ## rerun the fit-decided experiments with other init_
 	$(PY) -m pipeline.spread build $(SPREAD_SUMMARIES) --labels $(SPREAD_LABELS) --setting "$(or $(SPREAD_ENV),default)" \
 	  $(if $(SPREAD_CHECK),--out $(SPREAD_DIR) --name spread,--out results --keep results/spread.csv)
 	$(if $(SPREAD_CHECK),$(PY) -m pipeline.spread check results/spread.csv $(SPREAD_DIR)/spread.csv --name $(SPREAD_CHECK) \
-	  --setting "$(SPREAD_ENV)" --out results || true)
+	  --setting "$(SPREAD_ENV)" --out results --keep results/spread-check-$(SPREAD_CHECK).csv || true)
 	@# report.update=true: the sections and rows of results/ stay as they are where this store has no runs of them; the
 	@# header (the claim table, judged on the medians) is rebuilt
 	$(PY) -m pipeline stages=[report] experiment_name=report run_name=report report.update=true

@@ -16,6 +16,7 @@ every summary key, and per key:
     python -m pipeline.spread build SEED0.csv SEED1.csv ... [--out results] [--name spread] [--setting TEXT]
         [--keep results/spread.csv]
     python -m pipeline.spread check results/spread.csv OTHER_SPREAD.csv --name perturb|isa [--out results]
+        [--keep results/spread-check-isa.csv]
 
 ``build`` writes ``<name>.csv`` (per key: n, median, min, max, the values; for claim rows the verdict on the
 median and whether it is decided), ``<name>.md`` and ``<name>.json`` (per experiment the sha256 of the seed-0
@@ -23,7 +24,8 @@ rows it was built on, so the report shows it only while those rows are current).
 machine's (or a perturbed run's) statistics with these: every claim row's median must land inside the
 reference's spread and keep its verdict; it writes ``spread-check-<name>.md/.csv/.json``. ``--keep`` adds the rows of
 an earlier spread for the experiments these summaries do not rerun (the same init_seeds), so the experiments can
-be spread one at a time (``make reproduce-spread SPREAD_EXPERIMENTS=b2_rot_trans``). Timings are left out,
+be spread one at a time (``make reproduce-spread SPREAD_EXPERIMENTS=b2_rot_trans``); ``check --keep`` likewise keeps
+an earlier check's rows (the same setting) for the experiments this check does not cover. Timings are left out,
 as in :mod:`pipeline.perturbation`; solver-path values (iteration counts, stop flags) stay, since claims such as
 K3 are judged on them.
 """
@@ -115,6 +117,22 @@ def keep_earlier(stat: pd.DataFrame, experiments: dict, labels: list[str], path:
     return both, dict(sorted({**kept, **experiments}.items()))
 
 
+def keep_earlier_check(m: pd.DataFrame, setting: str, path: Path) -> pd.DataFrame:
+    """``m`` with the rows of the earlier check ``path`` for the experiments ``m`` lacks; refused in one line
+    where that check ran under another setting."""
+    meta_path = path.with_suffix(".json")
+    meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+    if meta.get("setting") != setting:
+        raise SystemExit(f"error: {path} was checked under {meta.get('setting')!r}, this check under {setting!r}: "
+                         "rerun its experiments with the same setting, or drop --keep")
+    old = pd.read_csv(path, dtype={"claim": str, "variant": str, "metric": str})
+    old[["claim", "variant"]] = old[["claim", "variant"]].fillna("")
+    old = old[~old["experiment"].isin(set(m["experiment"]))]
+    for col in ("inside", "verdict_same", "holds_median", "holds_median_other", "decided"):
+        old[col] = old[col].astype(object).where(old[col].notna(), np.nan)
+    return pd.concat([old, m], ignore_index=True)[m.columns]
+
+
 def _fmt(x: float) -> str:
     return f"{x:.3g}"
 
@@ -196,6 +214,8 @@ def main(argv=None) -> int:
     c = sub.add_parser("check", help="another code path's spread.csv against this one's")
     c.add_argument("reference")
     c.add_argument("other")
+    c.add_argument("--keep", default=None, help="an earlier spread-check-<name>.csv: its experiments this check does "
+                                                "not cover stay (same setting)")
     for p in (b, c):
         p.add_argument("--out", default="results")
         p.add_argument("--name", default="spread")
@@ -232,6 +252,8 @@ def main(argv=None) -> int:
     for t in (ref, oth):
         t[["claim", "variant"]] = t[["claim", "variant"]].fillna("")
     m = check(ref, oth)
+    if a.keep and Path(a.keep).is_file():
+        m = keep_earlier_check(m, a.setting, Path(a.keep))
     replace_file(out / f"spread-check-{a.name}.csv", m.to_csv(index=False).encode())
     replace_file(out / f"spread-check-{a.name}.md", check_markdown(m, a.name, a.setting).encode())
     c = m[m["holds_median"].notna()]

@@ -213,3 +213,31 @@ def test_build_keep_adds_an_earlier_spreads_other_experiments_and_refuses_other_
     with pytest.raises(SystemExit, match=r"over init_seeds \['0', '1', '2'\], these summaries over \['0', '5'\]"):
         spread.main(["build", *write(other[:2], "b2s_"), "--labels", "0,5", "--out", str(res),
                      "--keep", str(res / "spread.csv")])
+
+
+def test_check_keep_adds_an_earlier_checks_other_experiments_and_refuses_another_setting(tmp_path):
+    """A check of one experiment (make reproduce-spread SPREAD_CHECK=isa SPREAD_EXPERIMENTS=k_two_mass) keeps the
+    earlier check's rows of the others under the same setting; the summary counts both; another setting is one line."""
+    res = tmp_path / "res"
+    ref = spread.build(_runs([0.829, 0.774, 0.761], [0.55, 0.56, 0.54]), list("012"))
+    far = spread.build(_runs([0.9, 0.85, 0.88], [0.55] * 3), list("012"))      # b1: median 0.88 outside, flipped
+    other = _runs([0.7, 0.71, 0.69], [0.5, 0.5, 0.5])
+    for t in other:
+        t["experiment"] = "b2_like"
+    ref2 = spread.build(other, list("012"))
+    res.mkdir()
+    pd.concat([ref, ref2]).to_csv(res / "spread.csv", index=False)
+    far.to_csv(tmp_path / "b1.csv", index=False)
+    ref2.to_csv(tmp_path / "b2.csv", index=False)
+    args = ["--name", "isa", "--setting", "PIPELINE_ISA=native", "--out", str(res)]
+    assert spread.main(["check", str(res / "spread.csv"), str(tmp_path / "b1.csv"), *args]) == 1
+    first = json.loads((res / "spread-check-isa.json").read_text())
+    keep = ["--keep", str(res / "spread-check-isa.csv")]
+    assert spread.main(["check", str(res / "spread.csv"), str(tmp_path / "b2.csv"), *args, *keep]) == 1   # b1 kept
+    both = json.loads((res / "spread-check-isa.json").read_text())
+    assert both["keys"] == first["keys"] + len(ref2) and both["claim_rows_flipped"] == first["claim_rows_flipped"] == 1
+    text = (res / "spread-check-isa.md").read_text()
+    assert "| b1_linear_motor |" in text and "| b2_like |" in text and "verdict flipped" in text
+    with pytest.raises(SystemExit, match=r"checked under 'PIPELINE_ISA=native', this check under 'PIPELINE_PERTURB"):
+        spread.main(["check", str(res / "spread.csv"), str(tmp_path / "b2.csv"), "--name", "isa", "--setting",
+                     "PIPELINE_PERTURB=1e-13", "--out", str(res), *keep])

@@ -121,7 +121,10 @@ SPREAD_SUMMARIES = $(if $(SPREAD_CHECK),,results/summary.csv) $(foreach s,$(SPRE
 reproduce-spread: install  ## rerun the fit-decided experiments with other init_seeds (SEEDS), judge claim rows on the median
 	@$(if $(filter-out perturb isa,$(SPREAD_CHECK)),$(error SPREAD_CHECK=$(SPREAD_CHECK) is not known: leave it empty, or perturb, or isa))
 	@test -n "$(SPREAD_CHECK)" -o -f results/summary.csv || { echo "make reproduce-spread: no results/summary.csv (init_seed 0): run make reproduce first"; exit 1; }
-	@for s in $(SPREAD_SEEDS); do \
+	@# one run per SPREAD_DIR at a time: a second one would empty the first one's per-seed stores under it
+	@mkdir -p $(SPREAD_DIR); if command -v flock >/dev/null; then exec 9>$(SPREAD_DIR)/.lock; flock -n 9 || { \
+	  echo "make reproduce-spread: another run is using $(SPREAD_DIR); wait for it, or give this one its own folder: SPREAD_DIR=$(SPREAD_DIR)-2"; exit 1; }; fi; \
+	for s in $(SPREAD_SEEDS); do \
 	  d=$(SPREAD_DIR)/seed$$s; echo "== init_seed $$s: $(SPREAD_EXPERIMENTS) ($(or $(SPREAD_ENV),default code path))"; \
 	  rm -rf $$d/mlflow.db $$d/mlflow.db.open.lock $$d/artifacts $$d/results/summary.csv; \
 	  $(SPREAD_ENV) $(if $(SPREAD_CHECK),PIPELINE_CACHE=$(SPREAD_DIR)/cache) MLFLOW_TRACKING_URI=sqlite:///$$d/mlflow.db \

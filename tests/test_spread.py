@@ -241,3 +241,22 @@ def test_check_keep_adds_an_earlier_checks_other_experiments_and_refuses_another
     with pytest.raises(SystemExit, match=r"checked under 'PIPELINE_ISA=native', this check under 'PIPELINE_PERTURB"):
         spread.main(["check", str(res / "spread.csv"), str(tmp_path / "b2.csv"), "--name", "isa", "--setting",
                      "PIPELINE_PERTURB=1e-13", "--out", str(res), *keep])
+
+
+@pytest.mark.skipif(__import__("shutil").which("flock") is None or __import__("shutil").which("make") is None,
+                    reason="needs flock (util-linux) and make")
+def test_a_second_spread_run_on_the_same_folder_is_refused_before_any_work(tmp_path):
+    """Two `make reproduce-spread` runs with the same SPREAD_DIR would empty each other's per-seed stores (seen:
+    'attempt to write a readonly database'); the second one stops in one line naming a folder of its own."""
+    import fcntl
+    import subprocess
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+    with open(tmp_path / ".lock", "w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)           # the first run, holding the folder
+        p = subprocess.run(["make", "-s", "-o", "install", "reproduce-spread", f"SPREAD_DIR={tmp_path}",
+                            "SPREAD_EXPERIMENTS=b1_arx_bias", "SPREAD_CHECK=isa"], cwd=root, capture_output=True,
+                           text=True, timeout=120)
+    assert p.returncode != 0
+    assert f"another run is using {tmp_path}" in p.stdout + p.stderr and f"SPREAD_DIR={tmp_path}-2" in p.stdout
+    assert not (tmp_path / "seed0").exists()                            # nothing started

@@ -108,6 +108,7 @@ reproduce-check: install  ## rerun every experiment perturbed (CHECK=perturb), t
 # judges the claim rows on the median. SPREAD_CHECK=perturb|isa: the same init_seeds (0 included) under
 # PIPELINE_PERTURB=$(PERTURB) or PIPELINE_ISA=$(ISA) in their own cache, their medians checked against
 # results/spread.csv (results/spread-check-<SPREAD_CHECK>.md). Costs (SEEDS words) x the experiments' job time.
+# Two runs at once need their own SPREAD_DIR=... (a second run on one folder is refused: it would empty the first's stores).
 SEEDS ?= 1 2 3 4
 SPREAD_EXPERIMENTS ?= b1_linear_motor k_two_mass b2_rot_trans
 SPREAD_CHECK ?=

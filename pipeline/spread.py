@@ -52,9 +52,15 @@ REL_TOL, ABS_TOL = 1e-9, 1e-12
 _ID = [k for k in KEY if k != "claim"]
 
 
-def _read(path: str | Path) -> pd.DataFrame:
+def _rows(path: str | Path) -> pd.DataFrame:
+    """A spread's, a check's or a summary's rows as written (claim and variant '' where empty)."""
     t = pd.read_csv(path, dtype={"claim": str, "variant": str, "metric": str})
     t[["claim", "variant"]] = t[["claim", "variant"]].fillna("")
+    return t
+
+
+def _read(path: str | Path) -> pd.DataFrame:
+    t = _rows(path)
     t = t[~t["metric"].map(is_timing)]      # solver-path rows stay: K3 judges its fits' stop reasons on them
     return t
 
@@ -101,17 +107,22 @@ def build(summaries: list[pd.DataFrame], labels: list[str]) -> pd.DataFrame:
     return base
 
 
+def _earlier(path: Path, field: str, want, what: str, fix: str, drop) -> tuple[pd.DataFrame, dict]:
+    """The rows of the earlier file ``path`` of the experiments not in ``drop``, and its ``.json``; refused in one
+    line (naming ``fix``) where its ``field`` (init_seeds, setting) is not ``want``."""
+    meta_path = path.with_suffix(".json")
+    meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+    if meta.get(field) != want:
+        raise SystemExit(f"error: {path} is {what} {meta.get(field)!r}, this one {want!r}: rerun its experiments "
+                         f"{fix}, or drop --keep")
+    old = _rows(path)
+    return old[~old["experiment"].isin(set(drop))], meta
+
+
 def keep_earlier(stat: pd.DataFrame, experiments: dict, labels: list[str], path: Path) -> tuple[pd.DataFrame, dict]:
     """``stat`` with the rows of the earlier spread ``path`` (and its ``.json``'s digests) for the experiments
     ``stat`` lacks; refused in one line where that spread was built over other init_seeds."""
-    meta_path = path.with_suffix(".json")
-    meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
-    if meta.get("seeds") != labels:
-        raise SystemExit(f"error: {path} is over init_seeds {meta.get('seeds')}, these summaries over {labels}: rerun "
-                         "its experiments with the same SEEDS, or drop --keep")
-    old = pd.read_csv(path, dtype={"claim": str, "variant": str, "metric": str})
-    old[["claim", "variant"]] = old[["claim", "variant"]].fillna("")
-    old = old[~old["experiment"].isin(set(stat["experiment"]))]
+    old, meta = _earlier(path, "seeds", labels, "over init_seeds", "with the same SEEDS", stat["experiment"])
     kept = {e: v for e, v in meta.get("experiments", {}).items() if e in set(old["experiment"])}
     both = pd.concat([old, stat], ignore_index=True)[stat.columns]
     return both, dict(sorted({**kept, **experiments}.items()))
@@ -120,17 +131,8 @@ def keep_earlier(stat: pd.DataFrame, experiments: dict, labels: list[str], path:
 def keep_earlier_check(m: pd.DataFrame, setting: str, path: Path) -> pd.DataFrame:
     """``m`` with the rows of the earlier check ``path`` for the experiments ``m`` lacks; refused in one line
     where that check ran under another setting."""
-    meta_path = path.with_suffix(".json")
-    meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
-    if meta.get("setting") != setting:
-        raise SystemExit(f"error: {path} was checked under {meta.get('setting')!r}, this check under {setting!r}: "
-                         "rerun its experiments with the same setting, or drop --keep")
-    old = pd.read_csv(path, dtype={"claim": str, "variant": str, "metric": str})
-    old[["claim", "variant"]] = old[["claim", "variant"]].fillna("")
-    old = old[~old["experiment"].isin(set(m["experiment"]))]
-    for col in ("inside", "verdict_same", "holds_median", "holds_median_other", "decided"):
-        old[col] = old[col].astype(object).where(old[col].notna(), np.nan)
-    return pd.concat([old, m], ignore_index=True)[m.columns]
+    old, _ = _earlier(path, "setting", setting, "checked under", "under the same setting", m["experiment"])
+    return pd.concat([old.astype(object), m.astype(object)], ignore_index=True)[m.columns]
 
 
 def _fmt(x: float) -> str:
@@ -248,10 +250,7 @@ def main(argv=None) -> int:
                                                    + (f" ({r.rows_undecided} rows undecided)" if r.rows_undecided
                                                       else "") for r in per.itertuples()))
         return 0
-    ref, oth = (pd.read_csv(p, dtype={"claim": str, "variant": str, "metric": str}) for p in (a.reference, a.other))
-    for t in (ref, oth):
-        t[["claim", "variant"]] = t[["claim", "variant"]].fillna("")
-    m = check(ref, oth)
+    m = check(_rows(a.reference), _rows(a.other))
     if a.keep and Path(a.keep).is_file():
         m = keep_earlier_check(m, a.setting, Path(a.keep))
     replace_file(out / f"spread-check-{a.name}.csv", m.to_csv(index=False).encode())

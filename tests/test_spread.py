@@ -210,7 +210,8 @@ def test_build_keep_adds_an_earlier_spreads_other_experiments_and_refuses_other_
     again = pd.read_csv(res / "spread.csv")
     row = again[(again["experiment"] == "b1_linear_motor") & (again["metric"] == _ROW[1])]
     assert len(again) == len(both) and row["max"].tolist() == [0.92]
-    with pytest.raises(SystemExit, match=r"over init_seeds \['0', '1', '2'\], these summaries over \['0', '5'\]"):
+    with pytest.raises(SystemExit, match=r"over init_seeds \['0', '1', '2'\], this one \['0', '5'\]: rerun its "
+                                         r"experiments with the same SEEDS"):
         spread.main(["build", *write(other[:2], "b2s_"), "--labels", "0,5", "--out", str(res),
                      "--keep", str(res / "spread.csv")])
 
@@ -238,7 +239,8 @@ def test_check_keep_adds_an_earlier_checks_other_experiments_and_refuses_another
     assert both["keys"] == first["keys"] + len(ref2) and both["claim_rows_flipped"] == first["claim_rows_flipped"] == 1
     text = (res / "spread-check-isa.md").read_text()
     assert "| b1_linear_motor |" in text and "| b2_like |" in text and "verdict flipped" in text
-    with pytest.raises(SystemExit, match=r"checked under 'PIPELINE_ISA=native', this check under 'PIPELINE_PERTURB"):
+    with pytest.raises(SystemExit, match=r"checked under 'PIPELINE_ISA=native', this one 'PIPELINE_PERTURB=1e-13': "
+                                         r"rerun its experiments under the same setting"):
         spread.main(["check", str(res / "spread.csv"), str(tmp_path / "b2.csv"), "--name", "isa", "--setting",
                      "PIPELINE_PERTURB=1e-13", "--out", str(res), *keep])
 

@@ -132,7 +132,9 @@ def keep_earlier_check(m: pd.DataFrame, setting: str, path: Path) -> pd.DataFram
     """``m`` with the rows of the earlier check ``path`` for the experiments ``m`` lacks; refused in one line
     where that check ran under another setting."""
     old, _ = _earlier(path, "setting", setting, "checked under", "under the same setting", m["experiment"])
-    return pd.concat([old.astype(object), m.astype(object)], ignore_index=True)[m.columns]
+    both = pd.concat([old.astype(object), m.astype(object)], ignore_index=True)[m.columns]
+    both["inside"] = both["inside"].astype(bool)      # a bool column, not objects: ~True would be -2
+    return both
 
 
 def _fmt(x: float) -> str:
@@ -177,8 +179,8 @@ def check(reference: pd.DataFrame, other: pd.DataFrame) -> pd.DataFrame:
     """Per key both: the other run's median inside the reference's spread? its claim verdict on the median
     the same?"""
     cols = KEY + ["median", "min", "max", "holds_median", "decided"]
-    m = reference[cols].merge(other[_ID + ["median", "min", "max", "holds_median"]], on=_ID,
-                              suffixes=("", "_other"))
+    m = reference[cols].merge(other[_ID + ["median", "min", "max", "holds_median", "n"]], on=_ID,
+                              suffixes=("", "_other")).rename(columns={"n": "n_other"})
     m["inside"] = inside(m["median_other"], m["min"], m["max"])
     claimed = m["holds_median"].notna()
     m["verdict_same"] = np.where(claimed, m["holds_median"] == m["holds_median_other"], np.nan)
@@ -190,12 +192,13 @@ def check_markdown(m: pd.DataFrame, name: str, setting: str) -> str:
              "Both runs made with the same init_seeds; per key the other run's median against this run's spread "
              "[min, max] (results/spread.csv), and each claim row's verdict on the median. Per key: "
              f"results/spread-check-{name}.csv.", "",
-             "| experiment | keys | medians inside the spread | claim rows | claim-row medians inside | claim-row "
-             "verdicts flipped |", "| --- | --- | --- | --- | --- | --- |"]
+             "| experiment | draws (init_seeds) | keys | medians inside the spread | claim rows | claim-row medians "
+             "inside | claim-row verdicts flipped |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for e, g in m.groupby("experiment", sort=False):
         c = g[g["holds_median"].notna()]
-        lines.append(f"| {e} | {len(g)} | {int(g['inside'].sum())} | {len(c)} | {int(c['inside'].sum())} | "
-                     f"{int((c['verdict_same'] == False).sum())} |")            # noqa: E712
+        n = g["n_other"].max() if "n_other" in g else float("nan")     # a check made before draws were recorded: –
+        lines.append(f"| {e} | {'–' if pd.isna(n) else int(n)} | {len(g)} | {int(g['inside'].sum())} | {len(c)} | "
+                     f"{int(c['inside'].sum())} | {int((c['verdict_same'] == False).sum())} |")            # noqa: E712
     out = m[m["holds_median"].notna() & (~m["inside"] | (m["verdict_same"] == False))]   # noqa: E712
     if len(out):
         lines += ["", "Claim rows outside the spread or flipped:", ""]

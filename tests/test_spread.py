@@ -233,12 +233,15 @@ def test_check_keep_adds_an_earlier_checks_other_experiments_and_refuses_another
     args = ["--name", "isa", "--setting", "PIPELINE_ISA=native", "--out", str(res)]
     assert spread.main(["check", str(res / "spread.csv"), str(tmp_path / "b1.csv"), *args]) == 1
     first = json.loads((res / "spread-check-isa.json").read_text())
+    listed = (res / "spread-check-isa.md").read_text().count("\n- ")      # b1's rows outside or flipped
     keep = ["--keep", str(res / "spread-check-isa.csv")]
     assert spread.main(["check", str(res / "spread.csv"), str(tmp_path / "b2.csv"), *args, *keep]) == 1   # b1 kept
     both = json.loads((res / "spread-check-isa.json").read_text())
     assert both["keys"] == first["keys"] + len(ref2) and both["claim_rows_flipped"] == first["claim_rows_flipped"] == 1
     text = (res / "spread-check-isa.md").read_text()
     assert "| b1_linear_motor |" in text and "| b2_like |" in text and "verdict flipped" in text
+    assert "| b2_like | 3 |" in text                 # its draws (init_seeds 0-2)
+    assert text.count("\n- ") == listed          # the kept rows listed as before; b2_like's (all inside) not at all
     with pytest.raises(SystemExit, match=r"checked under 'PIPELINE_ISA=native', this one 'PIPELINE_PERTURB=1e-13': "
                                          r"rerun its experiments under the same setting"):
         spread.main(["check", str(res / "spread.csv"), str(tmp_path / "b2.csv"), "--name", "isa", "--setting",

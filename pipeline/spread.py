@@ -132,8 +132,8 @@ def keep_earlier_check(m: pd.DataFrame, setting: str, path: Path) -> pd.DataFram
     """``m`` with the rows of the earlier check ``path`` for the experiments ``m`` lacks; refused in one line
     where that check ran under another setting."""
     old, _ = _earlier(path, "setting", setting, "checked under", "under the same setting", m["experiment"])
-    both = pd.concat([old.astype(object), m.astype(object)], ignore_index=True)[m.columns]
-    both["inside"] = both["inside"].astype(bool)      # a bool column, not objects: ~True would be -2
+    both = pd.concat([old, m], ignore_index=True)[m.columns]
+    both["inside"] = both["inside"].astype(bool)      # bool, whatever the csv gave: ~ on objects makes ~True -2
     return both
 
 
@@ -189,7 +189,7 @@ def check(reference: pd.DataFrame, other: pd.DataFrame) -> pd.DataFrame:
 
 def check_markdown(m: pd.DataFrame, name: str, setting: str) -> str:
     lines = [f"# Claim-row statistics on another code path (`{name}`: `{setting}`)", "",
-             "Both runs made with the same init_seeds; per key the other run's median against this run's spread "
+             "Per key the other run's median (over the draws the table gives) against this run's spread "
              "[min, max] (results/spread.csv), and each claim row's verdict on the median. Per key: "
              f"results/spread-check-{name}.csv.", "",
              "| experiment | draws (init_seeds) | keys | medians inside the spread | claim rows | claim-row medians "

@@ -323,6 +323,7 @@ def test_harness_refuses_what_it_cannot_read_as_one_sample_per_line(tmp_path):
     assert harness(["r", "0.0"], "--bogus").returncode == 2
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 @needs_cc
 @fits_poorly
 def test_export_cli_trusts_nothing_stored_and_replaces_only_its_own_packages(store, cfg_of, tmp_path, capsys):

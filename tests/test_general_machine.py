@@ -88,6 +88,7 @@ def _u_ff(run_id, dst):
     return z["test/u_ff"], z["test/r"]
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_pid_axis_end_to_end(store, cfg_of, recordings):
     from pipeline.export.package import find_compiler
     stages = "stages=[generate,baseline,train,invert,evaluate,export]"
@@ -136,6 +137,7 @@ def test_wrong_controller_is_refused_naming_the_structure(store, cfg_of, recordi
         runner.run_job(cfg_of(*overrides(recordings, name="pid_wrong", extra=wrong)))
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_disturbance_hiding_a_controller_mismatch_warns(store, cfg_of, recordings, tmp_path):
     """The old workaround: the cascade configured, u minus its law put into d.  The check passes
     (that is what d allows), so a warning must say that d looks like a controller output."""

@@ -335,6 +335,7 @@ def test_a_norm_optimal_solve_short_of_its_tolerance_says_cap():
     assert np.allclose(h, impulse_response(model.state_space(), 40), rtol=0, atol=1e-12 * np.max(np.abs(h)))
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_norm_optimal_ilc_learns_on_the_machine_to_the_noise_floor(store, tmp_path):
     """The machine the model does not match (module docstring), law norm_optimal with w_f = 1e-5, w_df = 1e-4 (an
     error-feedback PID: no controller term, the input-change weight damps the noise): the rms error falls every

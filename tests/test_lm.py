@@ -282,6 +282,7 @@ def test_the_damped_promise_stops_a_crawl_within_two_thresholds_and_the_full_one
         levenberg_marquardt(res_fn, th0, stat_promise="trust")
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_statistical_stop_with_a_growing_window_waits_out_a_crawl():
     # a tanh fit under σ = 1e-4 noise crawls (plain LM: the cost still falls after 2000 steps).
     # A fixed window of 10 steps stops at step ~330; the window of the last 30 % of the run

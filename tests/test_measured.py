@@ -44,6 +44,7 @@ def test_physics_baseline_within_2_percent_of_published():
         assert abs(phys[k] - v) <= 0.02 * abs(v), (k, phys[k], v)
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 @needs_emps
 def test_published_model_reproduces_published_figures_in_their_convention():
     """EMPS README: 8.94 % test force error, 0.0138 % / 0.0080 % position errors in the authors'
@@ -79,6 +80,7 @@ def test_controller_law_is_the_recording_and_a_sign_error_is_caught():
         check_record(ds, Recording("emps", 1e-3, dict(CTRL, kp=100.0)), "DATA_EMPS")
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 @needs_emps
 def test_emps_pipeline_job_scores_on_the_test_file(store, cfg_of):
     """The physics experiment end to end: re-identified parameters, the replay on the test file
@@ -193,6 +195,7 @@ def _measured_overrides(path):
             "model=physics", "identify=none", "invert=physics", "experiment_name=user"]
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_user_csv_round_trips_load_identify_evaluate(store, cfg_of, tmp_path):
     """A user's CSV (recorded by the physics model in the cascade, force in N so gtau = 1)
     through load -> identify -> evaluate: the replay of the identified model matches the record."""
@@ -374,6 +377,7 @@ def test_system_config_name_is_the_recordings_name(cfg_of):
     assert runner.make_system(cfg_of("system=emps")).name == "emps"
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_measured_pgnn_trainings_and_the_emps_report_section(store, cfg_of, tmp_path):
     """Both PGNN criteria on a user record through train -> analytic inversion -> replay, and the
     report section that chooses on the validation tail: smoke budgets, real code paths."""

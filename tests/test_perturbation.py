@@ -137,6 +137,7 @@ print(json.dumps({"loose": loose.cost, "converged": tight.cost, "n_loose": loose
 """
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_tightening_check_flags_a_deliberately_unconverged_fit():
     """The check's logic on two fits: tightening every tolerance 10x (PIPELINE_TIGHTEN) moves the
     cost of a fit stopped on a loose ftol by far more than the 1 % rtol, and leaves a converged

@@ -208,6 +208,7 @@ def test_report_stage_writes_report_summary_and_only_current_figures(store, cfg_
     assert [p.name for p in results.iterdir() if p.name.startswith(".")] == [owned.MANIFEST]  # no temp leftovers
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_report_never_replaces_a_users_file(store, cfg_of):
     """Issue 24 item 2: the report replaces REPORT.md, summary.csv, figures/ and export/ under
     paths.results only where it wrote them (pipeline/owned.py): a file of the user's there, or one
@@ -240,6 +241,7 @@ def test_report_never_replaces_a_users_file(store, cfg_of):
         runner.validate(cfg_of("stages=[report]", f"paths.results={link}"))
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_a_report_stopped_after_its_swaps_is_still_known_as_ours(store, cfg_of, monkeypatch):
     """A report stopped between swapping in its outputs and recording them (Ctrl-C at that instant):
     the new files' hashes were listed before each swap (owned.allow), so the next report replaces

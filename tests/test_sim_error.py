@@ -176,6 +176,7 @@ def _closed_loop_data(plant, N, seed, noise_std):
     return plant.simulate(r, du=du, v=v)
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_output_error_consistent_where_arx_is_biased(plant):
     """Linear part of the true plant (c = 0) with output noise: the closed-loop simulation-error
     θ ('sim_error') lands closer to the true ARX θ than one-step least squares ('arx')."""

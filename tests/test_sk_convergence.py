@@ -268,6 +268,7 @@ def test_rational_sk_without_fixed_point_stops_stalled_on_its_best_iterate(store
     assert st["metrics.train/J_OE"] == cap["metrics.train/J_OE"]        # the same best iterate, to the bit
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_restarts_in_processes_equal_restarts_in_process(problem):
     """The restart pool's size (pipeline.resources.job_cores caps it at the free cores) changes no
     number: two restarts in two loky processes equal the same two run in this process, to the bit."""

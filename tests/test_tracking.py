@@ -222,6 +222,7 @@ print("ok")
 """
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_two_jobs_opening_a_fresh_sqlite_store_at_once_both_finish(tmp_path):
     """Issue 24 item 1: two processes that first open a new SQLite store at the same moment (a parallel
     sweep's first jobs) both create their runs; without the lock one died in MLflow's migration in every

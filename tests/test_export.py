@@ -376,6 +376,7 @@ def test_export_cli_trusts_nothing_stored_and_replaces_only_its_own_packages(sto
     assert main([run_id, "--out", ""]) == 2 and "--out is empty" in capsys.readouterr().err
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 @needs_cc
 @fits_poorly
 def test_shipped_packages_list_exactly_the_files_they_hold(store, cfg_of, tmp_path):

@@ -280,6 +280,7 @@ def test_a_sign_coulomb_term_that_fits_poorly_is_hinted_with_the_width(store, cf
     assert 0.5 <= run["metrics.baseline/residual/smooth_coulomb_width"] / SPRING_AXIS["W_c"] <= 2.0
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_auto_width_reaches_every_later_stage(store, cfg_of, spring_folder):
     """auto: the width is chosen (metric and tag coulomb_width_chosen, within a factor 2); a second run with
     the baseline cached hands it to invert and export (the system is the one evaluate replays; an unchosen

@@ -156,6 +156,7 @@ def test_disturbance_hiding_a_controller_mismatch_warns(store, cfg_of, recording
     assert "controller mismatch hidden in d" in run["tags.disturbance_warning"]
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_several_training_files_are_segments_not_one_glued_record(store, cfg_of, recordings, tmp_path):
     """data.files: each recording filtered on its own (no filter or difference across the jump
     between two recordings); the physics from both PID-axis files stays within 2 % of the

@@ -213,6 +213,7 @@ def _only_run_status():
     return run.info.status
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_a_read_only_cache_ends_with_one_line_and_a_failed_run(cli, store, monkeypatch, capfd):
     """EROFS on the stage cache (a read-only mount; injected: root ignores permissions)."""
     cache = store / "cache"
@@ -232,6 +233,7 @@ def test_a_read_only_cache_ends_with_one_line_and_a_failed_run(cli, store, monke
     assert not cache.exists() or not [p for p in cache.rglob("*") if p.is_file()]
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_a_full_disk_while_a_stage_is_stored_leaves_no_partial_entry(cli, store, monkeypatch, capfd):
     """ENOSPC while a stage's result is written (an error without a file name: it is named)."""
     cache = store / "cache"
@@ -295,6 +297,7 @@ def test_an_unknown_store_scheme_is_one_line_before_any_work(cli, store, monkeyp
     assert code == 2 and "MLFLOW_TRACKING_URI=bogus://x: MLflow has no store of scheme 'bogus'" in line
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_memory_exhausted_in_a_stage_ends_with_one_line_and_a_failed_run(cli, store, monkeypatch, capfd):
     """Probe re-run of issue 24: a network too large for memory (model.hidden=[100000] on EMPS) ended in
     a MemoryError traceback; injected here in the baseline stage."""

@@ -272,6 +272,7 @@ def test_b1_stages_and_report_section(store, cfg_of, tmp_path):
     assert newton["metrics.invert/nn_r2_unmodelled"] <= 1.0
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_noise_sweep_report_section(store, tmp_path, monkeypatch):
     # the b1_noise_sweep section reads (structure, σ, method) from the runs' params/tags, puts
     # every model's mass and every MAE in summary rows, and states the inverse-mass drift it sees

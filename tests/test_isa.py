@@ -42,6 +42,7 @@ def test_default_pins_every_library_to_avx2():
     assert got["openblas"] in ([], ["Haswell"])         # threadpoolctl names the core OpenBLAS runs
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_native_opts_out_and_is_recorded():
     got = _probe(PIPELINE_ISA="native")
     assert got["isa"] == "native" and got["tag"].startswith("native")

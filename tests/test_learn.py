@@ -528,6 +528,7 @@ def test_the_refit_keeps_the_drives_lag_of_held_out_axis_b_and_recovers_its_phys
     assert abs(lagless.F_v / hb.F_V - 1) > 0.1 or abs(lagless.M / hb.M - 1) > 0.01, (lagless.M, lagless.F_v)
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_a_phase_error_the_model_check_misses_is_measured_from_two_trials_and_slows_the_learning(tmp_path):
     """A 3 ms actuator lag the model lacks (48° at 60 Hz): the model's check passes (δ = 0.4 covers no phase),
     but the first two trials' difference measures |Q(1 - α L Ĝ)| = 1.19 on 21-27 Hz; the campaign halves α there
@@ -567,6 +568,7 @@ def _axis_run(folder: Path, cfg_of, *extra: str) -> tuple[str, np.ndarray]:
     return tracking.search_runs("learn_axis").iloc[0]["run_id"], train
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_init_from_a_run_takes_the_runs_model_controller_and_limits(store, cfg_of, tmp_path, capsys):
     """`learn init --run RUN_ID`: Ts, the controller, the physics the run's baseline identified (its metrics
     baseline/M, F_v, F_c, K to the bit), the configured Coulomb width, and the export's default limits

@@ -170,6 +170,7 @@ def test_the_convergence_check_is_the_regularised_inverse_and_the_auto_gamma_hal
         IlFhofc(m, 100.0, reference=tl.reference(), gamma=-1.0)
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_il_fhofc_campaign_falls_monotonically_to_the_noise_floor(tmp_path):
     """`law: il_fhofc` on the machine the model does not match (20 % heavier, a 1 ms lag, a 180 Hz mode, 30 nm
     noise, 10 nm quantisation): the rms error falls every trial, no rollback, and stops at ≤ 1.3 × the noise
@@ -194,6 +195,7 @@ def test_il_fhofc_campaign_falls_monotonically_to_the_noise_floor(tmp_path):
     assert all(24e-9 < h["fhofc_inversion_error"] < 29e-9 for h in log[:-1]), log
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_a_diverging_il_fhofc_gain_is_refused_and_forced_rolls_back(tmp_path, capsys):
     """Gain 3 (R^(i+1) = Ŷ + 3 E): ρ = |Q| L G (|1 - 3| + 3 · 0.4) ≥ 1 from the lowest frequencies: init is
     refused naming the band (0.125-95.6 Hz: up to |Q| L G = 1/3.2); forced, the first learned trial is worse by
@@ -314,6 +316,7 @@ def test_the_coulomb_pgnn_learns_on_an_axis_with_other_friction_where_the_linear
     assert mae_lin > 2.5 * mae[1], (mae_lin, mae[1])
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_a_lag_the_model_check_misses_is_measured_and_slows_il_fhofc(tmp_path):
     """The machine with a 3 ms actuator lag (48° at 60 Hz) the model lacks: the check before the campaign passes
     (δ = 0.4 covers no phase), the first two trials measure |Q(1 - α L Ĝ)| = 1.20 on 21-27 Hz, α halves, and the

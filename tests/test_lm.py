@@ -34,6 +34,7 @@ def test_badly_scaled_columns_reach_optimum_with_ftol_zero():
     assert float((res.theta - x).norm() / x.norm()) < 1e-10
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_autodiff_jacobian_default_matches_explicit():
     A, b, x = _lip_problem([1.0, 3.0, 0.3])
     r1 = levenberg_marquardt(lambda t: A @ t - b, torch.zeros(3, dtype=torch.float64))
@@ -144,6 +145,7 @@ def _tanh_net_problem(noise: float, n1: int = 8, N: int = 400):
     return (lambda th: net(th) - y), th0
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_geodesic_reaches_plain_lm_minimum_in_fewer_jacobians():
     # a linear-in-parameters problem has r_vv = 0: the geodesic step is the plain step and both
     # reach the closed-form optimum

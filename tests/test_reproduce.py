@@ -33,6 +33,7 @@ def test_longest_first_from_the_previous_job_times():
                                                                              ("z", "", 99.0)]
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_queue_holds_every_job_of_each_experiments_sweep(tmp_path):
     """hydra/sweeper=queue expands each experiment's own sweep as Hydra's basic sweeper does (b2_rot_trans:
     2 γ x 10 n1 = 20 jobs, physics_arx: 1) into one list, longest first by the timings given."""

@@ -166,6 +166,7 @@ def test_stage_subset_needs_cached_upstream(store, cfg_of):
     assert set(_cache_state(store)) == {"generate", "baseline"}
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_dataset_contract_parquet_and_sidecar(store, cfg_of):
     from pipeline import data
     runner.run_job(cfg_of(*SHORT_TWO_MASS, "system.noise.std=1e-6"))
@@ -266,6 +267,7 @@ def test_a_report_stopped_after_its_swaps_is_still_known_as_ours(store, cfg_of, 
     runner.run_job(report)
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_report_stage_failure_leaves_the_old_results(store, cfg_of, monkeypatch):
     results = store / "results"
     (results / "figures").mkdir(parents=True)
@@ -283,6 +285,7 @@ def test_report_stage_failure_leaves_the_old_results(store, cfg_of, monkeypatch)
     assert [p.name for p in (results / "figures").iterdir()] == ["kept.png"]
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_report_update_rebuilds_only_the_named_sections(store, cfg_of):
     """report.update=true: the named experiment's section, rows and figures are rebuilt; every other
     section, summary row and figure of the existing results/ stays as it was."""
@@ -320,6 +323,7 @@ def test_report_update_rebuilds_only_the_named_sections(store, cfg_of):
     assert f"runs made at git `{tracking.git_sha()[:12]}`" in md and "made at git unknown)" in md
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_restarts_cached_one_by_one_and_reused_bit_identically(store, cfg_of, tmp_path, monkeypatch):
     """Issue 10 item 3: best of 2 after best of 3 loads restarts 0 and 1 (no LM runs), equal to the
     bit to a best of 2 trained from scratch in another cache."""
@@ -344,6 +348,7 @@ def torch_equal(a, b) -> bool:
     return bool((a == b).all())
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_artifacts_never_leave_the_store(store):
     """A name that is a path is refused by the tracking layer too (before any artifact is written)."""
     with pytest.raises(ValueError, match="outside"):

@@ -247,6 +247,7 @@ def test_stalled_rule_out_of_reach():
     assert not _stalled([9.0, 5.0, 5.2, 5.3, 5.5, 4.0], ok[:6], 10, 1e-3, max_iter=30)   # a new best: go on
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_rational_sk_without_fixed_point_stops_stalled_on_its_best_iterate(store, cfg_of):
     """k_two_mass, rational model: the roots of B are reflected at every step, so SK has no fixed
     point and the parameter test never passes. With the stall stop it ends within stall_window

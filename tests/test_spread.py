@@ -33,6 +33,7 @@ def test_init_seed_zero_is_the_published_seed_and_keeps_the_cache_key(cfg_of):
         runner.stage_key(base, "train", train, up)
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_init_seed_changes_the_fit_not_the_data(store, cfg_of):
     """A PGNN trained with init_seed 1 starts from other weights on the very same data (one generate and one
     baseline entry in the cache for both), and lands on another parameter vector."""

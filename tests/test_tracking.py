@@ -282,6 +282,7 @@ def test_queue_callback_one_parent_per_experiment_file_even_when_files_share_an_
     assert PARENT_ENV not in os.environ
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_a_sigkilled_workers_child_run_is_not_left_running(store):
     """Issue 24, tracebacks: a joblib worker SIGKILLed (the OOM killer) cannot end its run; when the
     sweep ends (failed, or its atexit hook), the child whose process is gone is marked KILLED at

@@ -480,6 +480,7 @@ def test_the_preflight_names_the_missing_emps_files_where_and_how_to_run_without
         preflight.check(jobs)
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_a_queue_without_the_emps_files_stops_before_any_job_or_run(tmp_path):
     """`make reproduce` on a clone without ../shared ran 18 minutes of jobs, then stopped on "EMPS file …
     not found". The queue's pre-flight stops first (a Hydra start in a subprocess: 5 s): one line, no MLflow

@@ -43,7 +43,12 @@ def _makefile_experiments() -> list[str]:
     return m.group(1).replace("\\\n", " ").split()
 
 
-@pytest.mark.parametrize("experiment", EXPERIMENTS)
+# the sibling sweeps of b1_linear_motor, b2_rot_trans, k_two_mass and emps are slow (CI budget: `make test-full`)
+SIBLING_SWEEPS = {"b1_noise_sweep", "b2_rot_trans_il", "b2_rot_trans_linear", "k_lambda_sweep", "emps_physics"}
+
+
+@pytest.mark.parametrize("experiment", [pytest.param(e, marks=pytest.mark.slow) if e in SIBLING_SWEEPS else e
+                                        for e in EXPERIMENTS])
 def test_experiment_validates_for_every_swept_value(experiment):
     base = [f"experiment={experiment}", "hydra.mode=RUN"]
     runner.validate(_compose(*base))

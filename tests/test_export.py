@@ -216,7 +216,8 @@ fits_poorly = pytest.mark.filterwarnings("ignore:the physics model of 'linear_mo
 
 @needs_cc
 @fits_poorly
-@pytest.mark.parametrize("invert,noise", [("newton", "equation"), ("direct", "output")])
+@pytest.mark.parametrize("invert,noise", [("newton", "equation"),
+                                          pytest.param("direct", "output", marks=pytest.mark.slow)])   # slow: CI budget
 def test_export_stage_logs_a_verified_package_and_a_pyfunc_model(invert, noise, store, cfg_of, tmp_path):
     import mlflow
 

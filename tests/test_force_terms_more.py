@@ -268,6 +268,7 @@ def _overrides(folder, width, stages):
             "invert=physics", "experiment_name=spring_axis", f"stages={stages}"]
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_a_sign_coulomb_term_that_fits_poorly_is_hinted_with_the_width(store, cfg_of, spring_folder):
     """sign on the generator's tanh friction: the baseline warns with the width to set (tag
     physics_coulomb_hint, the width within a factor 2 of the generator's)."""

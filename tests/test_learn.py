@@ -506,6 +506,7 @@ def test_the_refit_recovers_the_held_out_axis_physics_from_one_recording():
     assert model.F_v == pytest.approx(ha.F_V, rel=0.005) and model.F_c == pytest.approx(ha.F_C, rel=0.002)
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_the_refit_keeps_the_drives_lag_of_held_out_axis_b_and_recovers_its_physics():
     """tests/heldout_axis_b.py's plant (1.35 kg, flexure 600 N/m, F_v 6, F_c 1.8 N, the drive's lag τ = 0.35 ms) in
     its 2-DOF loop at 8 kHz on its first training reference (7.2 s, 20 nm noise): from a model with the lag and
@@ -625,6 +626,7 @@ def test_init_from_a_run_takes_the_runs_model_controller_and_limits(store, cfg_o
     assert c3.update().model.lag_tau == 0.0005 and c3.update().model._plant_ss()[0].shape == (3, 3)
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_init_from_a_run_of_a_simulated_system_is_one_clear_error(store, cfg_of, tmp_path, capsys):
     """A finished run with a baseline of the simulated linear motor (its stored config, no run made: only the
     check is under test) is refused before any stage runs, naming the system and the fix."""

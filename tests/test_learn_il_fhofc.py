@@ -104,6 +104,7 @@ def test_one_recorded_step_is_il_fhofcs_next_trial_to_the_bit(n1, gamma):
         assert np.array_equal(step.u_ff, out.u_ff[i + 1]), i
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_fhofc_on_windows_is_the_whole_horizon_solution():
     """γ = 0: causal, so windows give the whole-horizon FHOFC to rounding (1e-12); γ > 0: the overlap covers the
     regularised inverse's look-ahead (measured 4e-12 with 50 samples here). A window with less overlap than the

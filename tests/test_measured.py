@@ -455,6 +455,7 @@ def test_the_cache_key_hashes_every_file_read_wherever_it_is(store, cfg_of, tmp_
         runner.validate(cfg_of(*_measured_overrides(train), f"data.path={train}", "data.file=other"))
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 @pytest.mark.skipif(not (EMPS / "DATA_EMPS.mat").exists(), reason="EMPS data not found beside the repo")
 def test_a_physics_fit_that_explains_almost_nothing_is_flagged(store, cfg_of):
     """Probe re-run of issue 24 item 9: an IDIM prefilter cutoff far below the motion's bandwidth

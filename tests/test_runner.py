@@ -67,6 +67,7 @@ def test_same_seed_bit_identical_and_seed_changes_noise(store, cfg_of, tmp_path,
     assert not np.array_equal(a["v"].to_numpy(), c["v"].to_numpy())
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_interrupted_stage_leaves_nothing_trusted(store, cfg_of, monkeypatch):
     import stages.evaluate as ev
     cfg = cfg_of(*SHORT_TWO_MASS)
@@ -157,6 +158,7 @@ def test_measured_data_missing_file_and_nan(store, cfg_of, tmp_path):
         runner.run_job(cfg_of("experiment=physics_two_mass", "data=measured", f"data.path={tmp_path}/bad.parquet"))
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_stage_subset_needs_cached_upstream(store, cfg_of):
     with pytest.raises(runner.ConfigError,
                        match=r"\['generate', 'baseline', 'train', 'invert'\] are needed.*no cached"):
@@ -189,6 +191,7 @@ def test_empty_evaluation_references_and_bad_seed_fail_before_work(store, cfg_of
     assert not (store / "cache").exists()
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_report_stage_writes_report_summary_and_only_current_figures(store, cfg_of):
     runner.run_job(cfg_of(*SHORT_TWO_MASS))
     results = store / "results"
@@ -391,6 +394,7 @@ def test_cache_entry_from_elsewhere_is_never_unpickled(store, cfg_of, capsys):
         os.environ["PIPELINE_CACHE_KEY_FILE"] = str(store / "cache.key")
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_leftovers_of_a_killed_process_are_cleaned_on_the_next_start(store, cfg_of):
     """Issue 13: a SIGKILLed job leaves its MLflow run RUNNING and a temporary stage directory;
     the next job on this machine marks the run KILLED and removes the directory, and leaves a
@@ -514,6 +518,7 @@ def test_every_file_of_a_cache_entry_is_signed(store, cfg_of, capsys):
     assert "moved from another key" in capsys.readouterr().err
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_a_broken_cache_entry_lock_or_key_is_one_line_or_recomputed(store, cfg_of, capsys, monkeypatch):
     """Issue 24, tracebacks: an entry missing a file (record.json) is recomputed, not a traceback on
     every rerun; a lock file planted as a link is replaced, its target never truncated; a key path

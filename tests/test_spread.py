@@ -141,6 +141,7 @@ def test_report_claim_table_judges_on_the_median():
     assert "| no |" in plain
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_report_on_an_empty_store_keeps_results_and_judges_claims_on_the_medians(store, cfg_of):
     """`make reproduce-spread`'s last step: a report update where this store has no runs keeps every section, row
     and figure of results/ and its header paragraph, and rebuilds the claim table on the current spread; a spread

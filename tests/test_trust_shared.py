@@ -154,6 +154,7 @@ def test_a_file_swapped_after_the_signature_check_is_never_copied(store, monkeyp
         cache.copy_signed(entry2, "artifacts", store / "out3")
 
 
+@pytest.mark.slow   # long (CI budget): `make test-full` runs it
 def test_the_report_ships_from_the_signed_entry_not_the_artifact_store(store):
     """Finding 3: a line appended to the store's export/ff_physics/ff_physics.c was shipped into
     results/export/. The report copies the run's signed cache entry (tag cache_entry.export); a run

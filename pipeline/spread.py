@@ -103,7 +103,9 @@ def build(summaries: list[pd.DataFrame], labels: list[str]) -> pd.DataFrame:
     claimed = base["holds_median"].notna()
     same = (base["holds_min"] == base["holds_median"]) & (base["holds_max"] == base["holds_median"])
     base["decided"] = pd.Series([bool(x) if c else None for x, c in zip(same, claimed)], dtype=object)
-    base["rel_spread"] = (base["max"] - base["min"]) / np.maximum(np.abs(base["median"]), 1e-300)
+    # range over |median|: inf where a zero median has a range (a count of 0 in most draws), 0 where neither moves
+    width, mid = (base["max"] - base["min"]).to_numpy(), np.abs(base["median"].to_numpy())
+    base["rel_spread"] = np.divide(width, mid, out=np.where(width > 0, np.inf, 0.0), where=mid > 0)
     return base
 
 

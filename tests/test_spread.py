@@ -86,6 +86,13 @@ def test_build_median_spread_and_verdict_on_the_median():
     assert not b1b["holds_seed0"] and b1b["holds_median"] and b1b["rows_undecided"] == 1
     # a fit-cost row (no claim) gets its statistic but no verdict
     assert pd.isna(_at(stat, ("equation/analytic", "fit_cost"))["holds_median"])
+    # the relative spread: range over |median|; 0 where nothing moves, inf where a zero median has a range
+    assert r["rel_spread"] == (max(xs) - min(xs)) / np.median(xs)
+    assert _at(stat, ("equation/analytic", "fit_cost"))["rel_spread"] == 0.0
+    counts = [0.0, 0.0, 3.0, 0.0, 1.0]           # e.g. capped inner solves: 0 in most draws
+    runs = [_summary({("pgnn", "capped"): c, ("pgnn", "none"): 0.0}) for c in counts]
+    zero = spread.build(runs, [str(i) for i in range(5)])
+    assert _at(zero, ("pgnn", "capped"))["rel_spread"] == np.inf and _at(zero, ("pgnn", "none"))["rel_spread"] == 0.0
 
 
 def test_check_other_code_path_inside_spread_and_flip_named():

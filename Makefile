@@ -107,7 +107,9 @@ reproduce-check: install  ## rerun every experiment perturbed (CHECK=perturb), t
 # with the default run as init_seed 0, results/spread.csv gives each key's median and [min, max], and REPORT.md
 # judges the claim rows on the median. SPREAD_CHECK=perturb|isa: the same init_seeds (0 included) under
 # PIPELINE_PERTURB=$(PERTURB) or PIPELINE_ISA=$(ISA) in their own cache, their medians checked against
-# results/spread.csv (results/spread-check-<SPREAD_CHECK>.md). Costs (SEEDS words) x the experiments' job time.
+# results/spread.csv (results/spread-check-<SPREAD_CHECK>.md: passes when no claim row is separated from its spread
+# and no decided verdict flips; keys that do not move with the restarts are stated to what results/check-tighten.csv
+# moved them). Costs (SEEDS words) x the experiments' job time.
 # Two runs at once need their own SPREAD_DIR=... (a second run on one folder is refused: it would empty the first's stores).
 SEEDS ?= 1 2 3 4
 SPREAD_EXPERIMENTS ?= b1_linear_motor k_two_mass b2_rot_trans
@@ -137,7 +139,8 @@ reproduce-spread: install  ## rerun the fit-decided experiments with other init_
 	$(PY) -m pipeline.spread build $(SPREAD_SUMMARIES) --labels $(SPREAD_LABELS) --setting "$(or $(SPREAD_ENV),default)" \
 	  $(if $(SPREAD_CHECK),--out $(SPREAD_DIR) --name spread,--out results --keep results/spread.csv)
 	$(if $(SPREAD_CHECK),$(PY) -m pipeline.spread check results/spread.csv $(SPREAD_DIR)/spread.csv --name $(SPREAD_CHECK) \
-	  --setting "$(SPREAD_ENV)" --out results --keep results/spread-check-$(SPREAD_CHECK).csv || true)
+	  --setting "$(SPREAD_ENV)" --out results --keep results/spread-check-$(SPREAD_CHECK).csv \
+	  $(if $(wildcard results/check-tighten.csv),--determination results/check-tighten.csv) || true)
 	@# report.update=true: the sections and rows of results/ stay as they are where this store has no runs of them; the
 	@# header (the claim table, judged on the medians) is rebuilt
 	$(PY) -m pipeline stages=[report] experiment_name=report run_name=report report.update=true

@@ -95,21 +95,61 @@ def test_build_median_spread_and_verdict_on_the_median():
     assert _at(zero, ("pgnn", "capped"))["rel_spread"] == np.inf and _at(zero, ("pgnn", "none"))["rel_spread"] == 0.0
 
 
-def test_check_other_code_path_inside_spread_and_flip_named():
+def test_check_other_code_path_inside_separated_and_flips_only_decided_rows():
     ref = spread.build(_runs([0.829, 0.774, 0.761, 0.79, 0.755], [0.55] * 5), list("01234"))
     same = spread.build(_runs([0.77, 0.80, 0.76, 0.78, 0.79], [0.55] * 5), list("01234"))
     m = spread.check(ref, same)
     row = _at(m, _ROW)
-    assert row["inside"] and row["verdict_same"] == True                  # noqa: E712 - median 0.78 in [0.755, 0.829]
+    assert row["inside"] and not row["separated"] and pd.isna(row["verdict_same"])   # the spread does not decide B1b
+    assert not row["undecided_read_otherwise"]                                       # 0.78 reads as 0.79 does
     # deterministic rows (min = max) tolerate only their last bits
-    assert _at(m, _PHYS)["inside"]
+    assert _at(m, _PHYS)["inside"] and _at(m, _PHYS)["verdict_same"] == True          # noqa: E712 - decided: all < 1
     far = spread.build(_runs([0.9, 0.85, 0.88, 0.95, 0.87], [0.55 * (1 + 1e-6)] * 5), list("01234"))
     m = spread.check(ref, far)
     row = _at(m, _ROW)
-    assert not row["inside"] and row["verdict_same"] == False              # noqa: E712 - 0.88 > 0.8
-    assert not _at(m, _PHYS)["inside"]      # 1e-6 relative: not last bits
+    # every far draw above the spread: separated; the median reads otherwise, but the reference decides no verdict
+    assert not row["inside"] and row["separated"] and pd.isna(row["verdict_same"]) and row["undecided_read_otherwise"]
+    assert not _at(m, _PHYS)["inside"] and _at(m, _PHYS)["separated"]      # 1e-6 relative: not last bits
+    # ... unless the key is stated to what its fit determines: it moved 1e-5 when the tolerances were tightened
+    tight = pd.DataFrame({"experiment": ["b1_linear_motor"], "claim": ["B1b"], "variant": [_PHYS[0]],
+                          "metric": [_PHYS[1]], "value_ref": [0.55], "value_pert": [0.55 + 1e-5]})
+    m2 = spread.check(ref, far, spread.determination(tight))
+    assert _at(m2, _PHYS)["inside"] and not _at(m2, _PHYS)["separated"] and _at(m2, _PHYS)["tol"] == pytest.approx(1e-5)
+    assert not _at(m2, _ROW)["inside"]      # a key that moves with the restarts is stated by its spread alone
     text = spread.check_markdown(m, "isa", "PIPELINE_ISA=native")
-    assert "verdict flipped" in text and "equation/analytic/v0.15" in text
+    assert "**separated**" in text and "read otherwise" in text and "equation/analytic/v0.15" in text
+    # a decided row whose verdict the other run reverses is a flip
+    decided = spread.build(_runs([0.70, 0.72, 0.75, 0.71, 0.73], [0.55] * 5), list("01234"))
+    m = spread.check(decided, far)
+    assert _at(m, _ROW)["verdict_same"] == False and _at(m, _ROW)["separated"]      # noqa: E712
+    s = spread.check_summary(m, "x")
+    assert s["claim_rows_flipped"] == 1 and not s["ok"]
+    # 5 draws against 5: each moving row's median is outside by chance 1/6 (only B1b's moves here)
+    assert s["claim_rows_outside_by_chance"] == pytest.approx(1 / 6, abs=0.05)
+
+
+def test_chance_of_a_median_outside_and_of_separation_against_closed_forms_and_scipy():
+    """Exchangeable draws (one continuous distribution on both machines): P(median of m outside the range of n)
+    and P(all m on one side of all n), against the exact Mann-Whitney p-value and a Monte Carlo count."""
+    from scipy.stats import mannwhitneyu
+    assert spread.chance_outside(5, 5) == pytest.approx(1 / 6, rel=1e-15)       # 2·C(7,2)/C(10,5) = 42/252
+    assert spread.chance_outside(5, 3) == pytest.approx(3 / 14, rel=1e-15)      # 2·C(6,1)/C(8,3) = 12/56
+    for n, m in [(5, 5), (5, 3), (5, 4), (3, 5)]:
+        x, y = np.arange(n, dtype=float), 100.0 + np.arange(m, dtype=float)
+        assert spread.chance_separated(n, m) == pytest.approx(mannwhitneyu(x, y, method="exact").pvalue, rel=1e-12)
+    rng = np.random.default_rng(52)
+    trials = 40000
+    for n, m in [(5, 5), (5, 3), (5, 4)]:
+        ref, oth = rng.standard_normal((trials, n)), rng.standard_normal((trials, m))
+        med = np.median(oth, axis=1)
+        out = np.mean((med < ref.min(axis=1)) | (med > ref.max(axis=1)))
+        sep = np.mean((oth.min(axis=1) > ref.max(axis=1)) | (oth.max(axis=1) < ref.min(axis=1)))
+        se = np.sqrt(0.25 / trials)                 # binomial standard error, at most
+        if m % 2:
+            assert abs(out - spread.chance_outside(n, m)) < 5 * se
+        else:                                       # even m: the bound from the lower middle draw
+            assert out < spread.chance_outside(n, m) + 5 * se
+        assert abs(sep - spread.chance_separated(n, m)) < 5 * se
 
 
 def test_cli_build_and_check_files_and_one_line_errors(tmp_path, capsys):
@@ -177,6 +217,14 @@ def test_report_on_an_empty_store_keeps_results_and_judges_claims_on_the_medians
     assert "| B1b | b1_linear_motor | yes (median of the restarts; init_seed 0 alone: no; 1 of 2 rows not decided" in md
     assert "### Claim rows over restarts (`make reproduce-spread`, init_seed 0, 1, 2, 3, 4)" in md
     assert (results / "figures" / "b1_linear_motor-fig.png").read_bytes() == b"kept" and md.count(registry) == 1
+    # a check of the spread against itself: nothing separated or flipped; B1b's moving row outside by chance 1/6
+    assert spread.main(["check", str(results / "spread.csv"), str(results / "spread.csv"), "--name", "isa",
+                        "--setting", "PIPELINE_ISA=native", "--out", str(results)]) == 0
+    runner.run_job(cfg_of(*report))
+    md = (results / "REPORT.md").read_text()
+    assert ("- `make reproduce-spread SPREAD_CHECK=isa` (`PIPELINE_ISA=native`): 0 of 2 claim rows separated from the "
+            "spread, 0 decided verdicts flipped; 2 of 2 claim-row medians inside the spread, where an equivalent "
+            "machine leaves ~0.2 outside by chance") in md
     assert pd.read_csv(results / "summary.csv").shape[0] == 3
     # the experiment's rows change (another run): the spread is stale, the verdict is the run's own again
     table.loc[table["metric"] == "mae_over_direct", "value"] = 0.81
@@ -246,9 +294,13 @@ def test_check_keep_adds_an_earlier_checks_other_experiments_and_refuses_another
     keep = ["--keep", str(res / "spread-check-isa.csv")]
     assert spread.main(["check", str(res / "spread.csv"), str(tmp_path / "b2.csv"), *args, *keep]) == 1   # b1 kept
     both = json.loads((res / "spread-check-isa.json").read_text())
-    assert both["keys"] == first["keys"] + len(ref2) and both["claim_rows_flipped"] == first["claim_rows_flipped"] == 1
+    assert both["keys"] == first["keys"] + len(ref2)
+    # b1's kept rows judged again by the same rule: separated, its undecided B1b row read otherwise, no flip
+    assert both["claim_rows_separated"] == first["claim_rows_separated"] == 1
+    assert both["claim_rows_undecided_read_otherwise"] == first["claim_rows_undecided_read_otherwise"] == 1
+    assert both["claim_rows_flipped"] == 0 and not both["ok"]
     text = (res / "spread-check-isa.md").read_text()
-    assert "| b1_linear_motor |" in text and "| b2_like |" in text and "verdict flipped" in text
+    assert "| b1_linear_motor |" in text and "| b2_like |" in text and "**separated**" in text
     assert "| b2_like | 3 |" in text                 # its draws (init_seeds 0-2)
     assert text.count("\n- ") == listed          # the kept rows listed as before; b2_like's (all inside) not at all
     with pytest.raises(SystemExit, match=r"checked under 'PIPELINE_ISA=native', this one 'PIPELINE_PERTURB=1e-13': "

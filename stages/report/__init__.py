@@ -454,9 +454,18 @@ def _spread(results: Path, digests: dict[str, str]) -> tuple[dict, list[str]]:
         f = results / f"spread-check-{check}.json"
         if f.exists():
             j = json.loads(f.read_text())
+            if "claim_rows_separated" not in j:
+                lines += [f"- `make reproduce-spread SPREAD_CHECK={check}`: results/spread-check-{check}.json was "
+                          "judged by an older rule; rerun the check."]
+                continue
+            read = j["claim_rows_undecided_read_otherwise"]
             lines += [f"- `make reproduce-spread SPREAD_CHECK={check}` (`{j.get('setting', '')}`): "
-                      f"{j['claim_rows_inside']} of {j['claim_rows']} claim-row medians inside the spread, "
-                      f"{j['claim_rows_flipped']} verdicts flipped (results/spread-check-{check}.md)."]
+                      f"{j['claim_rows_separated']} of {j['claim_rows']} claim rows separated from the spread, "
+                      f"{j['claim_rows_flipped']} decided verdicts flipped"
+                      + (f" ({read} rows the spread does not decide read otherwise on the median)" if read else "")
+                      + f"; {j['claim_rows_inside']} of {j['claim_rows']} claim-row medians inside the spread, "
+                      f"where an equivalent machine leaves ~{j['claim_rows_outside_by_chance']:g} outside by chance "
+                      f"(results/spread-check-{check}.md)."]
     return {(r.experiment, r.claim): r for r in per.itertuples()}, lines + [""]
 
 

@@ -7,7 +7,7 @@ ROOT := $(abspath .)
 MLFLOW_DB ?= sqlite:///$(ROOT)/mlruns/mlflow.db
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help install test test-full lint reproduce reproduce-check reproduce-spread ui server pg-uri-missing bench slurm-local clean
+.PHONY: help install test test-full lint reproduce reproduce-check reproduce-spread reproduce-confirm ui server pg-uri-missing bench slurm-local clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-10s %s\n", $$1, $$2}'
@@ -138,13 +138,53 @@ reproduce-spread: install  ## rerun the fit-decided experiments with other init_
 	done
 	$(PY) -m pipeline.spread build $(SPREAD_SUMMARIES) --labels $(SPREAD_LABELS) --setting "$(or $(SPREAD_ENV),default)" \
 	  $(if $(SPREAD_CHECK),--out $(SPREAD_DIR) --name spread,--out results --keep results/spread.csv)
-	$(if $(SPREAD_CHECK),$(PY) -m pipeline.spread check results/spread.csv $(SPREAD_DIR)/spread.csv --name $(SPREAD_CHECK) \
-	  --setting "$(SPREAD_ENV)" --out results --keep results/spread-check-$(SPREAD_CHECK).csv \
-	  $(if $(wildcard results/check-tighten.csv),--determination results/check-tighten.csv) || true)
+	$(if $(SPREAD_CHECK),$(SPREAD_CHECK_CMD) || true)
 	@# report.update=true: the sections and rows of results/ stay as they are where this store has no runs of them; the
 	@# header (the claim table, judged on the medians) is rebuilt
 	$(PY) -m pipeline stages=[report] experiment_name=report run_name=report report.update=true
 
+# the spread check against results/spread.csv; --confirm: every fresh-draw check of this setting (reproduce-confirm)
+SPREAD_CHECK_CMD = $(PY) -m pipeline.spread check results/spread.csv $(SPREAD_DIR)/spread.csv --name $(SPREAD_CHECK) \
+	  --setting "$(SPREAD_ENV)" --out results --keep results/spread-check-$(SPREAD_CHECK).csv \
+	  $(if $(wildcard results/check-tighten.csv),--determination results/check-tighten.csv) \
+	  $$(for f in $(ROOT)/.spread/confirm-$(SPREAD_CHECK)-*/spread-check-confirm.csv; do [ -f "$$f" ] && printf -- '--confirm %s ' "$$f"; done)
+# a separated claim row confirmed, or not, by fresh draws of its own jobs (pipeline/spread.py, "--confirm"): the jobs
+# of CONFIRM_JOB (an experiment and the row's overrides, e.g. 'experiment=b2_rot_trans model.hidden=[48]
+# invert.gamma=1e-06') rerun with init_seed = each of CONFIRM_SEEDS (none of the spread's), once on the default
+# paths and once under SPREAD_CHECK's setting, one store per side and seed under .spread/confirm-<check>-<hash>/
+# (a rerun resumes from their caches); the two fresh spreads are checked against each other, then
+# results/spread-check-<check> is judged again with every such check. Costs 2 x (CONFIRM_SEEDS words) x the jobs' time.
+CONFIRM_SEEDS ?= 5 6 7 8 9
+CONFIRM_JOB ?=
+CONFIRM_DIR = $(ROOT)/.spread/confirm-$(SPREAD_CHECK)-$(shell printf '%s' '$(CONFIRM_JOB)' | sha256sum | cut -c1-8)
+CONFIRM_RUNS = $(foreach s,$(CONFIRM_SEEDS),$(CONFIRM_DIR)/default-seed$(s)/results/summary.csv \
+	$(CONFIRM_DIR)/$(SPREAD_CHECK)-seed$(s)/results/summary.csv)
+reproduce-confirm: install  ## fresh draws of a separated claim row's jobs (CONFIRM_JOB) on both sides of a spread check
+	@$(if $(filter perturb isa,$(SPREAD_CHECK)),,$(error SPREAD_CHECK=$(SPREAD_CHECK): give the check to confirm, perturb or isa))
+	@$(if $(strip $(CONFIRM_JOB)),,$(error CONFIRM_JOB is empty: give the separated row's job, e.g. CONFIRM_JOB='experiment=b2_rot_trans model.hidden=[48] invert.gamma=1e-06'))
+	@test -f results/spread.csv -a -f $(SPREAD_DIR)/spread.csv || { echo "make reproduce-confirm: no spread check to \
+	confirm (results/spread.csv, $(SPREAD_DIR)/spread.csv): run make reproduce-spread SPREAD_CHECK=$(SPREAD_CHECK) first"; exit 1; }
+	@mkdir -p $(CONFIRM_DIR); printf '%s\n' '$(CONFIRM_JOB)' > $(CONFIRM_DIR)/job.txt
+	$(MAKE) --no-print-directory -j $(or $(JOBS),$(shell nproc)) $(CONFIRM_RUNS)
+	$(PY) -m pipeline.spread build $(foreach s,$(CONFIRM_SEEDS),$(CONFIRM_DIR)/default-seed$(s)/results/summary.csv) \
+	  --labels $(subst $(space),$(comma),$(strip $(CONFIRM_SEEDS))) --setting default --out $(CONFIRM_DIR) --name spread-default
+	$(PY) -m pipeline.spread build $(foreach s,$(CONFIRM_SEEDS),$(CONFIRM_DIR)/$(SPREAD_CHECK)-seed$(s)/results/summary.csv) \
+	  --labels $(subst $(space),$(comma),$(strip $(CONFIRM_SEEDS))) --setting "$(SPREAD_ENV)" --out $(CONFIRM_DIR) --name spread-other
+	$(PY) -m pipeline.spread check $(CONFIRM_DIR)/spread-default.csv $(CONFIRM_DIR)/spread-other.csv --name confirm \
+	  --setting "$(SPREAD_ENV)" --out $(CONFIRM_DIR) || true
+	$(SPREAD_CHECK_CMD) || true
+	$(PY) -m pipeline stages=[report] experiment_name=report run_name=report report.update=true
+# one side and init_seed of reproduce-confirm: the job(s) in a store of their own, then its report (summary.csv)
+$(ROOT)/.spread/confirm-%/results/summary.csv:
+	@set -f; d=$(ROOT)/.spread/confirm-$*; run=$${d##*/}; seed=$${run##*-seed}; side=$${run%-seed*}; \
+	env=$$( [ "$$side" = default ] || echo "$(SPREAD_ENV)" ); \
+	echo "== $(CONFIRM_JOB) init_seed=$$seed ($${env:-default code path})"; \
+	rm -rf $$d/mlflow.db $$d/mlflow.db.open.lock $$d/artifacts; mkdir -p $$d; \
+	env $$env PIPELINE_CACHE=$${d%/*}/cache-$$side MLFLOW_TRACKING_URI=sqlite:///$$d/mlflow.db \
+	  $(PY) -m pipeline $(CONFIRM_JOB) hydra.mode=RUN init_seed=$$seed > $$d.log 2>&1 \
+	  || { echo "make reproduce-confirm: the job failed, its output: $$d.log"; tail -n 5 $$d.log; exit 1; }; \
+	env $$env PIPELINE_CACHE=$${d%/*}/cache-$$side MLFLOW_TRACKING_URI=sqlite:///$$d/mlflow.db \
+	  $(PY) -m pipeline stages=[report] experiment_name=report run_name=report paths.results=$$d/results >> $$d.log 2>&1
 ui: install  ## MLflow UI on http://127.0.0.1:5000 over the same store as the runs
 	@echo "The project's experiments (open a link for its runs table):"
 	@$(PY) -c "from pipeline.tracking import experiment_links; print('\n'.join(experiment_links()) or '  none yet: run make reproduce')"

@@ -16,7 +16,7 @@ every summary key, and per key:
     python -m pipeline.spread build SEED0.csv SEED1.csv ... [--out results] [--name spread] [--setting TEXT]
         [--keep results/spread.csv]
     python -m pipeline.spread check results/spread.csv OTHER_SPREAD.csv --name perturb|isa [--out results]
-        [--keep results/spread-check-isa.csv]
+        [--keep results/spread-check-isa.csv] [--confirm FRESH_CHECK.csv]
 
 ``build`` writes ``<name>.csv`` (per key: n, median, min, max, the values; for claim rows the verdict on the
 median and whether it is decided), ``<name>.md`` and ``<name>.json`` (per experiment the sha256 of the seed-0
@@ -25,7 +25,15 @@ machine's (or a perturbed run's) statistics with these: every claim row's median
 reference's spread and keep its verdict; it writes ``spread-check-<name>.md/.csv/.json``. ``--keep`` adds the rows of
 an earlier spread for the experiments these summaries do not rerun (the same init_seeds), so the experiments can
 be spread one at a time (``make reproduce-spread SPREAD_EXPERIMENTS=b2_rot_trans``); ``check --keep`` likewise keeps
-an earlier check's rows (the same setting) for the experiments this check does not cover. Timings are left out,
+an earlier check's rows (the same setting) for the experiments this check does not cover.
+
+A separated row is the exact Mann-Whitney test at U = 0 (0.8 % with 5 draws against 5), but a check has tens
+of claim rows that move, so an equivalent machine separates one of them in about a third of its checks: the
+check states that family chance (``claim_rows_separated_by_chance``, ``p_any_separated_by_chance``).
+``--confirm`` takes a check of *fresh* draws of both sides (other init_seeds, the rows' own jobs only: a
+``check`` of two spreads built from them): a separated row whose fresh draws are separated again on the same
+side is *confirmed* (chance 0.8 % × 0.8 %, whatever the number of rows); one whose fresh draws overlap was the
+family's chance and is not counted against the check. Timings are left out,
 as in :mod:`pipeline.perturbation`; solver-path values (iteration counts, stop flags) stay, since claims such as
 K3 are judged on them.
 """
@@ -132,14 +140,19 @@ def keep_earlier(stat: pd.DataFrame, experiments: dict, labels: list[str], path:
 
 
 def keep_earlier_check(m: pd.DataFrame, setting: str, path: Path, reference: pd.DataFrame,
-                       determined: pd.DataFrame | None = None) -> pd.DataFrame:
+                       determined: pd.DataFrame | None = None, confirm: pd.DataFrame | None = None) -> pd.DataFrame:
     """``m`` with the other run's statistics of the earlier check ``path`` for the experiments ``m`` lacks, judged
-    against ``reference`` by the same rule (:func:`check`); refused in one line where that check ran under another
-    setting."""
+    against ``reference`` by the same rule (:func:`check`; their confirmation by fresh draws from ``confirm``, else
+    as that check had it); refused in one line where that check ran under another setting."""
     old, _ = _earlier(path, "setting", setting, "checked under", "under the same setting", m["experiment"])
     if old.empty:
         return m
-    return pd.concat([check(reference, old, determined), m], ignore_index=True)[m.columns]
+    kept = check(reference, old, determined, confirm)
+    if confirm is None and "confirmed" in old:
+        earlier = kept[_ID].merge(old[_ID + ["confirmed"]].drop_duplicates(_ID), on=_ID, how="left")["confirmed"]
+        kept["confirmed"] = pd.Series([_bool(v) if sep else np.nan for v, sep in zip(earlier, kept["separated"])],
+                                      index=kept.index, dtype=object)
+    return pd.concat([kept, m], ignore_index=True)[m.columns]
 
 
 def _fmt(x: float) -> str:
@@ -213,7 +226,8 @@ def determination(tighten: pd.DataFrame | None) -> pd.DataFrame:
 _OTHER = ["median", "min", "max", "holds_median", "n"]
 
 
-def check(reference: pd.DataFrame, other: pd.DataFrame, determined: pd.DataFrame | None = None) -> pd.DataFrame:
+def check(reference: pd.DataFrame, other: pd.DataFrame, determined: pd.DataFrame | None = None,
+          confirm: pd.DataFrame | None = None) -> pd.DataFrame:
     """Per key both: the other run's median inside the reference's spread, the other run's draws separated from
     it, the claim verdict on the median the same (:func:`judge_check`). ``other`` is a spread (its columns
     median, min, max, holds_median, n) or an earlier check's rows (the same with the suffix ``_other``)."""
@@ -224,14 +238,15 @@ def check(reference: pd.DataFrame, other: pd.DataFrame, determined: pd.DataFrame
     ref = reference.assign(**({} if "n" in reference else {"n": np.nan}))
     m = ref[KEY + ["n", "median", "min", "max", "holds_median", "decided"]].merge(
         other[_ID + _OTHER], on=_ID, suffixes=("", "_other"))
-    return judge_check(m, determined)
+    return judge_check(m, determined, confirm)
 
 
 def _bool(v):
     return None if v is None or (isinstance(v, float) and math.isnan(v)) else str(v).lower() in ("true", "1", "1.0")
 
 
-def judge_check(m: pd.DataFrame, determined: pd.DataFrame | None = None) -> pd.DataFrame:
+def judge_check(m: pd.DataFrame, determined: pd.DataFrame | None = None,
+                confirm: pd.DataFrame | None = None) -> pd.DataFrame:
     """The check's judgement of each key, from the medians and ranges of both runs (so kept rows of an earlier
     check are judged by the same rule):
 
@@ -242,7 +257,10 @@ def judge_check(m: pd.DataFrame, determined: pd.DataFrame | None = None) -> pd.D
       chance on :func:`chance_outside` of the keys that move (1/6 with 5 draws each), so it is counted, not
       required;
     - ``separated``: every draw of the other run beyond the stated spread on one side (chance
-      :func:`chance_separated`, 0.8 % with 5 draws each): the other code path lands elsewhere;
+      :func:`chance_separated`, 0.8 % with 5 draws each, the column ``chance_separated`` for the keys that
+      move): the other code path lands elsewhere; ``side`` +1 above, -1 below;
+    - ``confirmed``: for a separated key, whether ``confirm`` (a check of fresh draws of both sides) separates it
+      again on the same side (NaN where it has no fresh draws of it);
     - ``verdict_same``: the claim verdict on the other median equals the reference's, where the reference decides
       it (the same at its min, median and max); a row the reference's spread does not decide has no verdict to
       flip (NaN; ``undecided_read_otherwise`` says where its other median reads the other way)."""
@@ -256,8 +274,10 @@ def judge_check(m: pd.DataFrame, determined: pd.DataFrame | None = None) -> pd.D
         tol = np.where(lo == hi, np.maximum(tol, d), tol)
     m["tol"] = tol
     m["inside"] = inside(m["median_other"], lo - tol, hi + tol, 0.0)
-    m["separated"] = ((m["min_other"].to_numpy(np.float64) > hi + tol)
-                      | (m["max_other"].to_numpy(np.float64) < lo - tol))
+    above = m["min_other"].to_numpy(np.float64) > hi + tol
+    below = m["max_other"].to_numpy(np.float64) < lo - tol
+    m["separated"] = above | below
+    m["side"] = np.where(above, 1, np.where(below, -1, 0))
     claimed = m["holds_median"].notna()
     decided = claimed & (m["decided"] == True)                        # noqa: E712 - object column
     same = m["holds_median"] == m["holds_median_other"]
@@ -266,22 +286,44 @@ def judge_check(m: pd.DataFrame, determined: pd.DataFrame | None = None) -> pd.D
     m["undecided_read_otherwise"] = claimed & ~decided & ~same
     n = pd.to_numeric(m.get("n", np.nan), errors="coerce")
     n_other = pd.to_numeric(m.get("n_other", np.nan), errors="coerce")
+    moving = list(zip(np.nan_to_num(n), np.nan_to_num(n_other), lo, hi))
     m["chance_outside"] = [chance_outside(int(a), int(b)) if a > 0 and b > 0 and lo_ < hi_ else np.nan
-                           for a, b, lo_, hi_ in zip(np.nan_to_num(n), np.nan_to_num(n_other), lo, hi)]
+                           for a, b, lo_, hi_ in moving]
+    m["chance_separated"] = [chance_separated(int(a), int(b)) if a > 0 and b > 0 and lo_ < hi_ else np.nan
+                             for a, b, lo_, hi_ in moving]
+    # a separated key that does not move (no random fit behind it) is no chance event: it stands as separated
+    again = [True if np.isnan(p) else np.nan for p in m["chance_separated"]]
+    if confirm is not None and not confirm.empty:
+        fresh = m[_ID].merge(confirm[_ID + ["separated", "side"]].drop_duplicates(_ID), on=_ID, how="left")
+        again = [a if not (isinstance(a, float) and np.isnan(a)) or pd.isna(s_)
+                 else bool(_bool(s_)) and int(d) == int(side)
+                 for a, s_, d, side in zip(again, fresh["separated"], fresh["side"].fillna(0), m["side"])]
+    m["confirmed"] = pd.Series([a if sep else np.nan for a, sep in zip(again, m["separated"])],
+                               index=m.index, dtype=object)
     return m
 
 
 def check_summary(m: pd.DataFrame, setting: str) -> dict:
-    """The check's counts over its claim rows; ``ok`` when no claim row is separated from its stated spread and no
-    decided verdict flips (the medians outside are compared with their chance count, not required to be 0)."""
+    """The check's counts over its claim rows; ``ok`` when no decided verdict flips and no claim row is separated
+    from its stated spread, except a separated row whose fresh draws overlap (``confirmed`` False: the family's
+    chance, :func:`judge_check`). The medians outside are compared with their chance count, not required to be 0;
+    the separated rows likewise with theirs (the sum, and the chance of at least one)."""
     c = m[m["holds_median"].notna()]
+    p_sep = pd.to_numeric(c.get("chance_separated", pd.Series(dtype=float)), errors="coerce").dropna()
+    confirmed = c.get("confirmed", pd.Series(np.nan, index=c.index))
+    sep = c["separated"].astype(bool)
     s = {"setting": setting, "keys": len(m), "inside": int(m["inside"].sum()), "claim_rows": len(c),
          "claim_rows_inside": int(c["inside"].sum()),
          "claim_rows_outside_by_chance": round(float(np.nansum(c["chance_outside"])), 1),
-         "claim_rows_separated": int(c["separated"].sum()),
+         "claim_rows_separated": int(sep.sum()),
+         "claim_rows_separated_by_chance": round(float(p_sep.sum()), 2),
+         "p_any_separated_by_chance": round(float(1.0 - np.prod(1.0 - p_sep.to_numpy())), 2),
+         "claim_rows_separated_confirmed": int((sep & (confirmed == True)).sum()),               # noqa: E712
+         "claim_rows_separated_not_confirmed": int((sep & (confirmed == False)).sum()),          # noqa: E712
          "claim_rows_flipped": int((c["verdict_same"] == False).sum()),                       # noqa: E712
          "claim_rows_undecided_read_otherwise": int(c["undecided_read_otherwise"].sum())}
-    s["ok"] = s["claim_rows_separated"] == 0 and s["claim_rows_flipped"] == 0
+    s["ok"] = (s["claim_rows_separated"] == s["claim_rows_separated_not_confirmed"]
+               and s["claim_rows_flipped"] == 0)
     return s
 
 
@@ -290,6 +332,32 @@ def _chance(c: pd.DataFrame) -> str:
     if c["n_other"].isna().all():
         return "–"
     return f"{np.nansum(c['chance_outside']):.1f}"
+
+
+def _chance_sep(c: pd.DataFrame) -> str:
+    """The rows' summed chance of a separation; – where the draws were not recorded (an older check)."""
+    if "chance_separated" not in c or c["n_other"].isna().all():
+        return "–"
+    return f"{np.nansum(c['chance_separated']):.2f}"
+
+
+def _confirmed(c: pd.DataFrame) -> str:
+    """Separated rows confirmed by fresh draws / tested; – where none was separated."""
+    sep = c[c["separated"].astype(bool)]
+    if sep.empty:
+        return "–"
+    conf = sep.get("confirmed", pd.Series(np.nan, index=sep.index))
+    tested = conf.notna()
+    return f"{int((conf[tested] == True).sum())} of {int(tested.sum())} tested"                # noqa: E712
+
+
+def _confirm_text(confirmed, chance: float) -> str:
+    if isinstance(chance, float) and math.isnan(chance):
+        return " (a value that does not move with the restarts: no chance event)"
+    if confirmed is None or (isinstance(confirmed, float) and math.isnan(confirmed)):
+        return " (not tested on fresh draws: `--confirm`)"
+    return (", **confirmed** by fresh draws (separated again on the same side)" if _bool(confirmed)
+            else "; fresh draws overlap: not confirmed (the family's chance)")
 
 
 def check_markdown(m: pd.DataFrame, name: str, setting: str) -> str:
@@ -303,20 +371,31 @@ def check_markdown(m: pd.DataFrame, name: str, setting: str) -> str:
              "ranks: `chance_outside`; an upper bound for an even number of other draws); the column *by chance* sums "
              "that share over the claim rows.",
              "- *separated*: every draw of the other run beyond the spread on one side, i.e. the other code path lands "
-             "elsewhere (chance 2/C(n+m, m): 0.8 % with 5 against 5, the exact Mann-Whitney p of U = 0). The check "
-             "passes when no claim row is separated and no decided verdict flips.",
+             "elsewhere (chance 2/C(n+m, m): 0.8 % with 5 against 5, the exact Mann-Whitney p of U = 0). Over the "
+             "claim rows that move an equivalent machine separates some by chance: the column *by chance* beside "
+             "it sums that chance (P(at least one) below). A separated row is *confirmed* when fresh draws of both "
+             "sides (other init_seeds, `--confirm`) are separated again on the same side; where they overlap it was "
+             "the family's chance. The check passes when no decided verdict flips and no separated claim row is "
+             "confirmed or left untested.",
              "- *flipped*: a claim row whose verdict the spread decides (the same at its min, median and max) reads "
              "otherwise on the other median. A row the spread does not decide has no verdict to flip; where its "
              "other median reads otherwise it is counted as *undecided, read otherwise*.", "",
              "| experiment | draws (init_seeds) | keys | medians inside | claim rows | claim-row medians inside "
-             "| outside by chance | separated | verdicts flipped | undecided, read otherwise |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| outside by chance | separated | by chance | confirmed | verdicts flipped | undecided, read otherwise |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for e, g in m.groupby("experiment", sort=False):
         c = g[g["holds_median"].notna()]
         n = g["n_other"].max() if "n_other" in g else float("nan")     # a check made before draws were recorded: –
         lines.append(f"| {e} | {'–' if pd.isna(n) else int(n)} | {len(g)} | {int(g['inside'].sum())} | {len(c)} | "
-                     f"{int(c['inside'].sum())} | {_chance(c)} | {int(c['separated'].sum())} "
-                     f"| {int((c['verdict_same'] == False).sum())} | {int(c['undecided_read_otherwise'].sum())} |")   # noqa: E712
+                     f"{int(c['inside'].sum())} | {_chance(c)} | {int(c['separated'].sum())} | {_chance_sep(c)} "
+                     f"| {_confirmed(c)} | {int((c['verdict_same'] == False).sum())} "                        # noqa: E712
+                     f"| {int(c['undecided_read_otherwise'].sum())} |")
+    s = check_summary(m, setting)
+    lines += ["", "Over all claim rows an equivalent machine separates "
+              f"~{s['claim_rows_separated_by_chance']} by chance (P(at least one) = "
+              f"{s['p_any_separated_by_chance']:.2f}); {s['claim_rows_separated']} separated, "
+              f"{s['claim_rows_separated_confirmed']} standing (fresh draws separated again, or a value that does "
+              f"not move), {s['claim_rows_separated_not_confirmed']} not confirmed (their fresh draws overlap)."]
     out = m[m["holds_median"].notna() & (~m["inside"] | m["separated"] | (m["verdict_same"] == False)     # noqa: E712
                                          | m["undecided_read_otherwise"])]
     if len(out):
@@ -325,6 +404,7 @@ def check_markdown(m: pd.DataFrame, name: str, setting: str) -> str:
                   f"(draws [{_fmt(r.min_other)}, {_fmt(r.max_other)}]) against [{_fmt(r.min)}, {_fmt(r.max)}]"
                   + (f" ± {_fmt(r.tol)}" if r.min == r.max else "")
                   + (", **separated**" if r.separated else "")
+                  + (_confirm_text(r.confirmed, r.chance_separated) if r.separated else "")
                   + (", **verdict flipped**" if r.verdict_same == False else "")                   # noqa: E712
                   + (", not decided by the spread, read otherwise" if r.undecided_read_otherwise else "")
                   for r in out.itertuples()]
@@ -344,6 +424,10 @@ def main(argv=None) -> int:
     c.add_argument("other")
     c.add_argument("--keep", default=None, help="an earlier spread-check-<name>.csv: its experiments this check does "
                                                 "not cover stay (same setting)")
+    c.add_argument("--confirm", action="append", default=[],
+                   help="a check of fresh draws of both sides (spread-check csv of two spreads built from other "
+                        "init_seeds; repeat it for several rows' jobs): a separated row separated again on the same "
+                        "side is confirmed")
     c.add_argument("--determination", default=None,
                    help="a tightening check's csv (results/check-tighten.csv): keys that do not move with the restarts "
                         "are stated to the amount they moved there")
@@ -381,16 +465,28 @@ def main(argv=None) -> int:
         return 0
     ref = _rows(a.reference)
     determined = determination(_rows(a.determination)) if a.determination and Path(a.determination).is_file() else None
-    m = check(ref, _rows(a.other), determined)
+    confirm = []
+    for path in a.confirm:
+        if not Path(path).is_file():
+            raise SystemExit(f"error: no confirming check {path}: make it with `make reproduce-confirm` (or "
+                             "`python -m pipeline.spread check FRESH_REFERENCE_SPREAD.csv FRESH_OTHER_SPREAD.csv`)")
+        confirm.append(_rows(path))
+        if not {"separated", "side"} <= set(confirm[-1].columns):
+            raise SystemExit(f"error: {path} is not a spread check's csv (no separated/side columns); "
+                             "make it with `python -m pipeline.spread check`")
+    confirm = pd.concat(confirm, ignore_index=True) if confirm else None
+    m = check(ref, _rows(a.other), determined, confirm)
     if a.keep and Path(a.keep).is_file():
-        m = keep_earlier_check(m, a.setting, Path(a.keep), ref, determined)
+        m = keep_earlier_check(m, a.setting, Path(a.keep), ref, determined, confirm)
     replace_file(out / f"spread-check-{a.name}.csv", m.to_csv(index=False).encode())
     replace_file(out / f"spread-check-{a.name}.md", check_markdown(m, a.name, a.setting).encode())
     summary = check_summary(m, a.setting)
     replace_file(out / f"spread-check-{a.name}.json", json.dumps(summary, indent=1).encode())
     print(f"spread check {a.name}: {summary['claim_rows_inside']} of {summary['claim_rows']} claim-row medians inside "
           f"the spread (~{summary['claim_rows_outside_by_chance']} outside by chance), "
-          f"{summary['claim_rows_separated']} separated from it, {summary['claim_rows_flipped']} decided verdicts "
+          f"{summary['claim_rows_separated']} separated from it (~{summary['claim_rows_separated_by_chance']} by "
+          f"chance; {summary['claim_rows_separated_confirmed']} confirmed by fresh draws, "
+          f"{summary['claim_rows_separated_not_confirmed']} not), {summary['claim_rows_flipped']} decided verdicts "
           f"flipped; all keys {summary['inside']} of {len(m)}")
     return 0 if summary["ok"] else 1
 

@@ -174,6 +174,17 @@ def test_cli_build_and_check_files_and_one_line_errors(tmp_path, capsys):
         spread.main(["build", str(paths[0]), str(tmp_path / "missing.csv")])
     with pytest.raises(SystemExit, match="--labels gives 1 init_seeds for 2 summaries"):
         spread.main(["build", str(paths[0]), str(paths[1]), "--labels", "0"])
+    # --confirm: a spread check's csv of fresh draws, read back (its separated/side columns); a missing or wrong file
+    # is named before any file is written
+    chk = tmp_path / "res" / "spread-check-isa.csv"
+    assert spread.main(["check", str(res), str(res), "--name", "isa", "--out", str(tmp_path / "res"),
+                        "--confirm", str(chk)]) == 0
+    with pytest.raises(SystemExit, match="no confirming check .*nope.csv: make it with `make reproduce-confirm`"):
+        spread.main(["check", str(res), str(res), "--name", "x", "--out", str(tmp_path / "o"),
+                     "--confirm", str(tmp_path / "nope.csv")])
+    with pytest.raises(SystemExit, match="is not a spread check's csv"):
+        spread.main(["check", str(res), str(res), "--name", "x", "--out", str(tmp_path / "o"), "--confirm", str(res)])
+    assert not (tmp_path / "o" / "spread-check-x.csv").exists()
 
 
 def test_report_claim_table_judges_on_the_median():
@@ -222,9 +233,11 @@ def test_report_on_an_empty_store_keeps_results_and_judges_claims_on_the_medians
                         "--setting", "PIPELINE_ISA=native", "--out", str(results)]) == 0
     runner.run_job(cfg_of(*report))
     md = (results / "REPORT.md").read_text()
+    # one moving claim row, 5 draws against 5: separated by chance 2/252 = 0.008
     assert ("- `make reproduce-spread SPREAD_CHECK=isa` (`PIPELINE_ISA=native`): 0 of 2 claim rows separated from the "
-            "spread, 0 decided verdicts flipped; 2 of 2 claim-row medians inside the spread, where an equivalent "
-            "machine leaves ~0.2 outside by chance") in md
+            "spread (an equivalent machine separates ~0.01 by chance, at least one with P = 0.01), 0 decided verdicts "
+            "flipped; 2 of 2 claim-row medians inside the spread, where an equivalent machine leaves ~0.2 outside by "
+            "chance") in md
     assert pd.read_csv(results / "summary.csv").shape[0] == 3
     # the experiment's rows change (another run): the spread is stale, the verdict is the run's own again
     table.loc[table["metric"] == "mae_over_direct", "value"] = 0.81
@@ -326,3 +339,60 @@ def test_a_second_spread_run_on_the_same_folder_is_refused_before_any_work(tmp_p
     assert p.returncode != 0
     assert f"another run is using {tmp_path}" in p.stdout + p.stderr and f"SPREAD_DIR={tmp_path}-2" in p.stdout
     assert not (tmp_path / "seed0").exists()                            # nothing started
+
+
+def test_separation_is_stated_beside_its_family_chance_and_confirmed_only_by_fresh_draws():
+    """A separated row's chance is 2/C(10,5) with 5 draws each (scipy's exact Mann-Whitney p above); over a family
+    of rows the chance of at least one is 1 - prod(1 - p). A row that moves counts against the check until fresh
+    draws of both sides are separated again (confirmed) or overlap (the family's chance); a row that does not move
+    has no chance to excuse it."""
+    ref = spread.build(_runs([0.829, 0.774, 0.761, 0.79, 0.755], [0.55] * 5), list("01234"))
+    far = spread.build(_runs([0.9, 0.85, 0.88, 0.95, 0.87], [0.55] * 5), list("01234"))
+    m = spread.check(ref, far)
+    row = _at(m, _ROW)
+    assert row["separated"] and row["side"] == 1 and row["chance_separated"] == pytest.approx(2 / 252, rel=1e-15)
+    assert pd.isna(row["confirmed"]) and pd.isna(_at(m, _PHYS)["chance_separated"])   # min = max: no chance
+    s = spread.check_summary(m, "x")
+    assert s["claim_rows_separated"] == 1 and s["claim_rows_separated_by_chance"] == pytest.approx(2 / 252, abs=0.005)
+    assert s["p_any_separated_by_chance"] == pytest.approx(2 / 252, abs=0.005) and not s["ok"]   # untested: fails
+    assert "not tested on fresh draws" in spread.check_markdown(m, "perturb", "PIPELINE_PERTURB=1e-13")
+    # fresh draws (other init_seeds) of both sides overlap: the separation was the family's chance
+    fresh_ref = spread.build(_runs([0.80, 0.76, 0.83, 0.78, 0.77], [0.55] * 5), list("56789"))
+    fresh_other = spread.build(_runs([0.79, 0.88, 0.81, 0.84, 0.75], [0.55] * 5), list("56789"))
+    overlap = spread.check(fresh_ref, fresh_other)
+    m = spread.check(ref, far, confirm=overlap)
+    assert _at(m, _ROW)["confirmed"] == False                                                # noqa: E712
+    s = spread.check_summary(m, "x")
+    assert s["claim_rows_separated_not_confirmed"] == 1 and s["ok"]
+    assert "fresh draws overlap: not confirmed" in spread.check_markdown(m, "perturb", "x")
+    # fresh draws separated again, on the same side: confirmed, the check fails
+    again = spread.check(fresh_ref, spread.build(_runs([0.9, 0.86, 0.89, 0.93, 0.91], [0.55] * 5), list("56789")))
+    m = spread.check(ref, far, confirm=again)
+    assert _at(m, _ROW)["confirmed"] == True and not spread.check_summary(m, "x")["ok"]       # noqa: E712
+    # ... on the other side it is no confirmation of this side
+    below = spread.check(fresh_ref, spread.build(_runs([0.6, 0.62, 0.61, 0.65, 0.63], [0.55] * 5), list("56789")))
+    assert spread.check(ref, far, confirm=below).pipe(_at, _ROW)["confirmed"] == False      # noqa: E712
+    # a value that does not move, separated (1e-6 relative, not last bits): it stands, whatever fresh draws say
+    shifted = spread.build(_runs([0.9, 0.85, 0.88, 0.95, 0.87], [0.55 * (1 + 1e-6)] * 5), list("01234"))
+    m = spread.check(ref, shifted, confirm=overlap)
+    assert _at(m, _PHYS)["separated"] and _at(m, _PHYS)["confirmed"] == True                  # noqa: E712
+    assert not spread.check_summary(m, "x")["ok"]
+    assert "no chance event" in spread.check_markdown(m, "perturb", "x")
+
+
+def test_family_chance_of_a_separation_by_simulation():
+    """P(at least one of k independent rows separated) = 1 - (1 - 2/C(10,5))^k, against a simulation of k rows of
+    5 + 5 exchangeable draws (binomial standard error)."""
+    rng = np.random.default_rng(3)
+    k, trials = 40, 4000
+    x = rng.standard_normal((trials, k, 10))
+    a, b = x[..., :5], x[..., 5:]
+    sep = (b.min(-1) > a.max(-1)) | (b.max(-1) < a.min(-1))
+    p_any = sep.any(-1).mean()
+    exact = 1 - (1 - spread.chance_separated(5, 5)) ** k
+    assert abs(p_any - exact) < 5 * np.sqrt(exact * (1 - exact) / trials)
+    m = pd.DataFrame({"holds_median": [True] * k, "separated": [False] * k, "verdict_same": [True] * k,
+                      "undecided_read_otherwise": [False] * k, "inside": [True] * k,
+                      "chance_outside": [1 / 6] * k, "chance_separated": [spread.chance_separated(5, 5)] * k,
+                      "confirmed": [np.nan] * k})
+    assert spread.check_summary(m, "x")["p_any_separated_by_chance"] == pytest.approx(exact, abs=0.005)

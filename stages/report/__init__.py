@@ -459,8 +459,15 @@ def _spread(results: Path, digests: dict[str, str]) -> tuple[dict, list[str]]:
                           "judged by an older rule; rerun the check."]
                 continue
             read = j["claim_rows_undecided_read_otherwise"]
+            sep = ""
+            if "claim_rows_separated_by_chance" in j:         # the family's chance and the fresh draws' verdict
+                sep = (f" (an equivalent machine separates ~{j['claim_rows_separated_by_chance']:g} by chance, at "
+                       f"least one with P = {j['p_any_separated_by_chance']:.2f}"
+                       + (f"; fresh draws (`make reproduce-confirm`): {j['claim_rows_separated_confirmed']} "
+                          f"confirmed, {j['claim_rows_separated_not_confirmed']} not"
+                          if j["claim_rows_separated"] else "") + ")")
             lines += [f"- `make reproduce-spread SPREAD_CHECK={check}` (`{j.get('setting', '')}`): "
-                      f"{j['claim_rows_separated']} of {j['claim_rows']} claim rows separated from the spread, "
+                      f"{j['claim_rows_separated']} of {j['claim_rows']} claim rows separated from the spread{sep}, "
                       f"{j['claim_rows_flipped']} decided verdicts flipped"
                       + (f" ({read} rows the spread does not decide read otherwise on the median)" if read else "")
                       + f"; {j['claim_rows_inside']} of {j['claim_rows']} claim-row medians inside the spread, "

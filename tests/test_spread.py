@@ -396,3 +396,26 @@ def test_family_chance_of_a_separation_by_simulation():
                       "chance_outside": [1 / 6] * k, "chance_separated": [spread.chance_separated(5, 5)] * k,
                       "confirmed": [np.nan] * k})
     assert spread.check_summary(m, "x")["p_any_separated_by_chance"] == pytest.approx(exact, abs=0.005)
+
+
+@pytest.mark.skipif(__import__("shutil").which("make") is None, reason="needs make")
+def test_reproduce_confirm_names_what_is_missing_before_any_work(tmp_path):
+    """`make reproduce-confirm` needs the check to confirm, the row's job and both spreads; each missing one is named
+    in one line with its fix, before a job starts or a folder is made."""
+    import subprocess
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+
+    def make(*args):
+        p = subprocess.run(["make", "-s", "-o", "install", "reproduce-confirm", *args], cwd=root, capture_output=True,
+                           text=True, timeout=120)
+        return p.returncode, p.stdout + p.stderr
+    rc, out = make("SPREAD_CHECK=", "CONFIRM_JOB=experiment=b1_arx_bias")
+    assert rc != 0 and "give the check to confirm, perturb or isa" in out
+    rc, out = make("SPREAD_CHECK=perturb", "CONFIRM_JOB=")
+    assert rc != 0 and "CONFIRM_JOB is empty: give the separated row's job" in out
+    rc, out = make("SPREAD_CHECK=perturb", "CONFIRM_JOB=experiment=b1_arx_bias", f"SPREAD_DIR={tmp_path / 'none'}")
+    assert rc != 0 and "no spread check to confirm" in out and "make reproduce-spread SPREAD_CHECK=perturb first" in out
+    import hashlib
+    job_dir = root / ".spread" / f"confirm-perturb-{hashlib.sha256(b'experiment=b1_arx_bias').hexdigest()[:8]}"
+    assert not job_dir.exists() and not (tmp_path / "none").exists()               # no folder made

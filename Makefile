@@ -161,6 +161,7 @@ CONFIRM_RUNS = $(foreach s,$(CONFIRM_SEEDS),$(CONFIRM_DIR)/default-seed$(s)/resu
 	$(CONFIRM_DIR)/$(SPREAD_CHECK)-seed$(s)/results/summary.csv)
 reproduce-confirm: install  ## fresh draws of a separated claim row's jobs (CONFIRM_JOB) on both sides of a spread check
 	@$(if $(filter perturb isa,$(SPREAD_CHECK)),,$(error SPREAD_CHECK=$(SPREAD_CHECK): give the check to confirm, perturb or isa))
+	@$(if $(word 2,$(CONFIRM_SEEDS)),,$(error CONFIRM_SEEDS="$(CONFIRM_SEEDS)": a spread needs at least two init_seeds (default 5 6 7 8 9)))
 	@$(if $(strip $(CONFIRM_JOB)),,$(error CONFIRM_JOB is empty: give the separated row's job, e.g. CONFIRM_JOB='experiment=b2_rot_trans model.hidden=[48] invert.gamma=1e-06'))
 	@test -f results/spread.csv -a -f $(SPREAD_DIR)/spread.csv || { echo "make reproduce-confirm: no spread check to \
 	confirm (results/spread.csv, $(SPREAD_DIR)/spread.csv): run make reproduce-spread SPREAD_CHECK=$(SPREAD_CHECK) first"; exit 1; }

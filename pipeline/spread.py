@@ -445,7 +445,10 @@ def main(argv=None) -> int:
         labels = a.labels.split(",") if a.labels else [str(i) for i in range(len(a.summaries))]
         if len(labels) != len(a.summaries):
             raise SystemExit(f"error: --labels gives {len(labels)} init_seeds for {len(a.summaries)} summaries")
-        stat = build([_read(s) for s in a.summaries], labels)
+        try:
+            stat = build([_read(s) for s in a.summaries], labels)
+        except ValueError as exc:
+            raise SystemExit(f"error: {exc}") from None
         if stat.empty:
             raise SystemExit("error: the summaries share no experiment; run the same EXPERIMENTS for every init_seed")
         digests = experiment_digests(Path(a.summaries[0]))

@@ -172,6 +172,8 @@ def test_cli_build_and_check_files_and_one_line_errors(tmp_path, capsys):
     assert j["claim_rows"] == 2 and j["claim_rows_inside"] == 2 and j["claim_rows_flipped"] == 0
     with pytest.raises(SystemExit, match="no summary .*missing.csv: run `make reproduce-spread`"):
         spread.main(["build", str(paths[0]), str(tmp_path / "missing.csv")])
+    with pytest.raises(SystemExit, match="error: a spread needs at least two runs"):
+        spread.main(["build", str(paths[0]), "--out", str(tmp_path / "one")])
     with pytest.raises(SystemExit, match="--labels gives 1 init_seeds for 2 summaries"):
         spread.main(["build", str(paths[0]), str(paths[1]), "--labels", "0"])
     # --confirm: a spread check's csv of fresh draws, read back (its separated/side columns); a missing or wrong file
@@ -412,6 +414,8 @@ def test_reproduce_confirm_names_what_is_missing_before_any_work(tmp_path):
         return p.returncode, p.stdout + p.stderr
     rc, out = make("SPREAD_CHECK=", "CONFIRM_JOB=experiment=b1_arx_bias")
     assert rc != 0 and "give the check to confirm, perturb or isa" in out
+    rc, out = make("SPREAD_CHECK=perturb", "CONFIRM_JOB=experiment=b1_arx_bias", "CONFIRM_SEEDS=5")
+    assert rc != 0 and 'CONFIRM_SEEDS="5": a spread needs at least two init_seeds' in out
     rc, out = make("SPREAD_CHECK=perturb", "CONFIRM_JOB=")
     assert rc != 0 and "CONFIRM_JOB is empty: give the separated row's job" in out
     rc, out = make("SPREAD_CHECK=perturb", "CONFIRM_JOB=experiment=b1_arx_bias", f"SPREAD_DIR={tmp_path / 'none'}")

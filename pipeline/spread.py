@@ -286,20 +286,18 @@ def judge_check(m: pd.DataFrame, determined: pd.DataFrame | None = None,
     m["undecided_read_otherwise"] = claimed & ~decided & ~same
     n = pd.to_numeric(m.get("n", np.nan), errors="coerce")
     n_other = pd.to_numeric(m.get("n_other", np.nan), errors="coerce")
-    moving = list(zip(np.nan_to_num(n), np.nan_to_num(n_other), lo, hi))
-    m["chance_outside"] = [chance_outside(int(a), int(b)) if a > 0 and b > 0 and lo_ < hi_ else np.nan
-                           for a, b, lo_, hi_ in moving]
-    m["chance_separated"] = [chance_separated(int(a), int(b)) if a > 0 and b > 0 and lo_ < hi_ else np.nan
-                             for a, b, lo_, hi_ in moving]
-    # a separated key that does not move (no random fit behind it) is no chance event: it stands as separated
-    again = [True if np.isnan(p) else np.nan for p in m["chance_separated"]]
+    draws = [(int(a), int(b)) if a > 0 and b > 0 and lo_ < hi_ else None     # None: the key does not move
+             for a, b, lo_, hi_ in zip(np.nan_to_num(n), np.nan_to_num(n_other), lo, hi)]
+    m["chance_outside"] = [np.nan if d is None else chance_outside(*d) for d in draws]
+    m["chance_separated"] = [np.nan if d is None else chance_separated(*d) for d in draws]
+    again = [np.nan] * len(m)                                       # separated again on the fresh draws' same side
     if confirm is not None and not confirm.empty:
         fresh = m[_ID].merge(confirm[_ID + ["separated", "side"]].drop_duplicates(_ID), on=_ID, how="left")
-        again = [a if not (isinstance(a, float) and np.isnan(a)) or pd.isna(s_)
-                 else bool(_bool(s_)) and int(d) == int(side)
-                 for a, s_, d, side in zip(again, fresh["separated"], fresh["side"].fillna(0), m["side"])]
-    m["confirmed"] = pd.Series([a if sep else np.nan for a, sep in zip(again, m["separated"])],
-                               index=m.index, dtype=object)
+        again = [np.nan if pd.isna(f) else bool(_bool(f)) and int(fs) == int(side)
+                 for f, fs, side in zip(fresh["separated"], fresh["side"].fillna(0), m["side"])]
+    # a separated key that does not move (no random fit behind it) is no chance event: it stands as separated
+    m["confirmed"] = pd.Series([(True if d is None else a) if sep else np.nan
+                                for d, a, sep in zip(draws, again, m["separated"])], index=m.index, dtype=object)
     return m
 
 
@@ -360,7 +358,7 @@ def _confirm_text(confirmed, chance: float) -> str:
             else "; fresh draws overlap: not confirmed (the family's chance)")
 
 
-def check_markdown(m: pd.DataFrame, name: str, setting: str) -> str:
+def check_markdown(m: pd.DataFrame, name: str, setting: str, summary: dict | None = None) -> str:
     lines = [f"# Claim-row statistics on another code path (`{name}`: `{setting}`)", "",
              "Per key the other run's draws against this run's spread [min, max] (results/spread.csv; a key that does "
              "not move with the restarts is stated to the amount it moved when its fits' tolerances were tightened "
@@ -390,7 +388,7 @@ def check_markdown(m: pd.DataFrame, name: str, setting: str) -> str:
                      f"{int(c['inside'].sum())} | {_chance(c)} | {int(c['separated'].sum())} | {_chance_sep(c)} "
                      f"| {_confirmed(c)} | {int((c['verdict_same'] == False).sum())} "                        # noqa: E712
                      f"| {int(c['undecided_read_otherwise'].sum())} |")
-    s = check_summary(m, setting)
+    s = summary or check_summary(m, setting)
     lines += ["", "Over all claim rows an equivalent machine separates "
               f"~{s['claim_rows_separated_by_chance']} by chance (P(at least one) = "
               f"{s['p_any_separated_by_chance']:.2f}); {s['claim_rows_separated']} separated, "
@@ -482,8 +480,8 @@ def main(argv=None) -> int:
     if a.keep and Path(a.keep).is_file():
         m = keep_earlier_check(m, a.setting, Path(a.keep), ref, determined, confirm)
     replace_file(out / f"spread-check-{a.name}.csv", m.to_csv(index=False).encode())
-    replace_file(out / f"spread-check-{a.name}.md", check_markdown(m, a.name, a.setting).encode())
     summary = check_summary(m, a.setting)
+    replace_file(out / f"spread-check-{a.name}.md", check_markdown(m, a.name, a.setting, summary).encode())
     replace_file(out / f"spread-check-{a.name}.json", json.dumps(summary, indent=1).encode())
     print(f"spread check {a.name}: {summary['claim_rows_inside']} of {summary['claim_rows']} claim-row medians inside "
           f"the spread (~{summary['claim_rows_outside_by_chance']} outside by chance), "

@@ -95,7 +95,8 @@ def test_interrupted_stage_leaves_nothing_trusted(store, cfg_of, monkeypatch):
     assert len(killed) == 1                               # the interrupted job is marked KILLED (issue 13)
 
 
-def test_run_logs_params_tags_metrics_figures_config_dataset(store, cfg_of):
+def test_run_logs_params_tags_metrics_figures_config_dataset(fresh_store, cfg_of):
+    """Into a store the pipeline creates itself (the other tests start from a copy of an empty one)."""
     cfg = cfg_of(*SHORT_TWO_MASS)
     runner.run_job(cfg)
     run = tracking.search_runs("physics_baseline").iloc[0]
@@ -114,7 +115,7 @@ def test_run_logs_params_tags_metrics_figures_config_dataset(store, cfg_of):
     assert len(r.inputs.dataset_inputs) == 1
     # the evaluate stage's error signals, as an artifact other runs' figures can be drawn from
     local = mlflow.artifacts.download_artifacts(run_id=r.info.run_id, artifact_path="evaluate/errors.npz",
-                                                dst_path=str(store / "dl"))
+                                                dst_path=str(fresh_store / "dl"))
     z = np.load(local)
     assert z["held/e"].shape == z["held/r"].shape
     assert np.max(np.abs(z["held/e"])) == pytest.approx(r.data.metrics["evaluate/held/max_abs"], rel=1e-15)

@@ -120,7 +120,8 @@ class LTIFilter:
     def apply(self, u: np.ndarray) -> np.ndarray:
         """``G u`` for u of shape (N,) or (batch, N) (lifted: lower triangular Toeplitz × u)."""
         u = np.asarray(u, dtype=np.float64)
-        y = _ss_filter(self._A, self._B, self._C, self._D, np.atleast_2d(u))
+        # C-contiguous: one compiled specialisation for every caller (a strided u compiled another)
+        y = _ss_filter(self._A, self._B, self._C, self._D, np.ascontiguousarray(np.atleast_2d(u)))
         return y[0] if u.ndim == 1 else y
 
     def adjoint(self, v: np.ndarray) -> np.ndarray:

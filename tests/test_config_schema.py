@@ -134,12 +134,14 @@ PROBES = [
 ]
 
 
-def _nothing_written(store: Path) -> None:
-    """No cache entry and no MLflow run (the store is not even created)."""
+def _nothing_written(store: Path, fresh: bool = False) -> None:
+    """No cache entry and no MLflow run; ``fresh`` (a folder without the fixture's empty store): the store is
+    not even created."""
     cache = store / "cache"
     assert not cache.exists() or not any(p for p in cache.glob("*/*") if p.parent.name != ".locks"), \
         sorted(cache.glob("*/*"))
     db = store / "mlflow.db"
+    assert not (fresh and db.exists()), "a bad config created the MLflow store"
     if db.exists():
         import mlflow
         mlflow.set_tracking_uri(f"sqlite:///{db}")
@@ -207,7 +209,7 @@ def test_cli_prints_one_error_line_and_exits_2(tmp_path, override, expected):
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
     assert out.returncode == 2, out.stderr
     assert len(lines) == 1 and lines[0].startswith(expected), out.stderr
-    _nothing_written(tmp_path)
+    _nothing_written(tmp_path, fresh=True)
 
 
 EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))

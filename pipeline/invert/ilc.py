@@ -85,6 +85,12 @@ def _ss_filter(A, B, C, D, u):  # pragma: no cover - compiled
     return y
 
 
+def ss_filter(A, B, C, D, u) -> np.ndarray:
+    """:func:`_ss_filter` of u (N,) or (m, N), passed as C-contiguous rows: one compiled specialisation for
+    every caller (a strided u, e.g. an adjoint's time-reversed view, compiled another; same operations)."""
+    return _ss_filter(A, B, C, D, np.ascontiguousarray(np.atleast_2d(np.asarray(u, dtype=np.float64))))
+
+
 def _as_discrete_siso_ss(sys) -> control.StateSpace:
     import control  # lazy: saves 1.9 s of start-up (python-control)
     if not isinstance(sys, (control.StateSpace, control.TransferFunction)):
@@ -119,10 +125,8 @@ class LTIFilter:
 
     def apply(self, u: np.ndarray) -> np.ndarray:
         """``G u`` for u of shape (N,) or (batch, N) (lifted: lower triangular Toeplitz × u)."""
-        u = np.asarray(u, dtype=np.float64)
-        # C-contiguous: one compiled specialisation for every caller (a strided u compiled another)
-        y = _ss_filter(self._A, self._B, self._C, self._D, np.ascontiguousarray(np.atleast_2d(u)))
-        return y[0] if u.ndim == 1 else y
+        y = ss_filter(self._A, self._B, self._C, self._D, u)
+        return y[0] if np.ndim(u) == 1 else y
 
     def adjoint(self, v: np.ndarray) -> np.ndarray:
         """``Gᵀ v``: the filter run on the time-reversed signal, reversed back (Tᵀ = J T J)."""

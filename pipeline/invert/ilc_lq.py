@@ -32,7 +32,7 @@ import numpy as np
 from numba import njit
 from scipy.sparse.linalg import LinearOperator, svds
 
-from pipeline.invert.ilc import NormOptimalUpdate, _as_discrete_siso_ss, _check_n, _check_weights, _ss_filter
+from pipeline.invert.ilc import NormOptimalUpdate, _as_discrete_siso_ss, _check_n, _check_weights, ss_filter
 
 __all__ = ["RiccatiUpdate", "SolveReport"]
 
@@ -146,7 +146,7 @@ class RiccatiUpdate(NormOptimalUpdate):
     # ---- G, Gᵀ as filters ------------------------------------------------------------------------
     def apply(self, u: np.ndarray) -> np.ndarray:
         """G u from rest."""
-        return _ss_filter(self.A, self.B, self.C, self.D, np.atleast_2d(np.asarray(u, np.float64)))[0]
+        return ss_filter(self.A, self.B, self.C, self.D, u)[0]
 
     def adjoint(self, v: np.ndarray) -> np.ndarray:
         """Gᵀ v: the filter on the time-reversed signal, reversed back (Tᵀ = J T J)."""

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import sys
 import tempfile
 from pathlib import Path
@@ -30,6 +31,7 @@ ISA_PINS = {"avx2": {
     "MKL_CBWR": "COMPATIBLE",                  # torch's MKL: its one branch for Intel and AMD alike (AVX2 differs)
     "ATEN_CPU_CAPABILITY": "avx2",             # torch's own vectorised kernels
     "NUMBA_CPU_NAME": "haswell",               # numba's target (its cache is keyed by it)
+    "NUMBA_CPU_FEATURES": "",                  # ... with that CPU's own features: unset, numba takes the host's (AVX-512)
     "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR",   # numpy 2.x: its loops to X86_V3 (AVX2)
 }}
 ISA = os.environ.setdefault("PIPELINE_ISA", "avx2")
@@ -58,15 +60,24 @@ def numba_cache_dir(root: Path | None = None) -> str:
     numba keys a ``cache=True`` function by its own source file only: a kernel calling (inlining) a
     function of another module keeps the old callee after that module changes, and computes with it
     silently (seen here: the analytic inversion kept a stale ``_fast_physics``).  One folder per
-    SHA-256 of every module that compiles with numba makes any such edit a new cache.  Beside the
+    SHA-256 of every module that defines a kernel (:func:`kernel_sources`) makes any such edit a new cache.  Beside the
     bytecode (``pipeline/__pycache__/numba-<hash>``), or in the temp folder where that is read-only."""
     root = Path(__file__).resolve().parent if root is None else Path(root)
-    sources = ((p.relative_to(root).as_posix(), p.read_bytes()) for p in sorted(root.rglob("*.py")))
-    digest = source_digest((name, text) for name, text in sources if b"numba" in text)
+    digest = source_digest((p.relative_to(root).as_posix(), p.read_bytes()) for p in kernel_sources(root))
     base = root / "__pycache__"
     if not os.access(base if base.exists() else root, os.W_OK):
         base = Path(tempfile.gettempdir()) / "pgnn-feedforward"
     return str(base / f"numba-{digest[:16]}")
+
+
+#: a kernel: a line decorated ``@numba.njit`` or ``@njit``
+_KERNEL = re.compile(rb"^[ \t]*@(?:numba\.)?njit\b", re.M)
+
+
+def kernel_sources(root: Path | None = None) -> list[Path]:
+    """The package's source files that define numba kernels (sorted)."""
+    root = Path(__file__).resolve().parent if root is None else Path(root)
+    return [p for p in sorted(root.rglob("*.py")) if _KERNEL.search(p.read_bytes())]
 
 
 def source_digest(sources) -> str:

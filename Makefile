@@ -7,7 +7,7 @@ ROOT := $(abspath .)
 MLFLOW_DB ?= sqlite:///$(ROOT)/mlruns/mlflow.db
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help install test test-full lint reproduce reproduce-check reproduce-spread reproduce-confirm ui server pg-uri-missing bench slurm-local clean
+.PHONY: help install test test-full numba-signatures lint reproduce reproduce-check reproduce-spread reproduce-confirm ui server pg-uri-missing bench slurm-local clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-10s %s\n", $$1, $$2}'
@@ -45,6 +45,9 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	@# the project's own bytecode on every core (pip's compilation is one file at a time; as pip, a file this
 	@# Python cannot compile, torch's py312 test fixtures, is skipped)
 	$(PY) -m compileall -q -j 0 pipeline stages > /dev/null || true
+	@# and its numba kernels, for the signatures its tests and experiments use (pipeline/numba_warm.py): a first
+	@# run then loads them instead of compiling (~1 min of a fresh `make test`); never fails the install
+	$(PY) -m pipeline.numba_warm || echo "make install: the numba warm-up failed (above); kernels compile on first use"
 	@$(PY) -c "import torch; print('installed torch', torch.__version__, '(CUDA build: large)' if torch.version.cuda else '(CPU build)')"
 	touch $@
 
@@ -53,6 +56,9 @@ test: install  ## fast test suite, one worker per core (pytest-xdist; a file's t
 
 test-full: install  ## every test, including the slow ones (sweeps, whole experiments)
 	$(PY) -m pytest -q -m ''
+
+numba-signatures: install  ## after make test (and make reproduce): list the kernels' signatures make install compiles
+	$(PY) -m pipeline.numba_warm --record
 
 lint: install  ## ruff
 	$(VENV)/bin/ruff check pipeline stages tests benchmarks

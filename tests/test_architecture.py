@@ -221,7 +221,7 @@ def test_the_export_stage_asks_the_invert_option_not_its_name():
 
 def test_the_numba_cache_is_a_folder_per_version_of_the_numba_modules(tmp_path):
     """numba keys a cached kernel by its own file only; the package's cache folder changes with any
-    module that compiles with numba (a stale inlined callee cannot survive an edit), not with others,
+    module that defines a kernel (a stale inlined callee cannot survive an edit), not with others,
     and the package sets it before numba loads."""
     import os
 
@@ -231,6 +231,7 @@ def test_the_numba_cache_is_a_folder_per_version_of_the_numba_modules(tmp_path):
     first = pipeline.numba_cache_dir(tmp_path)
     assert first == pipeline.numba_cache_dir(tmp_path) and first.startswith(str(tmp_path))
     (tmp_path / "plain.py").write_text("X = 2\n")
+    (tmp_path / "uses.py").write_text("import numba  # calls kernels, defines none\n")
     assert pipeline.numba_cache_dir(tmp_path) == first
     (tmp_path / "kernels.py").write_text("import numba\n\n@numba.njit(cache=True)\ndef f(x):\n    return 2 * x\n")
     assert pipeline.numba_cache_dir(tmp_path) != first

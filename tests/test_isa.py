@@ -17,17 +17,20 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PROBE = r"""
 import json, pipeline, numpy, torch, numba
+from numba.core.registry import cpu_target
 from numpy._core import _multiarray_umath as m
 from threadpoolctl import threadpool_info
 cores = sorted({i.get("architecture") for i in threadpool_info() if i.get("internal_api") == "openblas"})
 print(json.dumps({"isa": pipeline.ISA, "tag": pipeline.isa_setting(), "torch": torch.backends.cpu.get_cpu_capability(),
-                  "numba": numba.config.CPU_NAME, "x86_v4": bool(m.__cpu_features__.get("X86_V4")), "openblas": cores}))
+                  "numba": numba.config.CPU_NAME,
+                  "numba_target": list(cpu_target.target_context.codegen().magic_tuple()[1:]),
+                  "x86_v4": bool(m.__cpu_features__.get("X86_V4")), "openblas": cores}))
 """
 
 
 def _probe(**env) -> dict:
     full = {k: v for k, v in os.environ.items() if k not in ("PIPELINE_ISA", "OPENBLAS_CORETYPE", "MKL_CBWR",
-            "ATEN_CPU_CAPABILITY", "NUMBA_CPU_NAME", "NPY_DISABLE_CPU_FEATURES")}
+            "ATEN_CPU_CAPABILITY", "NUMBA_CPU_NAME", "NUMBA_CPU_FEATURES", "NPY_DISABLE_CPU_FEATURES")}
     out = subprocess.run([sys.executable, "-c", PROBE], cwd=ROOT, env={**full, **env}, capture_output=True,
                          text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
@@ -39,6 +42,9 @@ def test_default_pins_every_library_to_avx2():
     assert got["isa"] == "avx2" and "not applied" not in got["tag"]
     assert got["torch"] in ("AVX2", "DEFAULT")          # DEFAULT on a CPU without AVX2 (nothing faster to pin)
     assert got["numba"] == "haswell" and got["x86_v4"] is False
+    # the target numba compiles for (its cache key): Haswell with Haswell's own features ('': LLVM's CPU model);
+    # NUMBA_CPU_NAME alone leaves numba the host's feature string, AVX-512 included where the CPU has it
+    assert got["numba_target"] == ["haswell", ""]
     assert got["openblas"] in ([], ["Haswell"])         # threadpoolctl names the core OpenBLAS runs
 
 
@@ -46,7 +52,7 @@ def test_default_pins_every_library_to_avx2():
 def test_native_opts_out_and_is_recorded():
     got = _probe(PIPELINE_ISA="native")
     assert got["isa"] == "native" and got["tag"].startswith("native")
-    assert got["numba"] in (None, "host")
+    assert got["numba"] in (None, "host") and got["numba_target"][1] != ""
 
 
 def test_an_unknown_setting_is_one_line_before_any_work():
@@ -82,7 +88,7 @@ def test_the_pin_changes_the_bits_where_the_cpu_has_more():
     for isa in ("avx2", "native"):
         env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_CORETYPE", "MKL_CBWR", "ATEN_CPU_CAPABILITY",
                                                                 "MKL_ENABLE_INSTRUCTIONS", "NUMBA_CPU_NAME",
-                                                                "NPY_DISABLE_CPU_FEATURES")}
+                                                                "NUMBA_CPU_FEATURES", "NPY_DISABLE_CPU_FEATURES")}
         out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env={**env, "PIPELINE_ISA": isa},
                              capture_output=True, text=True, timeout=300)
         assert out.returncode == 0, out.stderr[-2000:]

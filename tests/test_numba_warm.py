@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import inspect
 import json
+import math
 import os
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 from pipeline import numba_warm
 
@@ -32,7 +35,9 @@ def test_every_listed_signature_names_a_kernel_with_its_arity_and_every_kernel_i
         assert isinstance(sig, tuple) and len(sig) == n_args, (
             f"{module}.{name}: {len(sig)} argument types listed, the kernel takes {n_args} (make numba-signatures)")
         listed.add((module, name))
-    assert sorted(set(kernels) - listed) == [], "kernels the warm-up does not compile: run make numba-signatures"
+    # an inline="always" kernel is compiled into each caller (numba never caches it on its own)
+    own = {k for k, d in kernels.items() if d.targetoptions.get("inline", "never") != "always"}
+    assert sorted(own - listed) == [], "kernels the warm-up does not compile: run make numba-signatures"
 
 
 WARM_THEN_CALL = r"""
@@ -53,6 +58,8 @@ else:
 
 
 def test_a_warmed_signature_is_loaded_by_the_first_call_not_compiled(tmp_path):
+    """Warm one kernel into an empty cache folder, then call it in a fresh interpreter: numba loads it (a cache
+    hit, no miss: a miss is a compile), and it computes what its Python source does."""
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
 
     def run(*args):
@@ -61,11 +68,9 @@ def test_a_warmed_signature_is_loaded_by_the_first_call_not_compiled(tmp_path):
         assert out.returncode == 0, out.stderr[-2000:]
         return json.loads(out.stdout.strip().splitlines()[-1])
 
-    cold = run("call")                                  # an empty cache: the call compiles
-    assert cold["misses"] == 1 and cold["hits"] == 0
-    env["NUMBA_CACHE_DIR"] = str(tmp_path / "warmed")
     done, skipped = run("warm", str(tmp_path / "list.txt"))
     assert done >= 1 and skipped == []
-    warm = run("call")
-    assert warm["hits"] == 1 and warm["misses"] == 0    # loaded from what the warm-up compiled
-    assert warm["out"] == cold["out"]
+    got = run("call")
+    assert got["hits"] == 1 and got["misses"] == 0
+    t = math.tanh(0.003 / 0.01)
+    assert got["out"] == pytest.approx([t, 0.0, (1.0 - t * t) / 0.01], rel=1e-15)

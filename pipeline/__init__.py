@@ -31,7 +31,7 @@ ISA_PINS = {"avx2": {
     "MKL_CBWR": "COMPATIBLE",                  # torch's MKL: its one branch for Intel and AMD alike (AVX2 differs)
     "ATEN_CPU_CAPABILITY": "avx2",             # torch's own vectorised kernels
     "NUMBA_CPU_NAME": "haswell",               # numba's target (its cache is keyed by it)
-    "NUMBA_CPU_FEATURES": "",                  # ... with that CPU's own features: unset, numba takes the host's (AVX-512)
+    "NUMBA_CPU_FEATURES": "",                  # ... and its own features (unset: the host's, AVX-512 too)
     "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR",   # numpy 2.x: its loops to X86_V3 (AVX2)
 }}
 ISA = os.environ.setdefault("PIPELINE_ISA", "avx2")

@@ -48,7 +48,7 @@ def isa_setting() -> str:
     force, what it replaced, or why it may not hold (a library loaded before this package set them)."""
     late = [m for m in ("numpy", "torch", "numba") if m in _LOADED_BEFORE]
     pins = {k: os.environ.get(k, "") for k in ISA_PINS["avx2"]}
-    text = f"{ISA}: " + ", ".join(f"{k}={v}" for k, v in pins.items() if v)
+    text = f"{ISA}: " + ", ".join(f"{k}={v}" for k, v in pins.items() if v or ISA in ISA_PINS)  # '': set empty
     if _REPLACED and ISA != "native":
         text += " (replaced " + ", ".join(f"{k}={v}" for k, v in _REPLACED.items()) + ")"
     return text + (f" (not applied: {', '.join(late)} loaded before pipeline)" if late and ISA != "native" else "")
@@ -70,12 +70,14 @@ def numba_cache_dir(root: Path | None = None) -> str:
     return str(base / f"numba-{digest[:16]}")
 
 
-#: a kernel: a line decorated ``@numba.njit`` or ``@njit``
-_KERNEL = re.compile(rb"^[ \t]*@(?:numba\.)?njit\b", re.M)
+#: a module numba compiles from: a line decorated ``@numba.njit``, ``@njit``, ``@jit``, ``@vectorize``, ``@intrinsic``,
+#: ``@overload``, ``@register_jitable`` (with or without ``numba.``/``nb.``; a typing ``@overload`` only adds a file)
+_KERNEL = re.compile(rb"^[ \t]*@(?:numba\.|nb\.)?"
+                     rb"(?:njit|jit|vectorize|guvectorize|intrinsic|overload|register_jitable)\b", re.M)
 
 
 def kernel_sources(root: Path | None = None) -> list[Path]:
-    """The package's source files that define numba kernels (sorted)."""
+    """The package's source files that define numba kernels or what they compile with (sorted)."""
     root = Path(__file__).resolve().parent if root is None else Path(root)
     return [p for p in sorted(root.rglob("*.py")) if _KERNEL.search(p.read_bytes())]
 

@@ -24,7 +24,8 @@ from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from pathlib import Path
 
-from numba.core import types
+from filelock import FileLock
+from numba.core import caching, types
 from numba.core.dispatcher import Dispatcher
 
 import pipeline  # the package's __init__ (the ISA pin, NUMBA_CACHE_DIR) runs before this module, numba included
@@ -65,12 +66,31 @@ def _types_namespace() -> dict:
     def array(dtype, ndim, layout, readonly=False, aligned=True):
         return types.Array(dtype, ndim, layout, readonly=readonly, aligned=aligned)
     names = {n: getattr(types, n) for n in ("float64", "float32", "int64", "int32", "uint8", "none")}
-    return {"__builtins__": {}, "Array": array, "UniTuple": types.UniTuple, "Tuple": lambda *t: types.Tuple(t),
+    return {"__builtins__": {}, "Array": array, "UniTuple": types.UniTuple, "Tuple": types.Tuple,
             "Literal": _Literal(), "bool": types.boolean, **names}
+
+
+def _lock_cache_saves() -> None:
+    """One save of a numba cache entry at a time across the warm-up's processes. numba files a new entry by
+    reading the kernel's index, taking the first free data-file number and writing both, unlocked
+    (numba/core/caching.py ``IndexDataCacheFile.save``; numba issue #10128): two processes saving signatures of
+    one kernel (a callee of kernels in two modules, compiled with each caller) can file one signature's code
+    under the other's key. The lock is a file beside the cache."""
+    save = caching.IndexDataCacheFile.save
+    if getattr(save, "locked", False):      # once per process (a worker warms several modules)
+        return
+    lock = FileLock(str(Path(os.environ["NUMBA_CACHE_DIR"]) / ".warm.lock"))
+
+    def locked_save(self, key, data):
+        with lock:
+            return save(self, key, data)
+    locked_save.locked = True
+    caching.IndexDataCacheFile.save = locked_save
 
 
 def _warm_module(module: str, entries: list[tuple[str, str]]) -> tuple[int, list[str]]:
     """Compile (or load from the cache) each (kernel, signature) of one module; the lines it could not."""
+    _lock_cache_saves()
     ns = _types_namespace()
     try:
         kernels = dict(_dispatchers(module))
@@ -87,7 +107,8 @@ def _warm_module(module: str, entries: list[tuple[str, str]]) -> tuple[int, list
 
 
 def warm(path: Path = SIGNATURES, jobs: int | None = None) -> tuple[int, list[str]]:
-    """Compile every listed signature, modules spread over ``jobs`` processes (default: every core)."""
+    """Compile every listed signature, modules spread over ``jobs`` processes (default: the cores this process
+    may use, at most 4: each worker imports torch, ~350 MB)."""
     if not path.exists():
         return 0, [f"{path}: no list (make numba-signatures)"]
     by_module: dict[str, list[tuple[str, str]]] = {}
@@ -96,7 +117,7 @@ def warm(path: Path = SIGNATURES, jobs: int | None = None) -> tuple[int, list[st
             full, text = line.split(" ", 1)
             module, name = full.rsplit(".", 1)
             by_module.setdefault(module, []).append((name, text))
-    jobs = max(1, min(jobs or os.cpu_count() or 1, len(by_module)))
+    jobs = max(1, min(jobs or len(os.sched_getaffinity(0)), 4, len(by_module)))
     done, skipped = 0, []
     # spawn: a fresh interpreter per worker (the pins are read when numba and the BLAS load)
     with ProcessPoolExecutor(jobs, mp_context=get_context("spawn")) as pool:
@@ -109,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m pipeline.numba_warm", description=__doc__.splitlines()[0])
     ap.add_argument("--record", action="store_true",
                     help=f"write {SIGNATURES.name} from numba's cache (after `make test` and `make reproduce`)")
-    ap.add_argument("--jobs", type=int, default=None, help="processes (default: every core)")
+    ap.add_argument("--jobs", type=int, default=None, help="processes (default: the usable cores, at most 4)")
     args = ap.parse_args(argv)
     if args.record:
         lines = record()

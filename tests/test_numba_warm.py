@@ -1,5 +1,5 @@
 """The numba warm-up of `make install` (pipeline/numba_warm.py): its list names real kernels with their own
-arity, covers every kernel, and a warmed signature is what the kernel's first call then loads (no compile)."""
+arity and exact types, covers every kernel, and a warmed signature is what the kernel's first call then loads (no compile)."""
 from __future__ import annotations
 
 import inspect
@@ -31,6 +31,7 @@ def test_every_listed_signature_names_a_kernel_with_its_arity_and_every_kernel_i
     for module, name, text in _entries():
         assert (module, name) in kernels, f"{module}.{name} is no kernel now: refresh the list (make numba-signatures)"
         sig = eval(text, ns)
+        assert repr(sig) == text, f"{module}.{name}: {text} reads back as {sig!r}"   # the types, exactly
         n_args = len(inspect.signature(kernels[module, name].py_func).parameters)
         assert isinstance(sig, tuple) and len(sig) == n_args, (
             f"{module}.{name}: {len(sig)} argument types listed, the kernel takes {n_args} (make numba-signatures)")

@@ -1,5 +1,6 @@
 """The numba warm-up of `make install` (pipeline/numba_warm.py): its list names real kernels with their own
-arity and exact types, covers every kernel, and a warmed signature is what the kernel's first call then loads (no compile)."""
+arity and exact types, covers every kernel, and a warmed signature is what the kernel's first call then loads
+(no compile)."""
 from __future__ import annotations
 
 import inspect

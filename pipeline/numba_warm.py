@@ -5,7 +5,7 @@ code in ``pipeline/__pycache__/numba-<hash>`` (:func:`pipeline.numba_cache_dir`)
 call lands in whatever runs first: ~1 min of a fresh ``make test`` (both workers compiling, measured: 4 min 43 s
 cold against 3 min 37 s warm on one clone) and ~10 s of each worker's first ``make reproduce`` job.
 ``make install`` runs this module, which compiles each kernel for the signatures listed in
-``numba_signatures.txt`` (one ``module.kernel (argument types)`` per line), on every core.
+``numba_signatures.txt`` (one ``module.kernel (argument types)`` per line), over the usable cores (at most 4).
 
 The list is what the test suite and ``make reproduce`` compile, read from numba's own cache index
 (``python -m pipeline.numba_warm --record`` after a test run: ``make numba-signatures``). A stale line (a
@@ -106,17 +106,24 @@ def _warm_module(module: str, entries: list[tuple[str, str]]) -> tuple[int, list
     return done, skipped
 
 
+def read_list(path: Path = SIGNATURES) -> list[tuple[str, str, str]]:
+    """(module, kernel, argument types as numba prints them) of each line of the list."""
+    out = []
+    for line in path.read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            full, text = line.split(" ", 1)
+            out.append((*full.rsplit(".", 1), text))
+    return out
+
+
 def warm(path: Path = SIGNATURES, jobs: int | None = None) -> tuple[int, list[str]]:
     """Compile every listed signature, modules spread over ``jobs`` processes (default: the cores this process
     may use, at most 4: each worker imports torch, ~350 MB)."""
     if not path.exists():
         return 0, [f"{path}: no list (make numba-signatures)"]
     by_module: dict[str, list[tuple[str, str]]] = {}
-    for line in path.read_text().splitlines():
-        if line.strip() and not line.startswith("#"):
-            full, text = line.split(" ", 1)
-            module, name = full.rsplit(".", 1)
-            by_module.setdefault(module, []).append((name, text))
+    for module, name, text in read_list(path):
+        by_module.setdefault(module, []).append((name, text))
     jobs = max(1, min(jobs or len(os.sched_getaffinity(0)), 4, len(by_module)))
     done, skipped = 0, []
     # spawn: a fresh interpreter per worker (the pins are read when numba and the BLAS load)

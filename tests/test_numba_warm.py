@@ -18,18 +18,11 @@ from pipeline import numba_warm
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _entries():
-    for line in numba_warm.SIGNATURES.read_text().splitlines():
-        if line.strip() and not line.startswith("#"):
-            full, text = line.split(" ", 1)
-            yield *full.rsplit(".", 1), text
-
-
 def test_every_listed_signature_names_a_kernel_with_its_arity_and_every_kernel_is_listed():
     ns = numba_warm._types_namespace()
     kernels = {(m, n): d for m in numba_warm.kernel_modules() for n, d in numba_warm._dispatchers(m)}
     listed = set()
-    for module, name, text in _entries():
+    for module, name, text in numba_warm.read_list():
         assert (module, name) in kernels, f"{module}.{name} is no kernel now: refresh the list (make numba-signatures)"
         sig = eval(text, ns)
         assert repr(sig) == text, f"{module}.{name}: {text} reads back as {sig!r}"   # the types, exactly

@@ -454,3 +454,45 @@ def test_a_step_is_flagged_on_every_sample_whose_window_holds_it_and_no_large_ou
         u_c, f_c = _c_run(law_fb, "ff_s", tmp_path, step)
         np.testing.assert_array_equal(f_c, f_fb)
         np.testing.assert_array_equal(u_c, u_fb)
+
+
+@pytest.mark.parametrize("kind", ["physics", "table"])
+def test_the_normal_vector_ends_at_rest_and_raises_no_flag_the_reference_does_not(kind, tmp_path):
+    """Three moves of 1000 samples with 400 of rest before, between and after: the first 4000 samples end in
+    the middle of the third move. The `normal` vector is the two whole moves (a prefix of the reference, ending
+    in preview + 50 samples of rest); with limits at 1.5 x what the reference demands, and its envelope, neither
+    it nor the reference raises a flag (cut at 4000 samples, the law stops at once: a force spike at the last
+    sample, SATURATED). A reference whose first move outlasts 4000 samples keeps that move whole; one that never
+    rests is cut, and the manifest says so."""
+    from pipeline.export.package import VECTOR_SAMPLES, normal_window
+    move, rest = _reference(1000), np.zeros(400)
+    r = np.concatenate([rest, move, rest, move, rest, move, rest])            # the third move spans sample 4000
+    assert np.any(np.diff(r[VECTOR_SAMPLES - 5:VECTOR_SAMPLES + 1]) != 0)
+    law0 = _law("physics")
+    law0 = from_table("fhofc", Ts, r, feedforward(law0, r)) if kind == "table" else law0
+    u = feedforward(law0, r)
+    du = float(np.max(np.abs(np.diff(u, prepend=0.0))))
+    law = _with_guard(law0, **_envelope(law0, r), u_min=-1.5 * float(np.max(np.abs(u))),
+                      u_max=1.5 * float(np.max(np.abs(u))), rate=1.5 * du / Ts)
+    man = write_package(law, "ff_x", tmp_path, {"ref": (r, u)}, source={}, timing_repeats=0)
+    assert man["references"]["ref"]["flags"] == {}
+    normal = man["vectors"]["normal"]
+    assert normal["cut"] == "whole moves" and normal["flags"] == {}, normal
+    vec = np.loadtxt(tmp_path / "ff_x" / "vectors_normal.csv", delimiter=",", skiprows=1)
+    n = 2 * (400 + 1000) + 400                                                # the two moves and the rest after
+    assert vec.shape[0] == normal["samples"] and n - 400 < vec.shape[0] <= n
+    np.testing.assert_array_equal(vec[:, 0], r[:vec.shape[0]])
+    assert np.all(vec[-(law.preview + 51):, 0] == r[n - 1])
+    if CC and kind == "physics":                                              # the C meets it: `--check` exits 0
+        exe = compile_harness(tmp_path / "ff_x", "ff_x", CC)
+        out = subprocess.run([str(exe), "--check", str(tmp_path / "ff_x" / "vectors_normal.csv")],
+                             capture_output=True, text=True)
+        assert out.returncode == 0, out.stderr
+    if kind == "physics":     # the old cut, the first 4000 samples in motion: a stop the reference never makes
+        f_cut = guarded(law, r[:VECTOR_SAMPLES])[1]
+        assert f_cut[-1] & FLAG["SATURATED"], f_cut[-5:]
+    long_move = np.concatenate([rest, _reference(6000), rest])
+    w, how = normal_window(long_move, 2)
+    assert how == "the first move" and np.all(w[-53:] == 0.0) and np.any(w != 0.0)
+    w, how = normal_window(np.linspace(0.0, 1.0, 6000), 2)
+    assert how == "cut in motion" and w.size == VECTOR_SAMPLES

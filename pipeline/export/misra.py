@@ -56,6 +56,14 @@ DEVIATIONS = {
 }
 
 
+
+#: how the `normal` test vector was cut (pipeline.export.package.normal_window), in the package README's words
+_NORMAL_CUT = {"whole moves": "whole moves, ending at rest",
+               "the first move": "its first move whole, ending at rest",
+               "cut in motion": "cut IN MOTION (no rest early enough): the law then stops at once, so the last "
+                                "samples' forces and flags are the cut's, not the reference's",
+               "at rest": "the reference does not move"}
+
 def find_cppcheck() -> str | None:
     return shutil.which("cppcheck")
 
@@ -134,7 +142,8 @@ def readme(law, name: str, man: dict) -> str:
               f"`./main_{name} --check vectors_normal.csv` (exit 0: the flags exactly, u_ff per sample within "
               f"{man['check']['atol']:.3g} N + {man['check']['rtol']:g} |u|; manifest `check`). Never build with "
               "-ffast-math/-Ofast: the C stops with #error.", "",
-              "Cases: `normal` (the first evaluation reference, at most 4000 samples), `out_of_range` (3 x its "
+              "Cases: `normal` (the first evaluation reference from its first sample to a rest: "
+              f"{_NORMAL_CUT.get(man['vectors']['normal'].get('cut'), 'as cut')}), `out_of_range` (3 x its "
               "motion), `nonfinite` (a NaN burst and an inf where it moves fastest), `limits` (2 x its motion: "
               "SATURATED / RATE_LIMITED where export.limits sets limits), `past_end` (tables).", "",
               "| case | samples | flags raised (samples) |", "| --- | --- | --- |"]

@@ -30,8 +30,12 @@ __all__ = ["find_compiler", "compile_harness", "run_harness", "time_harness", "w
            "replace_dir", "rel_diff", "default_prefix", "check_prefix", "law_hash", "VECTOR_SAMPLES",
            "check_bound"]
 
-#: the longest test vector [samples]
+#: the test vectors' length where the reference comes to rest [samples]: as many whole moves as end within it
 VECTOR_SAMPLES = 4000
+#: the longest test vector [samples]: a first move that ends later than VECTOR_SAMPLES is kept whole up to this
+VECTOR_MOVE_MAX = 20000
+#: samples of rest kept after the last whole move in a test vector (beyond the law's preview)
+VECTOR_REST = 50
 #: a C identifier; the prefix's symbols are <prefix>_init, <prefix>_step, <PREFIX>_TS, ...
 _IDENT = __import__("re").compile(r"[A-Za-z][A-Za-z0-9_]{0,39}")
 
@@ -225,9 +229,34 @@ def reference_file_clash(names) -> str | None:
     return None
 
 
+def normal_window(r: np.ndarray, preview: int) -> tuple[np.ndarray, str]:
+    """(the ``normal`` test vector's reference, how it was cut): ``r`` from its first sample (a table law is
+    indexed from it) to :data:`VECTOR_REST` samples past the law's ``preview`` into the last rest (r constant)
+    that begins within :data:`VECTOR_SAMPLES`: whole moves; if the first move ends later, up to the end of that
+    move (at most :data:`VECTOR_MOVE_MAX` samples); else the first VECTOR_SAMPLES, cut in motion. A vector cut
+    in motion ends in a stop the reference never makes (past its end the law holds the last sample): its forces
+    and flags there are the cut's, not the reference's (a 376 N spike, SATURATED, on [B1]'s v0.15 cut at 4000)."""
+    moving = np.diff(r) != 0                       # a reference at rest is constant
+    idx = np.flatnonzero(moving)
+    if idx.size == 0:
+        return r[:VECTOR_SAMPLES], "at rest"
+    hold = max(int(preview), 0) + VECTOR_REST       # the law sees rest over its preview, and the tail is at rest
+    # a sample j that starts a rest of `hold` samples after motion: moving[j-1], then r[j .. j+hold] constant
+    still = np.convolve((~moving).astype(np.int64), np.ones(hold, dtype=np.int64), "valid") == hold
+    rest_at = np.flatnonzero(still[1:] & moving[:still.size - 1]) + 1   # j: moving[j-1] and still[j]
+    ends = rest_at + hold + 1                       # the vector's end: `hold` samples into that rest
+    fits = ends[ends <= VECTOR_SAMPLES]
+    if fits.size:
+        return r[:int(fits[-1])], "whole moves"
+    if ends.size and ends[0] <= VECTOR_MOVE_MAX:
+        return r[:int(ends[0])], "the first move"
+    return r[:VECTOR_SAMPLES], "cut in motion"
+
+
 def _vectors(law: Law, r: np.ndarray) -> dict[str, np.ndarray]:
-    """The test vectors' references: normal operation and one per flag path (during motion)."""
-    r = r[:VECTOR_SAMPLES]
+    """The test vectors' references: normal operation (:func:`normal_window`) and one per flag path (during
+    motion)."""
+    r = normal_window(r, law.preview)[0]
     r0 = r[0]
     k = int(np.argmax(np.abs(np.diff(r)))) if r.size > 1 else 0    # the fastest sample: in motion
     nan = r.copy()
@@ -314,6 +343,7 @@ def _build(law, name, folder, references, source, cc, rtol, repeats, keep_exe, *
         uv, fv = guarded(law, rv)
         _write_vectors(folder / f"vectors_{case}.csv", rv, uv, fv)
         vectors[case] = {"file": f"vectors_{case}.csv", "samples": int(rv.size), "flags": _flag_counts(fv)}
+    vectors["normal"]["cut"] = normal_window(r_first, law.preview)[1]
     compiler = find_compiler(cc) if cc else None
     g = law.g
     manifest = {

@@ -27,6 +27,7 @@ from pipeline.invert.start import settle_count, started
 from pipeline.models.pgnn import PGNN
 from pipeline.models.physics_maps import physics_features_for
 from pipeline.systems.measured import Recording
+from pipeline.systems.controller import advanced_reference
 
 RTOL = 1e-9          # the bound: C against the study, relative to max|u_ff|
 Ts = 2.5e-4
@@ -90,8 +91,8 @@ def _study(m, sys_, kind: str, r: np.ndarray, static: str) -> np.ndarray:
         w = inv(np.append(rr, rr[-1]))
         return sys_.physics.applied_input(w[:-1], w_end=w[-1])
     r0 = float(r[0])
-    f, u_rest = started(law, r, r0, settle_count(law, [r0]))
-    ctrl = sys_.ctrl
+    ctrl = sys_.ctrl     # the model's force of r(k + D): the controller delays u_ff by D samples
+    f, u_rest = started(law, advanced_reference(r, ctrl.delay), r0, settle_count(law, [r0]))
     f = f - ctrl.reference_force(r, r0)
     u_rest -= ctrl.gtau * ctrl.rest_gain() * r0
     return f - u_rest if static == "exclude" else f

@@ -122,9 +122,12 @@ def _template(name: str) -> Template:
     return Template(_text(name))
 
 
-def _snippets() -> dict:
-    """The fragments every law's template takes verbatim."""
-    return {"reset": _text("law_reset.c"), "averaged_step": _text("averaged_step.c")}
+def _snippets(law: Law) -> dict:
+    """The fragments every law's template takes verbatim; the model's force of a measured axis read ``advance``
+    samples ahead in the preview (its controller's delay, law.controller_fields)."""
+    d = int(law.ints.get("advance", 0))
+    step = _text("averaged_step.c").replace("r_preview + ADVANCE", f"r_preview + {d}" if d else "r_preview")
+    return {"reset": _text("law_reset.c"), "averaged_step": step}
 
 
 def _nx(law: Law) -> int:
@@ -306,7 +309,7 @@ def write_c(law: Law, name: str, folder: Path, source: str, example: str = "refe
         force_term="" if law.family == "rigid_body" else _text("force_term.c"))   # the law's own, defined once
     if zoh_n > 1:
         guard += "\n" + _template("zoh.c").substitute(common, **zoh)
-    snippets, df2t = _snippets(), "\n" + _text("df2t.c")
+    snippets, df2t = _snippets(law), "\n" + _text("df2t.c")
     i = law.ints
     if law.family == "pgnn":
         offsets = _blob_offsets(law)

@@ -38,9 +38,10 @@ import numpy as np
 
 from pipeline.errors import ExportError
 from pipeline.export.guard import FLAG, Guard, run_guard
-from pipeline.systems.controller import LTIController
+from pipeline.systems.controller import LTIController, advanced_reference
 
-__all__ = ["Law", "ExportError", "LAWS", "guarded", "from_pgnn", "controller_fields", "from_linear_motor_physics",
+__all__ = ["Law", "ExportError", "LAWS", "guarded", "from_pgnn", "controller_fields", "advanced_reference",
+           "from_linear_motor_physics",
            "from_measured_physics", "from_k_filter", "from_table", "feedforward"]
 
 #: every law the exporter covers, by ``invert.kind``
@@ -259,7 +260,7 @@ def from_pgnn(model, law: str, Ts: float, *, averaged: bool = False, k: int = 5,
         floats.update(c_floats)
         arrays.update(c_arrays)
         strings["controller"] = ctrl.structure
-    return Law(law=law, family="pgnn", Ts=float(Ts), preview=fm.n_k + 1 + int(averaged),
+    return Law(law=law, family="pgnn", Ts=float(Ts), preview=fm.n_k + 1 + int(averaged) + ints.get("advance", 0),
                rest="zero" if law == "physics" and fm.structure == "inverse" else "first",
                averaged=bool(averaged), ints=ints, floats=floats, arrays=arrays, strings=strings)
 
@@ -274,7 +275,10 @@ def controller_fields(ctrl) -> tuple[dict, dict, dict]:
         k0 = ctrl.rest_gain() if has_ctrl else 0.0      # the controller term's rest value per metre (start 'rest')
     except ValueError:
         k0 = 0.0                                         # no rest away from 0: start 'rest' is refused upstream
-    return ({"has_ctrl": int(has_ctrl), "n_den": int(den.size)}, {"gtau": float(ctrl.gtau), "k0": float(k0)},
+    # advance D: the controller's computational delay, u = gtau (sat(v + u_ff/gtau)(k - D) + d): u_ff(k) reaches
+    # the plant at k + D, so the model's force is that of r(k + D) (advanced_reference); its term on r(k) is not
+    return ({"has_ctrl": int(has_ctrl), "n_den": int(den.size), "advance": int(ctrl.delay)},
+            {"gtau": float(ctrl.gtau), "k0": float(k0)},
             {"b_r": ctrl.b_r, "b_y": ctrl.b_y, "a": ctrl.a,
              "num": db / den[0], "den": den / den[0]})     # lfilter divides by den[0] first
 
@@ -305,7 +309,8 @@ def from_measured_physics(physics, theta, ctrl) -> Law:
     codes, consts = physics.terms.kernel()
     t = physics.terms
     c_ints, c_floats, c_arrays = controller_fields(ctrl)
-    return Law(law="physics", family="rigid_body", Ts=float(physics.Ts), preview=1 + int(physics.averaged_input),
+    return Law(law="physics", family="rigid_body", Ts=float(physics.Ts),
+               preview=1 + int(physics.averaged_input) + c_ints["advance"],
                rest="zero", averaged=bool(physics.averaged_input),
                ints={"n_terms": int(codes.size), **c_ints, "cogging_harmonics": int(t.cogging_harmonics),
                      "position_order": int(t.position_order)},
@@ -504,11 +509,12 @@ def _core(law: Law, r: np.ndarray, r0: float | None = None, **pgnn) -> tuple[np.
             u = rational_feedforward(_k_model(law), r).f
         else:
             physics = _rigid_body(law)   # feedforward's w, its overflow kept (applied_input refuses it)
-            w = physics.inverse_force(law.arrays["theta"], r)
+            w = physics.inverse_force(law.arrays["theta"], advanced_reference(r, law.ints["advance"]))
             with np.errstate(over="ignore", invalid="ignore"):
                 u = (_applied(law, w) if law.averaged else w[:-1]) - _controller_force(law, r, r0)
         return u, np.where(np.isfinite(u), 0, FLAG["SINGULAR"])
-    w, f = _pgnn_run(law, np.append(r, r[-1]) if law.averaged else r, **pgnn)
+    rf = advanced_reference(r, law.ints.get("advance", 0))      # the model's force: of r(k + D)
+    w, f = _pgnn_run(law, np.append(rf, rf[-1]) if law.averaged else rf, **pgnn)
     f = f | np.where(np.isfinite(w), 0, FLAG["SINGULAR"])    # an overflow: kept, the guard falls back
     if law.averaged:
         flags = f[1:].copy()          # step t runs w(t+1); the first also w(0)

@@ -383,3 +383,13 @@ def _fmt(p: np.ndarray) -> str:
     for c, i in terms[1:]:
         out += f" {'-' if c < 0 else '+'} {abs(c):.4g} z^-{i}"
     return out
+
+
+def advanced_reference(r: np.ndarray, advance: int) -> np.ndarray:
+    """r(k + D) for k = 0 … N-1, the last sample held past the end: the reference whose force a law must give at k
+    when the controller delays its output D samples (``LTIController.delay``: u = gtau (sat(v + u_ff/gtau)(k - D) + d),
+    so u_ff(k) acts at k + D); D = 0: r itself."""
+    if not advance:
+        return r
+    r = np.asarray(r, dtype=np.float64)
+    return np.concatenate([r[advance:], np.full(min(advance, r.size), r[-1])])[:r.size]

@@ -31,14 +31,16 @@ from pipeline.export.guard import Guard, envelope_of, run_guard
 from pipeline.export.package import write_feedforward_csv
 from pipeline.invert.start import resolve, settle_count, started
 from pipeline.runner import ConfigError, implementation
+from pipeline.systems.controller import advanced_reference
 from stages._common import baseline_lag, check_references, reference_specs
 from stages.export import guard_of
 
 UPSTREAM = ("generate", "baseline", "train")
 DEPENDS = ("invert", "evaluate.references", "evaluate.noise", "start",  # fhofc scores the bound terms on the measured Y
            "export.limits")                                           # the flags of the u_ff CSV
-VERSION = 4   # 2: reference_warning when the feedforward spikes at an end of the reference; 3: start (issue 48);
-              # 4: invert/feedforward/<ref>.csv, envelope factors (issue 49)
+VERSION = 5   # 2: reference_warning when the feedforward spikes at an end of the reference; 3: start (issue 48);
+              # 4: invert/feedforward/<ref>.csv, envelope factors (issue 49); 5: the model's force advanced by the
+              # controller's delay D (u_ff(k) acts at k + D)
 KIND_KEY = "invert.kind"
 
 
@@ -84,20 +86,23 @@ def _run(ctx) -> dict:
     st = start_of(ctx.cfg, ctx.system)
     ctrl = ctx.system.ctrl if ctx.system.measured else None
     u_ff, edge, u_start = {}, [], {}
+    delay = int(ctrl.delay) if ctrl is not None else 0
     for name, r in ctx.progress(refs.items(), desc="feedforward", total=len(refs)):
         t0 = time.perf_counter()
         law = lambda rr: np.asarray(impl.feedforward(ctx, name, rr), dtype=np.float64)   # noqa: E731
         r0 = float(r[0])
+        # the controller delays u_ff by D samples: the model's force is that of r(k + D), its own term of r(k)
+        r_law = advanced_reference(r, delay)
         if st.rest:               # every state at rest at r(0) (pipeline.invert.start)
             n_metrics = len(ctx.metrics)
             settle = settle_count(law, [r0])
             del ctx.metrics[n_metrics:]     # the law's own metrics of the rest probe are not the reference's
-            f, u_rest = started(law, r, r0, settle)
+            f, u_rest = started(law, r_law, r0, settle)
             last = {m[0]: m for m in ctx.metrics[n_metrics:]}   # the rest run's and the reference's: the latter's,
             ctx.metrics[n_metrics:] = list(last.values())       # once (a key twice at one time breaks MLflow's log)
             ctx.metric(f"{name}/start_settle_samples", settle)
         else:
-            f = law(r)
+            f = law(r_law)
         ctx.metric(f"{name}/seconds_per_sample", (time.perf_counter() - t0) / r.size)
         if f.shape != r.shape or not np.all(np.isfinite(f)):
             raise ValueError(f"invert.kind={ctx.cfg.invert.kind} returned a feedforward of shape "
@@ -215,13 +220,15 @@ def envelope_warning(ctx, refs: dict) -> str | None:
 
 def guard_preview(ctx) -> int:
     """P of the exported law of ``invert.kind`` (pipeline.export.law): the PGNN inversions read r(t) .. r(t+n_k+1),
-    the physics laws r(t) .. r(t+1), one more on an averaged model input; the [K] filters and tables r(t) only."""
+    the physics laws r(t) .. r(t+1), one more on an averaged model input, and on a measured axis D more (its
+    controller's delay: the model's force of r(t + D)); the [K] filters and tables r(t) only."""
     kind = str(ctx.cfg.invert.kind)
     averaged = bool(getattr(getattr(ctx.system, "physics", None), "averaged_input", False))
+    delay = int(ctx.system.ctrl.delay) if getattr(ctx.system, "measured", False) else 0
     if kind in ("direct", "analytic", "newton"):
         train = ctx.inputs["train"]
-        return int(train["model"].n_k) + 1 + int(averaged and bool(train.get("model_input")))
-    return 1 + int(averaged) if kind == "physics" else 0
+        return int(train["model"].n_k) + 1 + int(averaged and bool(train.get("model_input"))) + delay
+    return 1 + int(averaged) + delay if kind == "physics" else 0
 
 
 def feedforward_flags(ctx, refs: dict, u_ff: dict, st, u_start: dict) -> dict:

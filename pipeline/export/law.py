@@ -41,8 +41,7 @@ from pipeline.export.guard import FLAG, Guard, run_guard
 from pipeline.systems.controller import LTIController, advanced_reference
 
 __all__ = ["Law", "ExportError", "LAWS", "guarded", "from_pgnn", "controller_fields", "advanced_reference",
-           "from_linear_motor_physics",
-           "from_measured_physics", "from_k_filter", "from_table", "feedforward"]
+           "from_linear_motor_physics", "from_measured_physics", "from_k_filter", "from_table", "feedforward"]
 
 #: every law the exporter covers, by ``invert.kind``
 LAWS = ("physics", "direct", "analytic", "newton", "rational_filter", "fhofc", "il_fhofc")
@@ -509,7 +508,7 @@ def _core(law: Law, r: np.ndarray, r0: float | None = None, **pgnn) -> tuple[np.
             u = rational_feedforward(_k_model(law), r).f
         else:
             physics = _rigid_body(law)   # feedforward's w, its overflow kept (applied_input refuses it)
-            w = physics.inverse_force(law.arrays["theta"], advanced_reference(r, law.ints["advance"]))
+            w = physics.inverse_force(law.arrays["theta"], advanced_reference(r, law.ints.get("advance", 0)))
             with np.errstate(over="ignore", invalid="ignore"):
                 u = (_applied(law, w) if law.averaged else w[:-1]) - _controller_force(law, r, r0)
         return u, np.where(np.isfinite(u), 0, FLAG["SINGULAR"])

@@ -56,13 +56,13 @@ DEVIATIONS = {
 }
 
 
-
 #: how the `normal` test vector was cut (pipeline.export.package.normal_window), in the package README's words
 _NORMAL_CUT = {"whole moves": "whole moves, ending at rest",
                "the first move": "its first move whole, ending at rest",
                "cut in motion": "cut IN MOTION (no rest early enough): the law then stops at once, so the last "
                                 "samples' forces and flags are the cut's, not the reference's",
                "at rest": "the reference does not move"}
+
 
 def find_cppcheck() -> str | None:
     return shutil.which("cppcheck")

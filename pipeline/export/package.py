@@ -254,9 +254,8 @@ def normal_window(r: np.ndarray, preview: int) -> tuple[np.ndarray, str]:
 
 
 def _vectors(law: Law, r: np.ndarray) -> dict[str, np.ndarray]:
-    """The test vectors' references: normal operation (:func:`normal_window`) and one per flag path (during
+    """The test vectors' references: normal operation ``r`` (:func:`normal_window`) and one per flag path (during
     motion)."""
-    r = normal_window(r, law.preview)[0]
     r0 = r[0]
     k = int(np.argmax(np.abs(np.diff(r)))) if r.size > 1 else 0    # the fastest sample: in motion
     nan = r.copy()
@@ -339,11 +338,12 @@ def _build(law, name, folder, references, source, cc, rtol, repeats, keep_exe, *
     law.save(folder / "law")
     r_first = np.asarray(next(iter(references.values()))[0], dtype=np.float64)
     vectors = {}
-    for case, rv in _vectors(law, r_first).items():
+    r_normal, cut = normal_window(r_first, law.preview)
+    for case, rv in _vectors(law, r_normal).items():
         uv, fv = guarded(law, rv)
         _write_vectors(folder / f"vectors_{case}.csv", rv, uv, fv)
         vectors[case] = {"file": f"vectors_{case}.csv", "samples": int(rv.size), "flags": _flag_counts(fv)}
-    vectors["normal"]["cut"] = normal_window(r_first, law.preview)[1]
+    vectors["normal"]["cut"] = cut
     compiler = find_compiler(cc) if cc else None
     g = law.g
     manifest = {

@@ -392,4 +392,4 @@ def advanced_reference(r: np.ndarray, advance: int) -> np.ndarray:
     if not advance:
         return r
     r = np.asarray(r, dtype=np.float64)
-    return np.concatenate([r[advance:], np.full(min(advance, r.size), r[-1])])[:r.size]
+    return np.concatenate([r[advance:], np.full(min(advance, r.size), r[-1])])

@@ -16,7 +16,7 @@ import pandas as pd
 import pytest
 
 from pipeline import runner, schema
-from tests.conftest import CONF, ROOT
+from tests.conftest import CONF, ROOT, SHORT_TWO_MASS, compose_config, composed_prefix, hydra_compose
 
 TWO_MASS = ["experiment=physics_two_mass",
             "data.references=[{name:short,kind:out_and_back,distance:0.02,v_max:0.05,a_max:5,j_max:200}]",
@@ -212,6 +212,34 @@ def test_cli_prints_one_error_line_and_exits_2(tmp_path, override, expected):
     assert out.returncode == 2, out.stderr
     assert len(lines) == 1 and lines[0].startswith(expected), out.stderr
     _nothing_written(tmp_path, fresh=True)
+
+
+@pytest.mark.parametrize("overrides, applied", [
+    (SHORT_TWO_MASS, 2),
+    ([*TWO_MASS, "evaluate.noise=maybe"], 3),
+    ([*PGNN, "model.hidden=[-3]", "identify.max_iter=abc"], 2),
+    (["experiment=physics_arx", "data.u_std=nan"], 1),
+    ([*TWO_MASS, "system.alpha=${oops}"], 3),
+    (["system=measured", "system.controller.num=[1.0]", "system.actuator.lag_tau=0.0004"], 2),
+    ([*TWO_MASS, "system.m_typo=3"], 3),                          # Hydra's error for an unknown key
+    ([*TWO_MASS, "+system.foo=1"], 0),                             # an added key: composed
+    (["experiment=physics_two_mass", "system.m1=2", "model=pgnn", "seed=3"], 1),   # a group after a key
+])
+def test_the_tests_compose_as_hydra_does(overrides, applied):
+    """The suite's shortcut (tests/conftest.py ``compose_config``: the leading overrides composed once, the
+    trailing plain ones applied by Hydra's own function) gives the config, or the error, Hydra's compose
+    gives."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import OmegaConf
+    assert len(overrides) - composed_prefix(OverridesParser.create().parse_overrides(overrides)) == applied
+
+    def outcome(compose):
+        try:
+            cfg = compose(*overrides)
+        except Exception as exc:  # noqa: BLE001 - the error itself is compared
+            return type(exc), str(exc)
+        return OmegaConf.to_yaml(cfg), OmegaConf.is_struct(cfg)    # YAML: a NaN compares equal
+    assert outcome(compose_config) == outcome(hydra_compose)
 
 
 EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))

@@ -6,11 +6,10 @@ import re
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
 from pipeline import runner
+from tests.conftest import compose_config, hydra_config
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -18,12 +17,7 @@ EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
 
 
 def _compose(*overrides, hydra=False):
-    GlobalHydra.instance().clear()
-    try:
-        with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-            return compose(config_name="config", overrides=list(overrides), return_hydra_config=hydra)
-    finally:
-        GlobalHydra.instance().clear()
+    return hydra_config(*overrides) if hydra else compose_config(*overrides)
 
 
 def _sweep(experiment: str) -> dict[str, list[str]]:

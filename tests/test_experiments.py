@@ -63,6 +63,13 @@ def test_experiment_validates_for_every_swept_value(experiment):
                 str(cfg.run_name) + (f"-{key}={v.strip()}" if side else ""), (key, v)
 
 
+@pytest.mark.parametrize("experiment", sorted(SIBLING_SWEEPS & set(EXPERIMENTS)))
+def test_a_sibling_sweep_validates_at_its_own_values(experiment):
+    """What the default run checks of a sibling sweep (its every swept value: the slow test above): the
+    experiment's own config passes the schema and the runner's up-front validation."""
+    runner.validate(_compose(f"experiment={experiment}", "hydra.mode=RUN"))
+
+
 def test_noise_sweep_is_the_linear_motor_setup_over_sigma():
     sweep = _sweep("b1_noise_sweep")
     assert [float(s) for s in sweep["system.noise.std"]] == [0.0, 1e-8, 1e-7, 1e-6]

@@ -1,8 +1,8 @@
 """The config schema (pipeline.schema): a bad value of any key fails before any work (no MLflow run,
 no cache entry) with one line naming the key, the value, what is allowed and an example; every
-group option of conf/ still passes (every experiment: tests/test_experiments.py); every option declares its parameter class
-next to its code (found by its kind, as the runner finds the stage) and it agrees with the
-libraries' own lists of choices."""
+group option of conf/ still passes (every experiment: tests/test_experiments.py); every option
+declares its parameter class next to its code (found by its kind, as the runner finds the stage)
+and it agrees with the libraries' own lists of choices."""
 from __future__ import annotations
 
 import os

@@ -469,17 +469,33 @@ def test_the_heldout_vertical_axis_learns_to_the_noise_floor_through_files(tmp_p
 
 
 def test_the_learned_feedforward_exports_as_a_verified_c_table(tmp_path, capsys):
-    """The campaign's latest u_ff as the exporter's table family: the package's u_ff equals the CSV's (the
-    manifest's check, compiled when a C compiler exists)."""
+    """The best trial's u_ff (lowest rms error of the trials the machine ran) as the exporter's table family, with
+    the campaign's limits (a held-out trial's finding: it shipped the next, never-run u_ff with no limits): the
+    package's u_ff equals the CSV's (the manifest's check, compiled when a C compiler exists), its past_end
+    vector runs 50 samples past the whole table, flagged PAST_END there; a u_ff not yet run warns."""
+    from pipeline.export.guard import FLAG
     cfg = _config(tmp_path)
     campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", tracking=False)
     machine.run(tmp_path / "camp", "sim:learn_machine:simulate", 2)
+    c = campaign.load(tmp_path / "camp")
+    best = min(c.state["trials"], key=lambda h: h["rms"])["trial"]
+    assert best == 1 and c.state["trials"][0]["rms"] > c.state["trials"][1]["rms"]
     assert learn_main(["export", str(tmp_path / "camp"), "--out", str(tmp_path / "export")]) == 0
-    man = json.loads((tmp_path / "export" / "ff_learn_2" / "manifest.json").read_text())
-    assert man["family"] == "table" and man["trial"] == 2 and man["python_max_rel_diff"] == 0.0
+    pkg = tmp_path / "export" / f"ff_learn_{best}"
+    man = json.loads((pkg / "manifest.json").read_text())
+    assert man["family"] == "table" and man["trial"] == best and man["python_max_rel_diff"] == 0.0
     assert not man["compiled"] or man["c_max_rel_diff"] <= 1e-9
-    u = pd.read_csv(tmp_path / "export" / "ff_learn_2" / "u_ff_reference.csv").iloc[:, -1].to_numpy()
-    assert np.allclose(u, campaign.load(tmp_path / "camp").u_ff(2), rtol=0, atol=1e-12)
+    lim = c.state["limits"]
+    assert man["limits"] == {"u_min": -lim["u_max"], "u_max": lim["u_max"], "rate": lim["rate"]}
+    assert np.isfinite(lim["u_max"]) and np.isfinite(lim["rate"])
+    u = pd.read_csv(pkg / "u_ff_reference.csv").iloc[:, -1].to_numpy()
+    assert np.allclose(u, c.u_ff(best), rtol=0, atol=1e-12)
+    past = pd.read_csv(pkg / "vectors_past_end.csv")
+    n = c.reference.size
+    assert len(past) == n + 50 and man["vectors"]["past_end"]["flags"].get("PAST_END") == 50
+    assert not np.any(past["flags"].to_numpy()[:n] & FLAG["PAST_END"])
+    with pytest.warns(UserWarning, match="u_ff_2.csv has not run on the machine yet"):
+        campaign.export(tmp_path / "camp", tmp_path / "export2", trial=2, cc=None)
 
 
 def test_the_refit_recovers_the_held_out_axis_physics_from_one_recording():

@@ -106,6 +106,11 @@ class Law:
                   if self.static == "exclude" else
                   "the law's force at rest at r0 (gravity, springs, offsets minus the controller's rest output): "
                   "right when the feedforward is on from power-up, before any integrator holds the load")
+        elif self.family == "table":
+            at = ("a table for one reference, sample k its output at the k-th call after init: init(&s, r(0)) at "
+                  "switch-on, the axis at rest at r(0), where the table's reference starts (the table was made, or "
+                  "learned on the machine, from there); r(t) away from that reference is flagged OTHER_REFERENCE")
+            u0 = "the table's first sample"
         else:
             r0 = "0" if self.rest == "zero" else "r(0)"
             at = (f"the papers' convention: the reference at rest at {r0} before t = 0 and past inputs 0 (the study's "

@@ -255,7 +255,7 @@ def normal_window(r: np.ndarray, preview: int) -> tuple[np.ndarray, str]:
 
 def _vectors(law: Law, r: np.ndarray) -> dict[str, np.ndarray]:
     """The test vectors' references: normal operation ``r`` (:func:`normal_window`) and one per flag path (during
-    motion)."""
+    motion); a table's ``past_end`` is its whole reference and 50 samples past it."""
     r0 = r[0]
     k = int(np.argmax(np.abs(np.diff(r)))) if r.size > 1 else 0    # the fastest sample: in motion
     nan = r.copy()
@@ -263,8 +263,9 @@ def _vectors(law: Law, r: np.ndarray) -> dict[str, np.ndarray]:
     nan[min(k + 40, r.size - 1)] = np.inf
     cases = {"normal": r, "out_of_range": r0 + 3.0 * (r - r0), "nonfinite": nan,
              "limits": r0 + 2.0 * (r - r0)}
-    if law.family == "table":
-        cases["past_end"] = np.concatenate([r, np.full(50, r[-1])])
+    if law.family == "table":                                      # the whole table, then 50 samples past it
+        table = law.arrays["r"]
+        cases["past_end"] = np.concatenate([table, np.full(50, table[-1])])
     return cases
 
 

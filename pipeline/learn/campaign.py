@@ -556,10 +556,12 @@ def feedforward_for(folder, reference: Path, out: Path, refitted: bool = True, p
 
 
 def export(folder, out: Path, trial: int | None = None, cc: str | None = "cc", model: bool = False) -> dict:
-    """The u_ff of ``trial`` (default: the latest the campaign wrote) as a C99 package (pipeline.export): the
-    table family, the law IL-FHOFC's tables use (a signal learned by trials for one reference; the manifest's law
-    reads il_fhofc), verified against the CSV and compiled with ``cc`` when one is found. ``model``: instead the
-    refitted PGNN's law for any reference (``pgnn-ff export`` of the refit's run: {package: manifest})."""
+    """The u_ff of ``trial`` (default: the best trial the machine ran, lowest rms error) as a C99 package
+    (pipeline.export): the table family, the law IL-FHOFC's tables use (a signal learned by trials for one
+    reference; the manifest's law reads il_fhofc), with the campaign's force and slew limits (the ones every
+    trial's u_ff was held to: safety.u_max/rate, else from the first recording), verified against the CSV and
+    compiled with ``cc`` when one is found. ``model``: instead the refitted PGNN's law for any reference
+    (``pgnn-ff export`` of the refit's run: {package: manifest})."""
     from pipeline.export.law import from_table  # lazy: saves 0.5 s of start-up (the exporter)
     from pipeline.export.package import write_package  # lazy: saves 0.5 s of start-up (the exporter)
     c = load(folder)
@@ -569,10 +571,26 @@ def export(folder, out: Path, trial: int | None = None, cc: str | None = "cc", m
                               "a campaign started with --run RUN_ID of a PGNN run")
         from pipeline.export.cli import export_run  # lazy: saves 3.0 s of start-up (mlflow, hydra, the stages)
         return export_run(c.state["refit_pgnn"]["run_id"], Path(out), cc=cc)
-    j = len(c.state["trials"]) if trial is None else int(trial)
+    trials = c.state["trials"]
+    if trial is None and not trials:
+        raise ConfigError(f"{folder}: no trial has run yet, so no u_ff of it is measured: run trial 0 with "
+                          "u_ff_0.csv first (or export it untried with --trial 0)")
+    j = min(trials, key=lambda h: h["rms"])["trial"] if trial is None else int(trial)
     if not c.u_ff_path(j).exists():
-        raise ConfigError(f"{folder}: no u_ff_{j}.csv; the campaign has u_ff_0 .. u_ff_{len(c.state['trials'])}")
+        raise ConfigError(f"{folder}: no u_ff_{j}.csv; the campaign has u_ff_0 .. u_ff_{len(trials)}")
+    if j >= len(trials):
+        warnings.warn(f"{folder}: u_ff_{j}.csv has not run on the machine yet (trials 0 .. {len(trials) - 1} "
+                      "have): its error is not measured", stacklevel=2)
+    lim = c.state["limits"] or {}
+    s = c.cfg.safety
+    u_max, rate = lim.get("u_max", s.u_max), lim.get("rate", s.rate)
+    if u_max is None or rate is None:
+        raise ConfigError(f"{folder}: no force and slew limits known to ship with the table (no trial has run, and "
+                          "safety.u_max or safety.rate is not set): set both in the campaign config to the actuator's")
     u = c.u_ff(j)
     law = from_table("il_fhofc", c.Ts, c.reference, u)
+    law.guard = {**law.guard, "u_min": -float(u_max), "u_max": float(u_max), "rate": float(rate)}
+    law.strings["limits_source"] = (f"the campaign's limits ({lim['source']})" if lim else
+                                    "the campaign config's safety.u_max and safety.rate")
     return write_package(law, f"ff_learn_{j}", Path(out), {"reference": (c.reference, u)}, cc=cc,
                          source={"campaign": str(c.folder.resolve()), "trial": j})

@@ -96,7 +96,7 @@ def validate_frame(df: pd.DataFrame, source: str) -> None:
                              "not a plausible SI signal: check the file's units and scaling")
 
 
-def sample_time(t, Ts_sidecar, source: str, rtol: float = TS_RTOL) -> float:
+def sample_time(t, Ts_sidecar, source: str, rtol: float = TS_RTOL, given_by: str = "the sidecar") -> float:
     """The sample time of a record [s] from its time column ``t`` (required) and optional sidecar ``Ts``.
 
     ``t`` must be increasing and uniform to ``rtol`` (relative spread of its steps), the sidecar
@@ -123,7 +123,7 @@ def sample_time(t, Ts_sidecar, source: str, rtol: float = TS_RTOL) -> float:
         raise ValueError(f"{source}: column 't' is not uniformly sampled (steps {dt.min():.6g} to {dt.max():.6g} "
                          f"s, spread {spread:.2g} > {rtol:g}); resample the record to a uniform grid first")
     if Ts_sidecar is not None and abs(Ts_sidecar - med) > rtol * med:
-        raise ValueError(f"{source}: the sidecar says Ts = {Ts_sidecar:g} s but column 't' steps {med:.6g} s; "
+        raise ValueError(f"{source}: {given_by} says Ts = {Ts_sidecar:g} s but column 't' steps {med:.6g} s; "
                          "make them agree")
     return med if Ts_sidecar is None else Ts_sidecar   # the sidecar's exact value when it agrees
 

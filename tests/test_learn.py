@@ -22,6 +22,7 @@ import pytest
 import yaml
 from scipy import signal
 
+from pipeline.errors import ConfigError
 from pipeline.learn import campaign, machine, safety
 from pipeline.learn.cli import main as learn_main
 from pipeline.learn.update import LoopModel, make_update
@@ -159,6 +160,43 @@ def test_the_same_recording_again_is_the_same_step(tmp_path):
     assert np.array_equal(pd.read_csv(tmp_path / "u_ff_1.csv")["u_ff"], campaign.load(tmp_path / "camp").u_ff(1))
 
 
+def test_a_recording_logged_in_float32_is_taken_and_learns_as_the_double_one(tmp_path):
+    """A machine that logs float32 (or 7 significant digits) is not refused as "another reference" (a held-out
+    trial's finding: 1e-9 relative refused it); the campaign learns from its own exact r and u_ff, so the next
+    u_ff moves only by the rounding of u and y."""
+    cfg = _config(tmp_path)
+    nxt = {}
+    for fmt in ("%.17g", "%.7g"):
+        c = campaign.init(tmp_path / fmt[2:], cfg, tmp_path / "ref.csv", tracking=False)
+        rec = simulate(c.reference, c.u_ff(0), seed=3)
+        frame = pd.DataFrame({**{k: rec[k] for k in ("t", "r", "u", "y")}, "u_ff": c.u_ff(0)})
+        if fmt == "%.7g":
+            frame = frame.astype(np.float32).astype(np.float64)
+        frame.to_csv(tmp_path / f"trial_{fmt[2:]}.csv", index=False, float_format=fmt)
+        campaign.step(tmp_path / fmt[2:], tmp_path / f"trial_{fmt[2:]}.csv")
+        nxt[fmt] = campaign.load(tmp_path / fmt[2:]).u_ff(1)
+    a, b = nxt["%.17g"], nxt["%.7g"]
+    assert np.max(np.abs(a - b)) <= 1e-3 * np.max(np.abs(a)), np.max(np.abs(a - b)) / np.max(np.abs(a))  # 9.9e-5
+
+
+def test_a_machine_returning_too_few_samples_and_a_config_ts_the_reference_lacks_are_named(tmp_path, monkeypatch):
+    """The virtual machine's contract and the reference's sample time, each in one line naming its source."""
+    import types
+    cfg = _config(tmp_path)
+    campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", tracking=False)
+    short = types.ModuleType("short_machine")
+    short.simulate = lambda r, u_ff: {"u": np.zeros(r.size - 5), "y": np.zeros(r.size)}
+    monkeypatch.setitem(sys.modules, "short_machine", short)
+    with pytest.raises(ConfigError, match=r"sim:short_machine:simulate: returned 'u' of shape \(\d+,\) for a "
+                                          r"reference of \d+ samples"):
+        machine.run(tmp_path / "camp", "sim:short_machine:simulate", 1)
+    ref = pd.read_csv(tmp_path / "ref.csv")
+    ref["t"] = ref["t"] * 2
+    ref.to_csv(tmp_path / "ref2.csv", index=False, float_format="%.17g")
+    with pytest.raises(ConfigError, match="the campaign config's Ts says Ts = "):
+        campaign.init(tmp_path / "camp2", cfg, tmp_path / "ref2.csv", tracking=False)
+
+
 @pytest.mark.parametrize("what", ["reference", "u_ff", "controller", "saturation"])
 def test_a_recording_the_campaign_did_not_ask_for_is_refused_in_one_line(tmp_path, capsys, what):
     cfg = _config(tmp_path)
@@ -184,6 +222,8 @@ def test_a_recording_the_campaign_did_not_ask_for_is_refused_in_one_line(tmp_pat
     assert err.count("\n") == 0 and err.startswith("error: trial_0.csv: ")
     assert {"reference": "another reference", "u_ff": "not the campaign's u_ff_0.csv",
             "controller": "is not error feedback", "saturation": "at the actuator limit"}[what] in err
+    if what == "saturation":     # trial 0 ran u_ff_0: no gain to lower, the reference or the start is the fix
+        assert "use a slower reference, or start from the model's feedforward" in err
     assert not (tmp_path / "u1.csv").exists() and campaign.load(tmp_path / "camp").state["trials"] == []
 
 

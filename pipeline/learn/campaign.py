@@ -9,8 +9,9 @@ MLflow: the campaign is a parent run (experiment ``learn``), each trial a child 
 
 A trial's recording (the measured-data format plus the applied ``u_ff``) is checked against the campaign
 before any work, each problem refused in one line: the same reference and the u_ff the campaign gave
-(to 1e-9 relative), the configured controller (equation error < 5 %, ``LTIController.check`` with the u_ff
-as the command's known part), no sample at the limit, finite (``pipeline.data.load``).
+(to 1e-6 of their largest magnitude: float32 or 7-digit logs pass), the configured controller (equation
+error < 5 %, ``LTIController.check`` with the u_ff as the command's known part), no sample at the limit, finite
+(``pipeline.data.load``).
 """
 from __future__ import annotations
 
@@ -40,8 +41,10 @@ __all__ = ["Campaign", "init", "step", "load", "CONTROLLER_RTOL"]
 
 #: a recording whose u is further than this from the controller's output (relative equation error) is refused
 CONTROLLER_RTOL = 0.05
-#: r and u_ff of a recording must equal the campaign's to this (relative to their largest magnitude)
-MATCH_RTOL = 1e-9
+#: r and u_ff of a recording must equal the campaign's to this (relative to their largest magnitude): a log in
+#: float32 (rounding <= 6e-8 of a value) or to 7 significant digits (<= 5e-7) passes, another reference or another
+#: trial's u_ff (differing by far more) does not; the campaign then learns from its own exact r and u_ff
+MATCH_RTOL = 1e-6
 STATE = "campaign.json"
 
 
@@ -270,7 +273,7 @@ def init(folder, config: Path | None, reference: Path, u_ff0: Path | None = None
     if not np.all(np.isfinite(r)) or r.size < 100:
         raise ConfigError(f"{reference}: r must be at least 100 finite samples, got {r.size}")
     try:
-        data.sample_time(t, cfg.Ts, str(reference))
+        data.sample_time(t, cfg.Ts, str(reference), given_by="the campaign config's Ts")
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
     c = Campaign(folder, json.loads(json.dumps(asdict(cfg))), r, {"trials": [], "gain": cfg.learn.gain,
@@ -322,12 +325,16 @@ def check_recording(c: Campaign, path: Path, j: int) -> dict:
         raise ConfigError(f"{name}: its u_ff is not the campaign's u_ff_{j}.csv (differs by {du[k]:.3g} N at "
                           f"sample {k}); "
                           f"apply u_ff_{j}.csv for trial {j}")
+    rec["r"], rec["u_ff"] = c.reference.copy(), expect      # the exact values the log rounded
     ctrl = c.controller()
     at_limit = np.abs(rec["u"] / ctrl.gtau) >= ctrl.v_sat * (1 - 1e-9)
     if at_limit.any():
+        fix = ("the feedback alone saturates on this reference with u_ff_0: use a slower reference, or start from "
+               "the model's feedforward (`learn feedforward CAMPAIGN --reference ref.csv --out u0.csv "
+               "--campaign-model`, then `learn init … --u-ff0 u0.csv`)" if j == 0 else
+               "lower learn.gain or the limits (safety.u_max, safety.rate) and rerun the best trial's u_ff")
         raise ConfigError(f"{name}: {int(at_limit.sum())} samples at the actuator limit ±{ctrl.v_sat * ctrl.gtau:g} N "
-                          f"(first at sample {int(np.flatnonzero(at_limit)[0])}): not learned from; lower "
-                          "learn.gain or the limits (safety.u_max, safety.rate) and rerun the best trial's u_ff")
+                          f"(first at sample {int(np.flatnonzero(at_limit)[0])}): not learned from; {fix}")
     rel = ctrl.check(rec["r"], rec["y"], rec["u"], applied_disturbance(ctrl, rec["u_ff"]))
     if not rel < CONTROLLER_RTOL:
         raise ConfigError(f"{name}: the recorded u is not {ctrl.describe()} plus the applied u_ff (relative equation "

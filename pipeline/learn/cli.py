@@ -110,7 +110,8 @@ def main(argv: list[str] | None = None) -> int:
             p = argparse.ArgumentParser(prog="pgnn-ff learn export")
             p.add_argument("campaign")
             p.add_argument("--out", required=True)
-            p.add_argument("--trial", type=int, default=None, help="default: the best trial the machine ran (lowest rms error)")
+            p.add_argument("--trial", type=int, default=None,
+                           help="default: the best trial the machine ran (lowest rms error)")
             p.add_argument("--cc", default="cc")
             p.add_argument("--model", action="store_true", help="the refitted PGNN's law (any reference) instead")
             a = p.parse_args(argv[1:])

@@ -61,6 +61,11 @@ def run(folder, machine: str, trials: int, seed0: int = 100) -> list[dict]:
             break
         u_ff = c.u_ff(j)
         rec = fn(c.reference.copy(), u_ff.copy(), **({"seed": seed0 + j} if seeded else {}))
+        for k in ("u", "y"):
+            got = np.shape(rec[k]) if k in rec else "no"
+            if got != u_ff.shape:
+                raise ConfigError(f"{machine}: returned {k!r} of shape {got} for a reference of {u_ff.size} samples; "
+                                  f"a machine returns {{'u': …, 'y': …}}, one sample per reference sample")
         path = out_dir / f"trial_{j}.csv"
         pd.DataFrame({"t": np.arange(u_ff.size) * c.Ts, "r": c.reference, "u": np.asarray(rec["u"], np.float64),
                       "y": np.asarray(rec["y"], np.float64), "u_ff": u_ff}).to_csv(path, index=False,

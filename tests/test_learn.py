@@ -197,6 +197,29 @@ def test_a_machine_returning_too_few_samples_and_a_config_ts_the_reference_lacks
         campaign.init(tmp_path / "camp2", cfg, tmp_path / "ref2.csv", tracking=False)
 
 
+def test_a_model_far_off_costs_one_trial_and_the_console_names_it(tmp_path):
+    """The model's mass 40x the machine's (a typo a held-out trial made: init passes, the check before the campaign
+    sees the model only): before, every other trial overshot (a rollback halves α, 10 halvings to a safe α); now
+    the first two trials measure λ = L Ĝ (the plant responds ~70x what the model predicts), the rollback sets α to
+    half the bound that makes the measured bands contract, and the rest repeat the best error within 2 %, the
+    console naming the model and the refit (measured: 58.6 -> 135 -> 58.6 -> 58.8 ... µm, α 0.0032, then halved
+    on bands whose phase no gain cures)."""
+    from pipeline.learn.cli import _line
+    cfg = _config(tmp_path)
+    d = yaml.safe_load(cfg.read_text())
+    d["model"]["M"] = 50.0                                     # the machine: 1.25 kg
+    cfg.write_text(yaml.safe_dump(d))
+    campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", tracking=False)
+    log = machine.run(tmp_path / "camp", "sim:learn_machine:simulate", 5)
+    assert log[1]["decision"] == "rollback" and log[1]["measured_ratio"] > 20, log[1]
+    assert log[1]["gain"] < 0.01 and log[1]["stalled"]
+    rms = [h["rms"] for h in log]
+    assert max(rms[2:]) <= 1.02 * rms[0] and rms[1] > 1.5 * rms[0], rms       # one harmful trial, then safe
+    assert all(h["decision"] == "slow" for h in log[2:])
+    line = _line(log[1])
+    assert "the plant responds" in line and "what the model predicts" in line and "learn refit" in line, line
+
+
 @pytest.mark.parametrize("what", ["reference", "u_ff", "controller", "saturation"])
 def test_a_recording_the_campaign_did_not_ask_for_is_refused_in_one_line(tmp_path, capsys, what):
     cfg = _config(tmp_path)

@@ -46,6 +46,8 @@ CONTROLLER_RTOL = 0.05
 #: trial's u_ff (differing by far more) does not; the campaign then learns from its own exact r and u_ff
 MATCH_RTOL = 1e-6
 STATE = "campaign.json"
+#: a campaign whose gain fell below learn.gain / STALL (six halvings) has stalled: the console says so and why
+STALL = 64
 
 
 @schema
@@ -364,7 +366,7 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
     err, mae, emax = safety.rms(e), float(np.mean(np.abs(e))), float(np.max(np.abs(e)))
     floor = safety.noise_floor(rec["r"], e, int(round(s.settle_s / c.Ts)))
     history = c.state["trials"]
-    measured = {"rho_max": math.nan, "band": None}
+    measured = {"rho_max": math.nan, "band": None, "gain_max": math.inf, "uncured": [], "ratio": math.nan}
     prev = c.folder / "recordings" / f"trial_{j - 1}.csv"
     if j >= 1 and prev.exists():       # the convergence condition on the plant the last two trials measured
         dphi = rec["u_ff"] - c.u_ff(j - 1)
@@ -373,8 +375,10 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
             measured = safety.measured_rho(c.update(), c.state["gain"], dphi, rec["y"] - y_prev, floor)
     decision = "stop" if c.state["stopped"] else safety.decide(history, err, floor, s.rollback_factor, s.stop_factor)
     gain = c.state["gain"]
-    if decision == "learn" and measured["rho_max"] >= 1.0:   # the measured loop does not contract: slow down
-        decision, gain = "slow", gain / 2.0
+    if decision == "learn" and (measured["gain_max"] < gain or measured["uncured"]):   # the measured loop does not
+        # contract: slow down by half, or to half the measured bound where halving is not enough (a model far off:
+        # one trial, not ten); a band no gain cures (Re L Ĝ <= 0) slows it too, and the console names the fix
+        decision, gain = "slow", (gain / 2.0 if gain / 2.0 < measured["gain_max"] else measured["gain_max"] / 2.0)
     best = min(history + [{"rms": err, "trial": j}], key=lambda h: h["rms"])
     kr = c.controller_term()
     diagnostics = {}
@@ -382,8 +386,8 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
         upd = c.update()
         u_next = upd.next(e, rec["u_ff"], gain, kr)
         diagnostics = upd.diagnostics()
-    elif decision == "rollback":
-        gain = gain / 2.0
+    elif decision == "rollback":     # half, or half the bound the last two trials measured where that is lower
+        gain = gain / 2.0 if gain / 2.0 < measured["gain_max"] else measured["gain_max"] / 2.0
         u_next = c.u_ff(best["trial"])
     else:   # stop: the best trial's feedforward from now on
         c.state["stopped"] = True
@@ -397,7 +401,9 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
              "noise_floor": floor, "decision": decision, "gain": gain, "controller_error": rec["controller_error"],
              "limited_samples": int(np.count_nonzero(flags)), "max_abs_u": float(np.max(np.abs(rec["u"]))),
              "measured_rho": None if math.isnan(measured["rho_max"]) else measured["rho_max"],
-             "measured_band": measured["band"], **diagnostics}
+             "measured_band": measured["band"], "measured_ratio": None if math.isnan(measured["ratio"]) else
+             measured["ratio"], "uncured_bands": measured["uncured"],
+             "stalled": bool(gain < c.cfg.learn.gain / STALL), **diagnostics}
     c.state["trials"].append(entry)
     c.state["gain"] = gain
     plot_errors(c.state["trials"], c.folder / "errors.png")

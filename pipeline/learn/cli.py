@@ -28,8 +28,19 @@ def _line(h: dict) -> str:
     warn = ""
     if meas is not None and meas >= 1.0:   # two trials measured the loop
         lo, hi = h["measured_band"]
-        warn = (f"; WARNING: the last two trials measure |Q(1 - α L G)| = {meas:.3g} ≥ 1 on {lo:.3g}-{hi:.3g} Hz "
-                "(the plant differs from the model there: lower learn.gain or learn.q_cutoff_hz)")
+        ratio = h.get("measured_ratio")
+        warn = f"; WARNING: the last two trials measure |Q(1 - α L G)| = {meas:.3g} ≥ 1 on {lo:.3g}-{hi:.3g} Hz"
+        if ratio is not None and not 0.5 <= ratio <= 2.0:
+            warn += (f", where the plant responds {ratio:.3g}x what the model predicts: check the model's "
+                     "parameters (M, F_v, K) or refit them (learn refit)")
+        for a, b in h.get("uncured_bands") or []:
+            warn += (f"; on {a:.3g}-{b:.3g} Hz the plant's phase is more than 90° from the model's and no learning "
+                     "gain converges: lower learn.q_cutoff_hz below it or refit the model (the rollback guards the "
+                     "trials)")
+    if h.get("stalled"):
+        warn += ("; STALLED: the gain is below 1/64 of learn.gain, so the trials hardly learn: the model is off "
+                 "where the warnings say; refit it (learn refit) and start a new campaign from the best trial's u_ff "
+                 "(--u-ff0)")
     sol = h.get("solve")
     if sol:    # norm_optimal: how its solve stopped
         sol = (f"; solve {sol['stop']} (residual {sol['residual']:.2g}" + ("" if sol["stop"] == "converged" else

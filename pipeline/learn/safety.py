@@ -120,15 +120,26 @@ def decide(history: list[dict], err: float, floor: float, rollback_factor: float
     return "learn"
 
 
+#: a band of the measured check needs this many frequency bins: a band of one or two bins is not averaged, its
+#: Ĝ is a ratio of two noisy numbers (a held-out trial's 2 s trials: 0.5-10 Hz bands of 0-4 bins halved α 9 times)
+MIN_BINS = 4
+
+
 def measured_rho(update, gain: float, dphi: np.ndarray, dy: np.ndarray, noise: float = 0.0, nbands: int = 30,
                  snr: float = 10.0) -> dict:
     """The convergence condition against the plant the recordings measured: two trials' differences give the
     loop's response Ĝ = ΔY ΔΦ* / |ΔΦ|² (cross-spectrum over log-spaced bands: the measurement noise in Δy
     averages out), and ρ̂ = |Q| |1 - α L Ĝ| per band, L = (L G)/G of the model (:meth:`Update.learning`). Bands
-    where Δφ has under 1e-6 of its largest band's energy, |Q| < 0.01, or Δy under ``snr`` times the energy of
-    the two recordings' white noise (std ``noise`` each: 2 noise² n per frequency bin) are left out: near the
-    floor Δy is noise and Ĝ means nothing. Returns {f_lo, f_hi,
-    rho (NaN where left out), rho_max, band (f_lo, f_hi) of the worst band, or None}."""
+    with fewer than :data:`MIN_BINS` frequency bins, where Δφ has under 1e-6 of its largest band's energy,
+    |Q| < 0.01, or Δy under ``snr`` times the energy of the two recordings' white noise (std ``noise`` each:
+    2 noise² n per frequency bin) are left out: near the floor Δy is noise and Ĝ means nothing.
+
+    Which gain cures a band with ρ̂ ≥ 1: q |1 - α λ| < 1 (λ = L Ĝ, q = |Q|) holds for 0 < α < α_max =
+    (Re λ + √(Re² λ + |λ|² (1/q² - 1))) / |λ|²; where Re λ ≤ 0 (the plant's phase more than 90° from the
+    model's) no useful gain does. Returns {f_lo, f_hi, rho (NaN where left out), rho_max, band (f_lo, f_hi) of
+    the worst band, or None, gain_max: the largest gain every failing band with Re λ > 0 contracts at (inf when
+    none), uncured: the failing bands with Re λ ≤ 0, ratio: |λ| of the worst band (the plant's response over the
+    model's there)}."""
     Ts = update.model.Ts
     n = dphi.size
     X, Y = np.fft.rfft(dphi), np.fft.rfft(dy)
@@ -146,12 +157,21 @@ def measured_rho(update, gain: float, dphi: np.ndarray, dy: np.ndarray, noise: f
     syy = np.bincount(idx, np.abs(Y) ** 2, nbands)
     nbins = np.bincount(idx, None, nbands)
     noise = noise if math.isfinite(noise) else 0.0
-    ok = (sxx > 1e-6 * sxx.max()) & (syy > snr * nbins * 2.0 * noise ** 2 * n)
+    ok = (nbins >= MIN_BINS) & (sxx > 1e-6 * sxx.max()) & (syy > snr * nbins * 2.0 * noise ** 2 * n)
     with np.errstate(divide="ignore", invalid="ignore"):
         qb, lg = qb / sxx, lg / sxx
     rho = np.where(ok & (qb >= 0.01), qb * np.abs(1.0 - gain * lg), np.nan)
+    out = {"f_lo": edges[:-1], "f_hi": edges[1:], "rho": rho, "rho_max": math.nan, "band": None,
+           "gain_max": math.inf, "uncured": [], "ratio": math.nan}
     if not np.any(np.isfinite(rho)):
-        return {"f_lo": edges[:-1], "f_hi": edges[1:], "rho": rho, "rho_max": math.nan, "band": None}
+        return out
     k = int(np.nanargmax(rho))
-    return {"f_lo": edges[:-1], "f_hi": edges[1:], "rho": rho, "rho_max": float(rho[k]),
-            "band": (float(edges[k]), float(edges[k + 1]))}
+    out.update(rho_max=float(rho[k]), band=(float(edges[k]), float(edges[k + 1])), ratio=float(abs(lg[k])))
+    for b in np.flatnonzero(np.nan_to_num(rho, nan=0.0) >= 1.0):
+        lam, qq = lg[b], min(float(qb[b]), 1.0)
+        if lam.real <= 0.0:
+            out["uncured"].append((float(edges[b]), float(edges[b + 1])))
+        else:
+            a2 = abs(lam) ** 2
+            out["gain_max"] = min(out["gain_max"], (lam.real + math.sqrt(lam.real ** 2 + a2 * (1 / qq ** 2 - 1))) / a2)
+    return out

@@ -197,6 +197,27 @@ def test_a_machine_returning_too_few_samples_and_a_config_ts_the_reference_lacks
         campaign.init(tmp_path / "camp2", cfg, tmp_path / "ref2.csv", tracking=False)
 
 
+def test_the_measured_check_acts_on_a_coherent_phase_error_not_on_an_incoherent_response(tmp_path):
+    """Δy the model's loop response to Δφ turned by 120° (Re λ = cos 120° < 0): ρ̂ = |Q| √3 ≥ 1 in the passband,
+    the bands named as no gain cures them; the same energy of Δy not linear in Δφ (white noise, or a Stribeck
+    stop's response: a held-out trial's 2 s trials halved α nine times on such bands, the fixed-gain learning
+    converging) has coherence ~1/bins and no band counts."""
+    cfg = _config(tmp_path)
+    c = campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", tracking=False)
+    upd = c.update()
+    rng = np.random.default_rng(0)
+    n = 8000
+    dphi = rng.standard_normal(n)
+    w = 2 * np.pi * np.fft.rfftfreq(n, TS)
+    G = np.concatenate([[0.0], upd.model.response(w[1:])])
+    dy = np.fft.irfft(np.fft.rfft(dphi) * G * np.exp(-2j * np.pi / 3), n)
+    m = safety.measured_rho(upd, 1.0, dphi, dy)
+    assert m["rho_max"] == pytest.approx(np.sqrt(3), rel=0.02) and m["uncured"] and m["gain_max"] == np.inf, m
+    noise = rng.standard_normal(n) * np.std(dy)
+    m = safety.measured_rho(upd, 1.0, dphi, noise)
+    assert np.isnan(m["rho_max"]) and not m["uncured"], m
+
+
 def test_a_model_far_off_costs_one_trial_and_the_console_names_it(tmp_path):
     """The model's mass 40x the machine's (a typo a held-out trial made: init passes, the check before the campaign
     sees the model only): before, every other trial overshot (a rollback halves α, 10 halvings to a safe α); now

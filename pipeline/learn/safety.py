@@ -16,7 +16,8 @@ differs gives its own (:meth:`pipeline.learn.update.Update.rho`: IL-FHOFC's is |
 recording, ``stages.export.data_limits``), flagged as the exported laws flag (SATURATED, RATE_LIMITED);
 an error that grows beyond ``rollback_factor`` × the best trial's rolls back to the best trial's feedforward
 and halves the learning gain; from the second trial on, the convergence condition is checked against the plant
-the last two trials measured (:func:`measured_rho`) and a band with ρ̂ ≥ 1 halves the gain ('slow'); the
+the last two trials measured (:func:`measured_rho`) and a band with ρ̂ ≥ 1 halves the gain ('slow'), or sets
+it to half the bound the measured bands allow where halving is not enough; the
 campaign stops when the error reaches the recording's noise floor (:func:`noise_floor`, from its standstill
 samples): noise is not learned.
 """
@@ -123,6 +124,9 @@ def decide(history: list[dict], err: float, floor: float, rollback_factor: float
 #: a band of the measured check needs this many frequency bins: a band of one or two bins is not averaged, its
 #: Ĝ is a ratio of two noisy numbers (a held-out trial's 2 s trials: 0.5-10 Hz bands of 0-4 bins halved α 9 times)
 MIN_BINS = 4
+#: ... and this coherence |Σ ΔY ΔΦ*|² / (Σ|ΔΦ|² Σ|ΔY|²) over its bins: where Δy is not a linear response to Δφ
+#: (friction near a stop, noise) Ĝ is not the loop's, and its ρ̂ would slow a learning that converges
+COHERENCE = 0.8
 
 
 def measured_rho(update, gain: float, dphi: np.ndarray, dy: np.ndarray, noise: float = 0.0, nbands: int = 30,
@@ -130,7 +134,8 @@ def measured_rho(update, gain: float, dphi: np.ndarray, dy: np.ndarray, noise: f
     """The convergence condition against the plant the recordings measured: two trials' differences give the
     loop's response Ĝ = ΔY ΔΦ* / |ΔΦ|² (cross-spectrum over log-spaced bands: the measurement noise in Δy
     averages out), and ρ̂ = |Q| |1 - α L Ĝ| per band, L = (L G)/G of the model (:meth:`Update.learning`). Bands
-    with fewer than :data:`MIN_BINS` frequency bins, where Δφ has under 1e-6 of its largest band's energy,
+    with fewer than :data:`MIN_BINS` frequency bins, a coherence of Δy with Δφ under :data:`COHERENCE` (Δy
+    not a linear response: nonlinear friction, noise), where Δφ has under 1e-6 of its largest band's energy,
     |Q| < 0.01, or Δy under ``snr`` times the energy of the two recordings' white noise (std ``noise`` each:
     2 noise² n per frequency bin) are left out: near the floor Δy is noise and Ĝ means nothing.
 
@@ -157,7 +162,11 @@ def measured_rho(update, gain: float, dphi: np.ndarray, dy: np.ndarray, noise: f
     syy = np.bincount(idx, np.abs(Y) ** 2, nbands)
     nbins = np.bincount(idx, None, nbands)
     noise = noise if math.isfinite(noise) else 0.0
-    ok = (nbins >= MIN_BINS) & (sxx > 1e-6 * sxx.max()) & (syy > snr * nbins * 2.0 * noise ** 2 * n)
+    sxy = np.bincount(idx, (Y * np.conj(X)).real, nbands) + 1j * np.bincount(idx, (Y * np.conj(X)).imag, nbands)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        coherence = np.abs(sxy) ** 2 / (sxx * syy)
+    ok = (nbins >= MIN_BINS) & (sxx > 1e-6 * sxx.max()) & (syy > snr * nbins * 2.0 * noise ** 2 * n) \
+        & (coherence >= COHERENCE)
     with np.errstate(divide="ignore", invalid="ignore"):
         qb, lg = qb / sxx, lg / sxx
     rho = np.where(ok & (qb >= 0.01), qb * np.abs(1.0 - gain * lg), np.nan)

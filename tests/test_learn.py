@@ -197,6 +197,21 @@ def test_a_machine_returning_too_few_samples_and_a_config_ts_the_reference_lacks
         campaign.init(tmp_path / "camp2", cfg, tmp_path / "ref2.csv", tracking=False)
 
 
+def test_a_trial_ending_with_a_standing_error_gives_no_force_ramp_at_its_end(tmp_path):
+    """|Q| P'^-1 (the rigid body's M s² + F_v s, no spring) of an axis standing with a constant error: no force
+    (the derivatives of a constant), where the zero padding made it a step into the padding and the trial's last
+    samples a force ramp (a held-out trial: -8 N at the end of the table, held past it)."""
+    from pipeline.learn.update import apply_response
+    cfg = _config(tmp_path)
+    upd = campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", tracking=False).update()
+    e = np.full(4000, 2e-6)                                         # 2 µm standing error
+    inv = lambda w: upd.q(w) * upd.model.plant_inverse(w)           # noqa: E731
+    held = apply_response(e, inv, TS, upd.pad, hold=True)
+    zero = apply_response(e, inv, TS, upd.pad)
+    assert np.max(np.abs(zero[-10:])) > 1e-3                       # the step: mN at least at the end
+    assert np.max(np.abs(held)) <= 1e-6 * np.max(np.abs(zero)), (np.max(np.abs(held)), np.max(np.abs(zero)))
+
+
 def test_the_measured_check_acts_on_a_coherent_phase_error_not_on_an_incoherent_response(tmp_path):
     """Δy the model's loop response to Δφ turned by 120° (Re λ = cos 120° < 0): ρ̂ = |Q| √3 ≥ 1 in the passband,
     the bands named as no gain cures them; the same energy of Δy not linear in Δφ (white noise, or a Stribeck

@@ -271,12 +271,20 @@ def applied_disturbance(ctrl: LTIController, u_ff: np.ndarray) -> np.ndarray:
     return np.concatenate([np.full(ctrl.delay, u_ff[0]), u_ff[:u_ff.size - ctrl.delay]]) / ctrl.gtau
 
 
-def apply_response(x: np.ndarray, response, Ts: float, pad: int) -> np.ndarray:
+def apply_response(x: np.ndarray, response, Ts: float, pad: int, hold: bool = False) -> np.ndarray:
     """Y(ω) = H(ω) X(ω) for a non-causal H [its values at ω, rad/s], on x zero-padded by ``pad`` samples
-    (circular: what H moves before sample 0 wraps into the padding, not into the signal)."""
-    n = fft.next_fast_len(x.size + pad)
+    (circular: what H moves before sample 0 wraps into the padding, not into the signal). ``hold``: x held at
+    its first and last values for pad/2 samples either side first, so a trial's error that ends (or starts) away
+    from 0, an axis standing with a residual error, is not a step into the padding: P'^-1 of that step (M s²)
+    was a force ramp over the trial's last samples, held past the end of an exported table (a held-out trial:
+    -8 N at the last sample, growing from trial to trial)."""
+    x = np.asarray(x, np.float64)
+    m = pad // 2 if hold else 0
+    if m:
+        x = np.concatenate([np.full(m, x[0]), x, np.full(m, x[-1])])
+    n = fft.next_fast_len(x.size + pad - 2 * m)
     w = 2 * math.pi * fft.rfftfreq(n, Ts)
-    return fft.irfft(fft.rfft(x, n) * response(w), n)[:x.size]
+    return fft.irfft(fft.rfft(x, n) * response(w), n)[m:x.size - m]
 
 
 class Update:
@@ -350,7 +358,8 @@ class ModelILC(Update):
         return self.q(w)
 
     def correction(self, e, f):
-        inv_p = apply_response(e, lambda w: self.q(w) * self.model.plant_inverse(w), self.model.Ts, self.pad)
+        inv_p = apply_response(e, lambda w: self.q(w) * self.model.plant_inverse(w), self.model.Ts, self.pad,
+                               hold=True)
         fb = self.model.controller_from_rest(e)
         if self.reference is not None:
             c_r, c_y = self.coulomb_along(e)

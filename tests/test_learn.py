@@ -122,7 +122,7 @@ def test_the_machine_is_a_stable_loop_with_a_clean_controller_check():
     assert np.max(np.abs(rec["u"])) < U_MAX
 
 
-def test_campaign_falls_monotonically_to_the_noise_floor(tmp_path):
+def test_campaign_falls_monotonically_to_the_noise_floor(tmp_path, capsys):
     """Model 20 % light, no lag, no mode: the rms error falls every trial until the stop at 1.3x the noise floor
     estimated from the standstill samples (true: 30 nm white noise, 10 nm quantisation: √(30² + 10²/12) = 30.1 nm
     in y). A 3 ms lag instead (48° at 60 Hz, a phase error δ = 0.4 does not cover) stalls at 3.5 µm: the
@@ -144,6 +144,13 @@ def test_campaign_falls_monotonically_to_the_noise_floor(tmp_path):
     assert len(state["trials"]) == len(log) and state["stopped"]
     assert (tmp_path / "camp" / "errors.png").stat().st_size > 1000
     assert (tmp_path / "camp" / "recordings" / "trial_0.csv").exists()
+    # a stopped campaign run again: no trial, one line saying so and what ships (it printed nothing)
+    capsys.readouterr()
+    assert learn_main(["run", str(tmp_path / "camp"), "--machine", "sim:learn_machine:simulate"]) == 0
+    out = capsys.readouterr().out
+    best = min(range(len(rms)), key=rms.__getitem__)
+    assert f"had stopped after trial {len(log) - 1} (stop): the best is trial {best}" in out and "learn export" in out
+    assert len(campaign.load(tmp_path / "camp").state["trials"]) == len(log)
 
 
 def test_the_same_recording_again_is_the_same_step(tmp_path):

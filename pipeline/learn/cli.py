@@ -81,8 +81,16 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--machine", required=True, help="sim:<module>:<function> (r, u_ff) -> {u, y}")
             p.add_argument("--trials", type=int, default=10)
             a = p.parse_args(argv[1:])
-            for h in machine.run(a.campaign, a.machine, a.trials):
+            log = machine.run(a.campaign, a.machine, a.trials)
+            for h in log:
                 print(_line(h), flush=True)
+            c = campaign.load(a.campaign)
+            if c.state["stopped"]:
+                last = c.state["trials"][-1]
+                best = min(c.state["trials"], key=lambda h: h["rms"])
+                print(f"campaign {a.campaign} {'stopped' if log else 'had stopped'} after trial {last['trial']} "
+                      f"({last['decision']}): the best is trial {best['trial']} (rms {best['rms']:.4g} m); "
+                      f"`learn export {a.campaign} --out DIR` ships it", flush=True)
         elif argv[:1] == ["refit"]:
             p = argparse.ArgumentParser(prog="pgnn-ff learn refit")
             p.add_argument("campaign")

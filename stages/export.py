@@ -107,14 +107,15 @@ DEPENDS = ("invert", "start", "export.compile", "export.cc", "export.rtol", "exp
 #: the laws the exporter ships for a measured system (their stages/invert/<kind>.py set EXPORTS_MEASURED)
 MEASURED_LAWS = ("physics", "direct", "analytic", "newton")
 
-VERSION = 10     # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
+VERSION = 11     # 3: the guard (limits, envelope, flags, fallback), vectors, README, prefix (issue 22); 4: the envelope
                  # is checked over the whole window r(t-2) .. r(t+P), not only at its newest sample; 5: the start at
                  # rest, default limits from the data, the guard's return ramp and latch (issue 48); 6: the start's
                  # header text, the float harness's flag mask; 7: one force_term (templates/force_term.c) for the
                  # law and the guard, with the spring, position_poly and drag terms (issue 49); 8: the PGNN of a
                  # measured axis (issue 49), the controller term as a shared C fragment, feedforward_<ref>.csv;
                  # 9: the normal test vector ends at rest (pipeline.export.package.normal_window), not cut at 4000;
-                 # 10: a measured axis's law gives the force of r(t + D), D its controller's delay (preview + D)
+                 # 10: a measured axis's law gives the force of r(t + D), D its controller's delay (preview + D);
+                 # 11: a table's past_end vector runs past the whole table, its start text says where it starts
 
 
 def validate(cfg, system) -> None:

@@ -66,6 +66,22 @@ def simulate_lag3(r, u_ff, seed: int = 0) -> dict:
     return simulate(r, u_ff, seed, _LAG3)
 
 
+def _plant_mode(f_mode: float):
+    """The machine with its flexible mode at ``f_mode`` Hz instead of F_MODE."""
+    wm = 2 * math.pi * f_mode
+    den = np.polymul(np.polymul([LAG, 1.0], [M_TRUE, FV_TRUE, 0.0]), [1.0, 2 * Z_MODE * wm, wm ** 2])
+    A, B, C, D, _ = signal.cont2discrete(signal.tf2ss([wm ** 2], den), TS, method="zoh")
+    return A, B.ravel(), C.ravel(), float(D.ravel()[0])
+
+
+_MODE70 = _plant_mode(70.0)
+
+
+def simulate_mode70(r, u_ff, seed: int = 0) -> dict:
+    """The same machine with its flexible mode at 70 Hz, inside the campaign's Q (100 Hz)."""
+    return simulate(r, u_ff, seed, _MODE70)
+
+
 def simulate(r, u_ff, seed: int = 0, plant=None) -> dict:
     """The loop from rest at r(0) = 0: c = sat(v + u_ff), u(k) = c(k-1), y = quantised position + noise."""
     A, B, C = (plant or (_A, _B, _C, _D))[:3]
@@ -238,6 +254,24 @@ def test_the_measured_check_acts_on_a_coherent_phase_error_not_on_an_incoherent_
     noise = rng.standard_normal(n) * np.std(dy)
     m = safety.measured_rho(upd, 1.0, dphi, noise)
     assert np.isnan(m["rho_max"]) and not m["uncured"], m
+
+
+def test_a_mode_the_model_lacks_inside_q_lowers_qs_cutoff_not_only_the_gain(tmp_path):
+    """A 70 Hz mode (ζ 0.05) the model lacks, inside the campaign's Q (100 Hz): the trials measure ρ̂ ≥ 1 on
+    55.7-71.1 Hz; once every failing band lies in Q's roll-off (above half its cutoff) the campaign lowers Q's cutoff
+    to 0.8 × the band's lower edge (decision 'filter', the gain kept), and the next trial's error halves (measured:
+    58.3 -> 2.46 -> 1.98 -> 3.18 (rollback) -> 1.98 µm, filter to 44.6 Hz -> 0.927 µm); a held-out trial's friction
+    axis with a 200 Hz mode: 3.07 -> 2.07 µm rms at trial 11, α 0.5 instead of 0.25."""
+    cfg = _config(tmp_path)
+    campaign.init(tmp_path / "camp", cfg, tmp_path / "ref.csv", tracking=False)
+    log = machine.run(tmp_path / "camp", "sim:learn_machine:simulate_mode70", 6)
+    k = next(i for i, h in enumerate(log) if h["decision"] == "filter")
+    lo = log[k]["measured_band"][0]                                  # the worst (here: the only) failing band
+    assert log[k]["q_cutoff_hz"] == pytest.approx(0.8 * lo) and log[k]["q_cutoff_hz"] < 60.0, log[k]
+    assert log[k]["gain"] == log[k - 1]["gain"]                              # the gain kept
+    assert campaign.load(tmp_path / "camp").q_cutoff_hz == log[k]["q_cutoff_hz"]
+    assert log[k + 1]["rms"] < 0.6 * log[k]["rms"], [h["rms"] for h in log]
+    assert all(h["max_abs_u"] < U_MAX for h in log)
 
 
 def test_a_model_far_off_costs_one_trial_and_the_console_names_it(tmp_path):

@@ -48,6 +48,9 @@ MATCH_RTOL = 1e-6
 STATE = "campaign.json"
 #: a campaign whose gain fell below learn.gain / STALL (six halvings) has stalled: the console says so and why
 STALL = 64
+#: failing bands all above FILTER × Q's cutoff (its roll-off: a mode the model lacks) lower the cutoff to 0.8 × the
+#: lowest band's edge instead of halving the gain (decision 'filter'): the gain learns the rest at full speed
+FILTER = 0.5
 
 
 @schema
@@ -179,8 +182,14 @@ class Campaign:
                                                      "rtol": L.rtol},
                    "il_fhofc": {"reference": self.reference, "gamma": L.gamma, "window": L.fhofc_window,
                                 "overlap": L.fhofc_overlap, "maxiter": L.maxiter}}[L.law]
-        upd = make_update(model, c.learn.law, c.learn.q_cutoff_hz, c.learn.q_order, **weights)
+        upd = make_update(model, c.learn.law, self.q_cutoff_hz, c.learn.q_order, **weights)
         return upd.along(self.reference) if c.learn.along_trajectory else upd
+
+    @property
+    def q_cutoff_hz(self) -> float:
+        """Q's cutoff: learn.q_cutoff_hz, or lower where a trial measured a band it must not learn (decision
+        'filter')."""
+        return float(self.state.get("q_cutoff_hz") or self.cfg.learn.q_cutoff_hz)
 
     def loop_model(self, m: LearnModel) -> LoopModel:
         """The update's :class:`LoopModel` of a ``model`` section (the config's, or the refit's)."""
@@ -366,7 +375,8 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
     err, mae, emax = safety.rms(e), float(np.mean(np.abs(e))), float(np.max(np.abs(e)))
     floor = safety.noise_floor(rec["r"], e, int(round(s.settle_s / c.Ts)))
     history = c.state["trials"]
-    measured = {"rho_max": math.nan, "band": None, "gain_max": math.inf, "uncured": [], "ratio": math.nan}
+    measured = {"rho_max": math.nan, "band": None, "gain_max": math.inf, "uncured": [], "ratio": math.nan,
+                "failing": []}
     prev = c.folder / "recordings" / f"trial_{j - 1}.csv"
     if j >= 1 and prev.exists():       # the convergence condition on the plant the last two trials measured
         dphi = rec["u_ff"] - c.u_ff(j - 1)
@@ -375,6 +385,11 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
             measured = safety.measured_rho(c.update(), c.state["gain"], dphi, rec["y"] - y_prev, floor)
     decision = "stop" if c.state["stopped"] else safety.decide(history, err, floor, s.rollback_factor, s.stop_factor)
     gain = c.state["gain"]
+    q_cut = c.q_cutoff_hz
+    if decision == "learn" and measured["failing"] and min(lo for lo, _ in measured["failing"]) >= FILTER * q_cut:
+        # every failing band in Q's roll-off (a mode the model lacks): Q's cutoff below it, the gain kept
+        decision, q_cut = "filter", 0.8 * min(lo for lo, _ in measured["failing"])
+        c.state["q_cutoff_hz"] = q_cut
     if decision == "learn" and (measured["gain_max"] < gain or measured["uncured"]):   # the measured loop does not
         # contract: slow down by half, or to half the measured bound where halving is not enough (a model far off:
         # one trial, not ten); a band no gain cures (Re L Ĝ <= 0) slows it too, and the console names the fix
@@ -382,7 +397,7 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
     best = min(history + [{"rms": err, "trial": j}], key=lambda h: h["rms"])
     kr = c.controller_term()
     diagnostics = {}
-    if decision in ("learn", "slow"):
+    if decision in ("learn", "slow", "filter"):
         upd = c.update()
         u_next = upd.next(e, rec["u_ff"], gain, kr)
         diagnostics = upd.diagnostics()
@@ -403,7 +418,7 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
              "measured_rho": None if math.isnan(measured["rho_max"]) else measured["rho_max"],
              "measured_band": measured["band"], "measured_ratio": None if math.isnan(measured["ratio"]) else
              measured["ratio"], "uncured_bands": measured["uncured"],
-             "stalled": bool(gain < c.cfg.learn.gain / STALL), **diagnostics}
+             "stalled": bool(gain < c.cfg.learn.gain / STALL), "q_cutoff_hz": q_cut, **diagnostics}
     c.state["trials"].append(entry)
     c.state["gain"] = gain
     plot_errors(c.state["trials"], c.folder / "errors.png")

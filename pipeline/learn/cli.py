@@ -47,7 +47,9 @@ def _line(h: dict) -> str:
                f" > learn.rtol {sol['rtol']:g}: WARNING, raise learn.max_sweeps, or learn.rtol if that is rounding")
                + ")")
     return (f"trial {h['trial']}: rms {h['rms']:.4g} m, MAE {h['mae']:.4g} m, max {h['max']:.4g} m, noise floor "
-            f"{h['noise_floor']:.3g} m -> {h['decision']} (gain {h['gain']:g})" + (sol or "") + warn)
+            f"{h['noise_floor']:.3g} m -> {h['decision']} (gain {h['gain']:g}"
+            + (f", Q's cutoff lowered to {h['q_cutoff_hz']:.4g} Hz below the failing band" if h["decision"] == "filter"
+               else "") + ")" + (sol or "") + warn)
 
 
 def main(argv: list[str] | None = None) -> int:

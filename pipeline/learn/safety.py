@@ -144,7 +144,7 @@ def measured_rho(update, gain: float, dphi: np.ndarray, dy: np.ndarray, noise: f
     model's) no useful gain does. Returns {f_lo, f_hi, rho (NaN where left out), rho_max, band (f_lo, f_hi) of
     the worst band, or None, gain_max: the largest gain every failing band with Re λ > 0 contracts at (inf when
     none), uncured: the failing bands with Re λ ≤ 0, ratio: |λ| of the worst band (the plant's response over the
-    model's there)}."""
+    model's there), failing: every band with ρ̂ ≥ 1}."""
     Ts = update.model.Ts
     n = dphi.size
     X, Y = np.fft.rfft(dphi), np.fft.rfft(dy)
@@ -171,12 +171,13 @@ def measured_rho(update, gain: float, dphi: np.ndarray, dy: np.ndarray, noise: f
         qb, lg = qb / sxx, lg / sxx
     rho = np.where(ok & (qb >= 0.01), qb * np.abs(1.0 - gain * lg), np.nan)
     out = {"f_lo": edges[:-1], "f_hi": edges[1:], "rho": rho, "rho_max": math.nan, "band": None,
-           "gain_max": math.inf, "uncured": [], "ratio": math.nan}
+           "gain_max": math.inf, "uncured": [], "ratio": math.nan, "failing": []}
     if not np.any(np.isfinite(rho)):
         return out
     k = int(np.nanargmax(rho))
     out.update(rho_max=float(rho[k]), band=(float(edges[k]), float(edges[k + 1])), ratio=float(abs(lg[k])))
     for b in np.flatnonzero(np.nan_to_num(rho, nan=0.0) >= 1.0):
+        out["failing"].append((float(edges[b]), float(edges[b + 1])))
         lam, qq = lg[b], min(float(qb[b]), 1.0)
         if lam.real <= 0.0:
             out["uncured"].append((float(edges[b]), float(edges[b + 1])))

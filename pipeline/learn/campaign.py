@@ -191,6 +191,10 @@ class Campaign:
         'filter')."""
         return float(self.state.get("q_cutoff_hz") or self.cfg.learn.q_cutoff_hz)
 
+    def best(self) -> dict:
+        """The entry of the trial with the lowest rms error (of those the machine ran)."""
+        return min(self.state["trials"], key=lambda h: h["rms"])
+
     def loop_model(self, m: LearnModel) -> LoopModel:
         """The update's :class:`LoopModel` of a ``model`` section (the config's, or the refit's)."""
         return LoopModel(self.Ts, m.M, m.F_v, m.K, self.controller(), m.F_c, m.coulomb_width, m.lag_tau)
@@ -375,8 +379,7 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
     err, mae, emax = safety.rms(e), float(np.mean(np.abs(e))), float(np.max(np.abs(e)))
     floor = safety.noise_floor(rec["r"], e, int(round(s.settle_s / c.Ts)))
     history = c.state["trials"]
-    measured = {"rho_max": math.nan, "band": None, "gain_max": math.inf, "uncured": [], "ratio": math.nan,
-                "failing": []}
+    measured = safety.unmeasured()
     prev = c.folder / "recordings" / f"trial_{j - 1}.csv"
     if j >= 1 and prev.exists():       # the convergence condition on the plant the last two trials measured
         dphi = rec["u_ff"] - c.u_ff(j - 1)
@@ -386,14 +389,14 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
     decision = "stop" if c.state["stopped"] else safety.decide(history, err, floor, s.rollback_factor, s.stop_factor)
     gain = c.state["gain"]
     q_cut = c.q_cutoff_hz
-    if decision == "learn" and measured["failing"] and min(lo for lo, _ in measured["failing"]) >= FILTER * q_cut:
+    lowest = min((lo for lo, _ in measured["failing"]), default=0.0)
+    if decision == "learn" and lowest >= FILTER * q_cut:
         # every failing band in Q's roll-off (a mode the model lacks): Q's cutoff below it, the gain kept
-        decision, q_cut = "filter", 0.8 * min(lo for lo, _ in measured["failing"])
+        decision, q_cut = "filter", 0.8 * lowest
         c.state["q_cutoff_hz"] = q_cut
     if decision == "learn" and (measured["gain_max"] < gain or measured["uncured"]):   # the measured loop does not
-        # contract: slow down by half, or to half the measured bound where halving is not enough (a model far off:
-        # one trial, not ten); a band no gain cures (Re L Ĝ <= 0) slows it too, and the console names the fix
-        decision, gain = "slow", (gain / 2.0 if gain / 2.0 < measured["gain_max"] else measured["gain_max"] / 2.0)
+        # contract (safety.slower); a band no gain cures (Re L Ĝ <= 0) slows it too, and the console names the fix
+        decision, gain = "slow", safety.slower(gain, measured["gain_max"])
     best = min(history + [{"rms": err, "trial": j}], key=lambda h: h["rms"])
     kr = c.controller_term()
     diagnostics = {}
@@ -401,8 +404,8 @@ def step(folder, recording: Path, out: Path | None = None) -> dict:
         upd = c.update()
         u_next = upd.next(e, rec["u_ff"], gain, kr)
         diagnostics = upd.diagnostics()
-    elif decision == "rollback":     # half, or half the bound the last two trials measured where that is lower
-        gain = gain / 2.0 if gain / 2.0 < measured["gain_max"] else measured["gain_max"] / 2.0
+    elif decision == "rollback":
+        gain = safety.slower(gain, measured["gain_max"])
         u_next = c.u_ff(best["trial"])
     else:   # stop: the best trial's feedforward from now on
         c.state["stopped"] = True
@@ -603,7 +606,7 @@ def export(folder, out: Path, trial: int | None = None, cc: str | None = "cc", m
     if trial is None and not trials:
         raise ConfigError(f"{folder}: no trial has run yet, so no u_ff of it is measured: run trial 0 with "
                           "u_ff_0.csv first (or export it untried with --trial 0)")
-    j = min(trials, key=lambda h: h["rms"])["trial"] if trial is None else int(trial)
+    j = c.best()["trial"] if trial is None else int(trial)
     if not c.u_ff_path(j).exists():
         raise ConfigError(f"{folder}: no u_ff_{j}.csv; the campaign has u_ff_0 .. u_ff_{len(trials)}")
     if j >= len(trials):

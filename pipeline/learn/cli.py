@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
             c = campaign.load(a.campaign)
             if c.state["stopped"]:
                 last = c.state["trials"][-1]
-                best = min(c.state["trials"], key=lambda h: h["rms"])
+                best = c.best()
                 print(f"campaign {a.campaign} {'stopped' if log else 'had stopped'} after trial {last['trial']} "
                       f"({last['decision']}): the best is trial {best['trial']} (rms {best['rms']:.4g} m); "
                       f"`learn export {a.campaign} --out DIR` ships it", flush=True)

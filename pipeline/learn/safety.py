@@ -129,6 +129,17 @@ MIN_BINS = 4
 COHERENCE = 0.8
 
 
+def unmeasured() -> dict:
+    """:func:`measured_rho`'s findings where nothing was measured (the first trial, no change of φ)."""
+    return {"rho_max": math.nan, "band": None, "gain_max": math.inf, "uncured": [], "ratio": math.nan, "failing": []}
+
+
+def slower(gain: float, gain_max: float) -> float:
+    """The gain after a trial that failed the measured check or rolled back: half, or half the measured bound
+    ``gain_max`` where halving is not enough (a model far off: one trial, not ten)."""
+    return gain / 2.0 if gain / 2.0 < gain_max else gain_max / 2.0
+
+
 def measured_rho(update, gain: float, dphi: np.ndarray, dy: np.ndarray, noise: float = 0.0, nbands: int = 30,
                  snr: float = 10.0) -> dict:
     """The convergence condition against the plant the recordings measured: two trials' differences give the
@@ -156,13 +167,14 @@ def measured_rho(update, gain: float, dphi: np.ndarray, dy: np.ndarray, noise: f
     edges = np.geomspace(f[0], f[-1] * (1 + 1e-12), nbands + 1)
     idx = np.clip(np.searchsorted(edges, f, side="right") - 1, 0, nbands - 1)
     sxx = np.bincount(idx, np.abs(X) ** 2, nbands)
-    lg = np.bincount(idx, (lin * Y * np.conj(X)).real, nbands) + 1j * np.bincount(idx, (lin * Y * np.conj(X)).imag,
-                                                                                   nbands)
+    def band_sum(z):      # a complex spectrum summed over each band's bins
+        return np.bincount(idx, z.real, nbands) + 1j * np.bincount(idx, z.imag, nbands)
+    lg = band_sum(lin * Y * np.conj(X))
     qb = np.bincount(idx, q * np.abs(X) ** 2, nbands)
     syy = np.bincount(idx, np.abs(Y) ** 2, nbands)
     nbins = np.bincount(idx, None, nbands)
     noise = noise if math.isfinite(noise) else 0.0
-    sxy = np.bincount(idx, (Y * np.conj(X)).real, nbands) + 1j * np.bincount(idx, (Y * np.conj(X)).imag, nbands)
+    sxy = band_sum(Y * np.conj(X))
     with np.errstate(divide="ignore", invalid="ignore"):
         coherence = np.abs(sxy) ** 2 / (sxx * syy)
     ok = (nbins >= MIN_BINS) & (sxx > 1e-6 * sxx.max()) & (syy > snr * nbins * 2.0 * noise ** 2 * n) \
@@ -170,8 +182,7 @@ def measured_rho(update, gain: float, dphi: np.ndarray, dy: np.ndarray, noise: f
     with np.errstate(divide="ignore", invalid="ignore"):
         qb, lg = qb / sxx, lg / sxx
     rho = np.where(ok & (qb >= 0.01), qb * np.abs(1.0 - gain * lg), np.nan)
-    out = {"f_lo": edges[:-1], "f_hi": edges[1:], "rho": rho, "rho_max": math.nan, "band": None,
-           "gain_max": math.inf, "uncured": [], "ratio": math.nan, "failing": []}
+    out = {"f_lo": edges[:-1], "f_hi": edges[1:], "rho": rho, **unmeasured()}
     if not np.any(np.isfinite(rho)):
         return out
     k = int(np.nanargmax(rho))

@@ -8,7 +8,6 @@ relative covers glibc's tanh against numba's, as in test_export.py); flags are c
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import shutil
@@ -77,18 +76,10 @@ def _envelope(law: Law, r: np.ndarray, margin: float = 0.1) -> dict:
     return {"env_lo": lo, "env_hi": hi}
 
 
-#: {package folder: (sha256 of its C sources, the harness built from them)}
-_BUILT: dict[Path, tuple[str, Path]] = {}
-
-
 def _c_run(law: Law, name: str, folder: Path, r: np.ndarray):
-    """(u, flags) of the compiled C harness on r; the harness is compiled again only when the package's
-    C sources changed (a test runs one package on several references)."""
-    pkg = folder / name
-    digest = hashlib.sha256(b"".join(p.name.encode() + p.read_bytes() for p in sorted(pkg.glob("*.[ch]")))).hexdigest()
-    built = _BUILT.get(pkg)
-    exe = built[1] if built and built[0] == digest and built[1].exists() else compile_harness(pkg, name, CC)
-    _BUILT[pkg] = (digest, exe)
+    """(u, flags) of the compiled C harness on r (a test runs one package on several references: its harness is
+    built once, tests/conftest.py ``_built_once``)."""
+    exe = compile_harness(folder / name, name, CC)
     f = folder / f"in_{name}.csv"
     f.write_text("r\n" + "\n".join(repr(float(v)) for v in r) + "\n")
     return run_harness(exe, f, flags=True)
